@@ -1,0 +1,6 @@
+"""Estimation plugins, one sub-package per role, each with a small base class.
+
+Roles: ``centroider``, ``identifier``, ``filter`` (star motion), ``correction`` (rolling shutter),
+``attitude`` (solvers and smoothers), ``rate`` (angular-rate estimators).
+Every plugin passes its role's shared conformance suite (``tests/conformance``).
+"""

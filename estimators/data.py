@@ -1,0 +1,204 @@
+"""Data passed between pipeline stages: one frame's stars, estimates, and the sensor context.
+
+Data flows one way: the runner builds a :class:`FrameData` from the recording, every stage returns
+a new :class:`FrameData` (inputs are never mutated), and the runner writes the result.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+_FLOAT_COLUMNS = ("x", "y", "flux", "peak", "snr", "sigma_px", "vx", "vy")
+_INT_COLUMNS = ("t_ns", "row_time_ns", "catalog_id", "npix")
+
+
+@dataclass(frozen=True, eq=False)
+class StarTable:
+    """Per-star columns of one frame; every array has length ``n`` (``ref_icrs`` is (n, 3)).
+
+    - ``x, y``: position in pixels (column, row).
+    - ``t_ns``: the time the position refers to. Raw centroids refer to the mid-exposure of their
+      own row; a rolling-shutter correction moves every star to one common time and says so here.
+    - ``row_time_ns``: exposure start of the star's (fractional) centroid row, ``t0 + y * line_delay``.
+    - ``flux`` (ADU or electrons above background), ``peak``, ``npix``, ``saturated``, ``snr``.
+    - ``sigma_px``: 1-sigma position uncertainty per axis (NaN when unknown).
+    - ``vx, vy``: image velocity in px/s (NaN when unknown; star-motion filters fill it).
+    - ``catalog_id``: identified catalogue star (-1 when unidentified); ``ref_icrs`` its ICRS unit
+      vector (NaN rows when unidentified).
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    t_ns: np.ndarray
+    row_time_ns: np.ndarray
+    flux: np.ndarray
+    peak: np.ndarray
+    npix: np.ndarray
+    saturated: np.ndarray
+    snr: np.ndarray
+    sigma_px: np.ndarray
+    vx: np.ndarray
+    vy: np.ndarray
+    catalog_id: np.ndarray
+    ref_icrs: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return int(self.x.shape[0])
+
+    def __len__(self) -> int:
+        return self.n
+
+    @classmethod
+    def build(cls, x, y, t_ns, row_time_ns=None, **columns) -> "StarTable":
+        """Make a table from the required columns; the others get their 'unknown' defaults."""
+        x = np.asarray(x, dtype=float).reshape(-1)
+        n = x.shape[0]
+        t_ns = np.broadcast_to(np.asarray(t_ns, dtype=np.int64), (n,)).copy()
+        values: dict[str, Any] = {
+            "x": x,
+            "y": np.asarray(y, dtype=float).reshape(-1),
+            "t_ns": t_ns,
+            "row_time_ns": t_ns.copy() if row_time_ns is None else np.broadcast_to(np.asarray(row_time_ns, dtype=np.int64), (n,)).copy(),
+        }
+        defaults = {
+            "flux": np.full(n, np.nan),
+            "peak": np.full(n, np.nan),
+            "npix": np.zeros(n, dtype=np.int64),
+            "saturated": np.zeros(n, dtype=bool),
+            "snr": np.full(n, np.nan),
+            "sigma_px": np.full(n, np.nan),
+            "vx": np.full(n, np.nan),
+            "vy": np.full(n, np.nan),
+            "catalog_id": np.full(n, -1, dtype=np.int64),
+            "ref_icrs": np.full((n, 3), np.nan),
+        }
+        unknown = set(columns) - set(defaults)
+        if unknown:
+            raise TypeError(f"unknown StarTable columns: {sorted(unknown)}")
+        for name, default in defaults.items():
+            value = columns.get(name)
+            if value is None:
+                values[name] = default
+            else:
+                arr = np.asarray(value, dtype=default.dtype)
+                values[name] = np.broadcast_to(arr, default.shape).copy()
+        return cls(**values)
+
+    @classmethod
+    def empty(cls) -> "StarTable":
+        return cls.build(np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64))
+
+    def take(self, index) -> "StarTable":
+        """Rows selected by an integer index or boolean mask (copies)."""
+        return StarTable(**{f.name: np.asarray(getattr(self, f.name))[index].copy() for f in fields(self)})
+
+    def with_columns(self, **columns) -> "StarTable":
+        """A copy with some columns replaced (shapes checked)."""
+        for name, value in columns.items():
+            old = getattr(self, name)
+            if np.shape(value) != old.shape:
+                raise ValueError(f"column {name!r}: expected shape {old.shape}, got {np.shape(value)}")
+        return replace(self, **{k: np.asarray(v, dtype=getattr(self, k).dtype).copy() for k, v in columns.items()})
+
+    @property
+    def identified(self) -> np.ndarray:
+        """Boolean mask of stars with a catalogue identification."""
+        return self.catalog_id >= 0
+
+
+@dataclass(frozen=True)
+class AttitudeEstimate:
+    """One attitude estimate.
+
+    ``q_xyzw`` is the camera-to-ICRS rotation (scalar-last); ``covariance_rad2`` the 3x3
+    covariance of the attitude error in the camera frame (rad^2), or None. ``valid`` is False when
+    the estimate could not be made (``reason`` says why); then ``q_xyzw`` is NaN.
+    """
+
+    t_ns: int
+    q_xyzw: np.ndarray
+    n_stars: int
+    valid: bool = True
+    reason: str = ""
+    covariance_rad2: np.ndarray | None = None
+
+    @property
+    def rotation(self) -> Rotation:
+        return Rotation.from_quat(self.q_xyzw)
+
+    @classmethod
+    def invalid(cls, t_ns: int, n_stars: int, reason: str) -> "AttitudeEstimate":
+        return cls(t_ns=int(t_ns), q_xyzw=np.full(4, np.nan), n_stars=int(n_stars), valid=False, reason=reason)
+
+
+@dataclass(frozen=True)
+class RateEstimate:
+    """Angular velocity of the camera in the camera frame (rad/s) at ``t_ns``."""
+
+    t_ns: int
+    omega_rad_s: np.ndarray
+    valid: bool = True
+    reason: str = ""
+    covariance: np.ndarray | None = None
+    iterations: int | None = None
+
+
+@dataclass(frozen=True)
+class GyroSamples:
+    """Gyro samples (camera frame, rad/s) received since the previous frame."""
+
+    t_ns: np.ndarray
+    omega_rad_s: np.ndarray
+
+    @classmethod
+    def empty(cls) -> "GyroSamples":
+        return cls(np.zeros(0, dtype=np.int64), np.zeros((0, 3)))
+
+
+@dataclass(frozen=True)
+class FrameData:
+    """Everything the stages know about one frame.
+
+    ``image`` is the raw frame (H, W) when the recording has images; ``stars`` the current star
+    table (detections, then identified, filtered, corrected stars); ``unmatched`` the detections an
+    identifier could not match; ``attitudes`` one or more estimates (several per frame for
+    sub-frame solvers); ``flags`` short machine-readable notes (e.g. ``"too_few_stars"``).
+    """
+
+    index: int
+    t0_ns: int
+    image: np.ndarray | None = None
+    stars: StarTable | None = None
+    unmatched: StarTable | None = None
+    gyro: GyroSamples = field(default_factory=GyroSamples.empty)
+    attitudes: tuple[AttitudeEstimate, ...] = ()
+    rate: RateEstimate | None = None
+    flags: tuple[str, ...] = ()
+
+    def evolve(self, **changes) -> "FrameData":
+        """A new frame with some fields replaced (frames are immutable)."""
+        return replace(self, **changes)
+
+    def flagged(self, flag: str) -> "FrameData":
+        return replace(self, flags=self.flags + (flag,))
+
+
+@dataclass(frozen=True)
+class SensorContext:
+    """What a stage may know about the sensor, given once before the first frame.
+
+    Built by the runner from the recording's declared sensor model (metadata). ``catalog`` is a
+    :class:`sensors.catalog.StarCatalog`; ``initial_attitude`` a prior (camera-to-ICRS) when the
+    recording or config declares one.
+    """
+
+    camera: Any  # sensors.camera.PinholeCamera
+    timing: Any  # sensors.timing.DetectorTiming
+    catalog: Any  # sensors.catalog.StarCatalog
+    initial_attitude: Rotation | None = None
+    centroid_sigma_px: float | None = None
+    bit_depth: int | None = None

@@ -1,0 +1,10 @@
+"""Star-motion filters: smooth identified star positions over frames and estimate image velocity."""
+from __future__ import annotations
+
+from estimators.plugin import Plugin
+
+
+class StarMotionFilter(Plugin):
+    """Replaces ``x, y`` (and ``sigma_px``) with filtered values and fills ``vx, vy`` (px/s)."""
+
+    role = "filter"

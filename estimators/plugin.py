@@ -1,0 +1,48 @@
+"""The one interface every plugin implements.
+
+Modelled on scikit-learn: the constructor only validates and stores parameters (a pydantic model,
+``Params``, with unknown keys rejected); state is created in :meth:`Plugin.setup`, called by the
+runner once before the first frame with the :class:`~estimators.data.SensorContext`;
+:meth:`Plugin.process` maps one :class:`~estimators.data.FrameData` to a new one without mutating
+its input. Third-party plugins subclass the role base class and register under the entry-point
+group ``rollingstar.plugins``.
+"""
+from __future__ import annotations
+
+from typing import ClassVar
+
+from pydantic import BaseModel, ConfigDict
+
+from estimators.data import FrameData, SensorContext
+
+
+class NoParams(BaseModel):
+    """Parameters of a plugin that takes none."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+class Plugin:
+    """Base class of all plugins. Subclasses set ``role``, ``name``, ``Params`` and a docstring."""
+
+    role: ClassVar[str] = ""
+    name: ClassVar[str] = ""
+    Params: ClassVar[type[BaseModel]] = NoParams
+
+    def __init__(self, **params):
+        self.params = self.Params(**params)
+
+    def setup(self, context: SensorContext) -> None:
+        """Prepare per-run state. Called once before the first frame, and again to restart."""
+        self.context = context
+
+    def process(self, frame: FrameData) -> FrameData:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def finish(self) -> list[FrameData]:
+        """Frames still held back when the recording ends (smoothers); default none."""
+        return []
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.params.model_dump().items())
+        return f"{type(self).__name__}({args})"
