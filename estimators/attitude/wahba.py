@@ -1,0 +1,241 @@
+"""Batched solutions of Wahba's problem: QUEST (Shuster & Oh 1981) and its measurement covariance.
+
+Wahba's problem: find the attitude matrix ``A`` (reference frame -> body frame) minimising
+
+    L(A) = 1/2 sum_i a_i |b_i - A r_i|^2,
+
+with ``b_i`` unit observation vectors in the body (camera) frame, ``r_i`` the matching unit
+reference vectors (ICRS) and weights ``a_i > 0``. With ``B = sum_i a_i b_i r_i^T``,
+``L(A) = sum a_i - tr(A B^T)``.
+
+Project convention: an *attitude* is the camera-to-ICRS rotation ``R`` (``r = R b``), so the
+QUEST attitude matrix is ``A = R^T``. Shuster's quaternion ``q = [X; gamma]`` parametrises
+``A(q) = (q4^2 - |q|^2) I + 2 q q^T - 2 q4 [q x]``, which is the *transpose* of scipy's matrix of
+the same quaternion: scipy ``Rotation.from_quat([X, gamma])`` is therefore exactly the
+camera-to-ICRS rotation ``R``; no conjugation is needed.
+
+Everything here is vectorised over frames ``F`` (leading axis) and stars ``N``; a ``mask`` selects
+the stars of each frame that take part (padding for ragged batches).
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+__all__ = ["QuestResult", "quest", "quest_covariance", "wahba_loss"]
+
+
+class QuestResult(NamedTuple):
+    """Output of :func:`quest`, one row per frame.
+
+    - ``q_xyzw`` (F, 4): camera-to-ICRS quaternion, scalar last, ``w >= 0``; NaN where invalid.
+    - ``loss`` (F,): Wahba loss ``1/2 sum a_i |b_i - A r_i|^2 = sum a_i - lambda_max`` at the
+      solution, for the weights as given (so with
+      ``a_i = 1 / sigma_i^2`` in rad^-2, ``2 * loss`` is approximately chi-square with ``2N - 3``
+      degrees of freedom); NaN where invalid.
+    - ``valid`` (F,): False for fewer than two usable stars, non-finite input or collinear
+      observations (rotation about their common axis unobservable).
+    """
+
+    q_xyzw: np.ndarray
+    loss: np.ndarray
+    valid: np.ndarray
+
+
+# 180-degree rotations about x, y, z applied to the reference vectors (Shuster & Oh's method of
+# sequential rotations). Index 0 is the identity (no rotation).
+_FLIPS = np.array([[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]])
+# Quaternions (xyzw) of those rotations, for undoing them: R = R_flip * R'.
+_FLIP_QUATS = np.array([[0.0, 0.0, 0.0, 1.0], [1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+
+
+def _prepare(ref_icrs, obs_cam, weights, mask):
+    ref = np.asarray(ref_icrs, dtype=float)
+    obs = np.asarray(obs_cam, dtype=float)
+    if ref.ndim == 2:
+        ref, obs = ref[None], obs[None]
+    if ref.shape != obs.shape or ref.ndim != 3 or ref.shape[-1] != 3:
+        raise ValueError(f"ref_icrs and obs_cam must both have shape (F, N, 3); got {ref.shape} and {obs.shape}")
+    F, N, _ = ref.shape
+    w = np.ones((F, N)) if weights is None else np.broadcast_to(np.asarray(weights, dtype=float), (F, N)).copy()
+    m = np.ones((F, N), dtype=bool) if mask is None else np.broadcast_to(np.asarray(mask, dtype=bool), (F, N)).copy()
+    finite = np.isfinite(ref).all(-1) & np.isfinite(obs).all(-1) & np.isfinite(w)
+    if np.any(m & (w <= 0) & finite):
+        raise ValueError("weights of the stars in use must be > 0")
+    # A frame with non-finite data among its used stars is invalid (never silently dropped).
+    bad_frame = np.any(m & ~finite, axis=1)
+    m = m & finite
+    # Zero the unused entries so that sums ignore them without NaN propagation.
+    ref = np.where(m[..., None], ref, 0.0)
+    obs = np.where(m[..., None], obs, 0.0)
+    w = np.where(m, w, 0.0)
+    return ref, obs, w, m, bad_frame
+
+
+def quest(ref_icrs, obs_cam, weights=None, mask=None, *, newton_tol: float = 1e-15, max_newton: int = 50,
+          degenerate_tol: float = 1e-10, refine: bool = True) -> QuestResult:
+    """QUEST (Shuster & Oh 1981, J. Guidance Control 4(1):70-77), batched over frames.
+
+    Parameters: ``ref_icrs`` and ``obs_cam`` (F, N, 3) or (N, 3) unit vectors; ``weights`` (F, N)
+    positive (default equal; only their ratios change the attitude; the usual choice is
+    ``1 / sigma_i^2``); ``mask`` (F, N) bool of the stars in use.
+
+    Algorithm (weights normalised to ``sum a_i = 1`` internally for conditioning)::
+
+        B = sum a_i b_i r_i^T,  S = B + B^T,  Z = sum a_i b_i x r_i,  sigma = tr B,
+        kappa = tr adj S,  Delta = det S,
+        a = sigma^2 - kappa,  b = sigma^2 + Z.Z,  c = Delta + Z.S Z,  d = Z.S^2 Z,
+        lambda^4 - (a + b) lambda^2 - c lambda + (a b + c sigma - d) = 0   (characteristic eq.)
+
+    solved for ``lambda_max`` by Newton-Raphson from ``lambda_0 = sum a_i = 1`` (iterated for all
+    frames until every frame has converged to ``newton_tol``); then
+
+        alpha = lambda^2 - sigma^2 + kappa,  beta = lambda - sigma,
+        gamma = (lambda + sigma) alpha - Delta,  X = (alpha I + beta S + S^2) Z,
+        q = [X; gamma] / |[X; gamma]|.
+
+    ``[X; gamma]`` is the last column of ``adj(lambda_max I - K)``, proportional to ``q4 q``; it
+    vanishes as the rotation approaches 180 degrees (Gibbs vector singular). Method of sequential
+    rotations: the problem is also solved with the reference vectors rotated by 180 degrees about
+    x, y and z (``lambda_max`` is unchanged; ``gamma`` of each variant is proportional to the
+    square of a different quaternion component), each frame keeps the variant with the largest
+    ``|gamma|`` (the best-conditioned one) and the rotation is undone: ``R = R_flip R'``.
+
+    With ``refine`` (default) the QUEST quaternion is polished by one step of inverse iteration on
+    Davenport's ``K = [[S - sigma I, Z], [Z^T, sigma]]`` shifted by ``lambda_max`` (the eigenvalue
+    QUEST just found), which brings it to the accuracy of an SVD solution for closely spaced stars.
+
+    Degenerate geometry (all observation vectors parallel or anti-parallel): the smallest
+    eigenvalue of ``sum a_i (I - b_i b_i^T)`` relative to its trace is below ``degenerate_tol``.
+    """
+    ref, obs, w, m, bad_frame = _prepare(ref_icrs, obs_cam, weights, mask)
+    F = ref.shape[0]
+    n_used = m.sum(axis=1)
+    wsum = w.sum(axis=1)
+    safe_wsum = np.where(wsum > 0, wsum, 1.0)
+    a = w / safe_wsum[:, None]  # normalised weights, sum 1 per usable frame
+
+    # Degeneracy: information matrix of the measurement model (normalised weights).
+    info = np.einsum("fn,ij->fij", a, np.eye(3)) - np.einsum("fn,fni,fnj->fij", a, obs, obs)
+    eig = np.linalg.eigvalsh(info)
+    trace = np.trace(info, axis1=1, axis2=2)
+    degenerate = eig[:, 0] <= degenerate_tol * np.where(trace > 0, trace, 1.0)
+
+    B0 = np.einsum("fn,fni,fnj->fij", a, obs, ref)  # (F, 3, 3)
+    # Four variants: reference rotated by 180 deg about none/x/y/z => columns of B sign-flipped.
+    B = B0[None] * _FLIPS[:, None, None, :]  # (4, F, 3, 3)
+    S = B + np.swapaxes(B, -1, -2)
+    Z = np.stack([B[..., 1, 2] - B[..., 2, 1], B[..., 2, 0] - B[..., 0, 2], B[..., 0, 1] - B[..., 1, 0]], axis=-1)
+    sigma = np.trace(B, axis1=-2, axis2=-1)
+    delta = np.linalg.det(S)
+    # kappa = trace of the adjugate of S = sum of the principal 2x2 minors.
+    kappa = (S[..., 0, 0] * S[..., 1, 1] - S[..., 0, 1] * S[..., 1, 0]
+             + S[..., 0, 0] * S[..., 2, 2] - S[..., 0, 2] * S[..., 2, 0]
+             + S[..., 1, 1] * S[..., 2, 2] - S[..., 1, 2] * S[..., 2, 1])
+    SZ = np.einsum("kfij,kfj->kfi", S, Z)
+    S2Z = np.einsum("kfij,kfj->kfi", S, SZ)
+
+    # lambda_max is invariant under the flips: solve the characteristic equation once (variant 0).
+    s0, k0, d0, Z0, SZ0, S2Z0 = sigma[0], kappa[0], delta[0], Z[0], SZ[0], S2Z[0]
+    ca = s0**2 - k0
+    cb = s0**2 + np.einsum("fi,fi->f", Z0, Z0)
+    cc = d0 + np.einsum("fi,fi->f", Z0, SZ0)
+    cd = np.einsum("fi,fi->f", Z0, S2Z0)
+    c2 = -(ca + cb)
+    c0 = ca * cb + cc * s0 - cd
+    lam = np.ones(F)
+    active = np.ones(F, dtype=bool)
+    for _ in range(max_newton):
+        f = ((lam**2 + c2) * lam - cc) * lam + c0
+        fp = (4 * lam**2 + 2 * c2) * lam - cc
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = np.where(active & (fp != 0), f / fp, 0.0)
+        lam = lam - step
+        active = active & (np.abs(step) > newton_tol)
+        if not active.any():
+            break
+
+    alpha = lam**2 - sigma**2 + kappa
+    beta = lam - sigma
+    gamma = (lam + sigma) * alpha - delta  # (4, F)
+    X = alpha[..., None] * Z + beta[..., None] * SZ + S2Z  # (4, F, 3)
+    best = np.argmax(np.abs(gamma), axis=0)  # (F,)
+    fidx = np.arange(F)
+    q_prime = np.concatenate([X[best, fidx], gamma[best, fidx][:, None]], axis=-1)
+    norm = np.linalg.norm(q_prime, axis=-1)
+    ok = np.isfinite(norm) & (norm > 0)
+    q_prime = q_prime / np.where(ok, norm, 1.0)[:, None]
+    q_prime[~ok] = [0.0, 0.0, 0.0, 1.0]
+    if refine:
+        # One step of inverse iteration on Davenport's K of the chosen variant, shifted just above
+        # lambda_max: (lambda' I - K) q_new = q. It removes the error QUEST inherits from solving
+        # the characteristic equation in floating point (relative error ~ eps / gap^2 for close
+        # stars), leaving the eigenvector's own conditioning ~ eps / gap, as an SVD solution.
+        Sb, Zb, sb = S[best, fidx], Z[best, fidx], sigma[best, fidx]
+        K = np.empty((F, 4, 4))
+        K[:, :3, :3] = Sb - sb[:, None, None] * np.eye(3)
+        K[:, :3, 3] = Zb
+        K[:, 3, :3] = Zb
+        K[:, 3, 3] = sb
+        shift = np.where(np.isfinite(lam), lam, 1.0) + 1e-12
+        M = shift[:, None, None] * np.eye(4) - K
+        M[~ok] = np.eye(4)
+        try:
+            q_new = np.linalg.solve(M, q_prime[..., None])[..., 0]
+        except np.linalg.LinAlgError:  # exactly singular somewhere: keep the QUEST answer
+            q_new = q_prime
+        n_new = np.linalg.norm(q_new, axis=-1)
+        use = ok & np.isfinite(n_new) & (n_new > 0)
+        q_new = q_new / np.where(use, n_new, 1.0)[:, None]
+        q_prime = np.where(use[:, None], np.where(np.sum(q_new * q_prime, axis=-1, keepdims=True) < 0, -q_new, q_new), q_prime)
+    q = (Rotation.from_quat(_FLIP_QUATS[best]) * Rotation.from_quat(q_prime)).as_quat(canonical=True)
+
+    valid = ok & ~bad_frame & (n_used >= 2) & ~degenerate & np.isfinite(lam)
+    # Wahba loss at the solution, 1/2 sum a_i |b_i - A r_i|^2 (= sum a_i - lambda_max, but without
+    # the cancellation of that difference for small residuals).
+    Rm = Rotation.from_quat(q).as_matrix()
+    resid = obs - np.einsum("fji,fnj->fni", Rm, ref)  # b - R^T r
+    loss = np.where(valid, 0.5 * np.einsum("fn,fn->f", w, np.sum(resid**2, axis=-1)), np.nan)
+    q[~valid] = np.nan
+    return QuestResult(q_xyzw=q, loss=loss, valid=valid)
+
+
+def quest_covariance(obs_cam, weights_rad2, mask=None) -> np.ndarray:
+    """QUEST measurement-model attitude-error covariance (Shuster & Oh 1981), camera frame, rad^2.
+
+    ``P = (sum_i a_i (I - b_i b_i^T))^-1`` with ``a_i = 1 / sigma_i^2`` (``sigma_i`` the 1-sigma
+    angular error of observation ``i`` in rad). Shape (F, 3, 3); NaN for frames whose information
+    matrix is singular (fewer than two non-parallel observations).
+    """
+    obs = np.asarray(obs_cam, dtype=float)
+    if obs.ndim == 2:
+        obs = obs[None]
+    F, N, _ = obs.shape
+    w = np.broadcast_to(np.asarray(weights_rad2, dtype=float), (F, N))
+    m = np.ones((F, N), dtype=bool) if mask is None else np.broadcast_to(np.asarray(mask, dtype=bool), (F, N))
+    m = m & np.isfinite(obs).all(-1) & np.isfinite(w)
+    w = np.where(m, w, 0.0)
+    obs = np.where(m[..., None], obs, 0.0)
+    info = np.einsum("fn,ij->fij", w, np.eye(3)) - np.einsum("fn,fni,fnj->fij", w, obs, obs)
+    eig = np.linalg.eigvalsh(info)
+    good = eig[:, 0] > 1e-10 * np.maximum(eig[:, -1], np.finfo(float).tiny)
+    out = np.full((F, 3, 3), np.nan)
+    if good.any():
+        inv = np.linalg.inv(info[good])
+        out[good] = 0.5 * (inv + np.swapaxes(inv, -1, -2))
+    return out
+
+
+def wahba_loss(q_xyzw, ref_icrs, obs_cam, weights=None) -> np.ndarray:
+    """Wahba loss ``1/2 sum a_i |b_i - R^T r_i|^2`` of camera-to-ICRS quaternions, (F,)."""
+    ref = np.asarray(ref_icrs, dtype=float)
+    obs = np.asarray(obs_cam, dtype=float)
+    if ref.ndim == 2:
+        ref, obs = ref[None], obs[None]
+    F, N, _ = ref.shape
+    w = np.ones((F, N)) if weights is None else np.broadcast_to(np.asarray(weights, dtype=float), (F, N))
+    R = Rotation.from_quat(np.asarray(q_xyzw, dtype=float).reshape(F, 4)).as_matrix()
+    pred = np.einsum("fji,fnj->fni", R, ref)  # R^T r
+    return 0.5 * np.einsum("fn,fn->f", w, np.sum((obs - pred) ** 2, axis=-1))

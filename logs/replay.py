@@ -1,0 +1,98 @@
+"""Replay a log frame by frame: group side-topic messages with the frame they lead up to.
+
+:func:`iter_frames` streams the log (through the index when the file has one) and yields one
+:class:`FrameMessages` per frame message; :func:`image_from_raw` turns a ``foxglove.RawImage``
+into a numpy array.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Iterable, Iterator
+
+import numpy as np
+
+from .errors import LogFormatError
+from .reader import LogReader, Message
+
+FRAME_TOPICS = ("/camera/image", "/camera/centroids")
+
+
+@dataclass(frozen=True)
+class FrameMessages:
+    """One frame message and, per side topic, the messages that belong to it.
+
+    ``side[topic]`` holds the messages whose log time is after the previous frame's log time and
+    at or before this frame's (for the first frame: every earlier message), in log-time order.
+    Every requested side topic has an entry, possibly empty.
+    """
+
+    index: int
+    frame: Message
+    side: dict[str, tuple[Message, ...]] = field(default_factory=dict)
+
+    @property
+    def t0_ns(self) -> int:
+        return self.frame.log_time_ns
+
+
+def iter_frames(reader: LogReader, frame_topic: str = "/camera/image",
+                side_topics: Iterable[str] = ()) -> Iterator[FrameMessages]:
+    """Yield a :class:`FrameMessages` per message on ``frame_topic``, in log-time order.
+
+    Side messages logged after the last frame belong to no frame and are not yielded. Two frame
+    messages with the same log time raise :class:`LogFormatError` (frame times must increase).
+    """
+    side = tuple(side_topics)
+    if frame_topic in side:
+        raise ValueError(f"frame topic {frame_topic} cannot also be a side topic")
+    reader.require_topics([frame_topic])
+    buckets: dict[str, list[Message]] = {t: [] for t in side}
+    pending: Message | None = None
+    index = 0
+    for msg in reader.messages(topics=(frame_topic, *side)):
+        if pending is not None and msg.log_time_ns > pending.log_time_ns:
+            yield FrameMessages(index, pending, {t: tuple(v) for t, v in buckets.items()})
+            index += 1
+            buckets = {t: [] for t in side}
+            pending = None
+        if msg.topic == frame_topic:
+            if pending is not None:
+                raise LogFormatError(
+                    f"{reader.path}: two messages on {frame_topic} at log time {msg.log_time_ns} ns; "
+                    "frame log times must strictly increase")
+            pending = msg
+        else:
+            buckets[msg.topic].append(msg)
+    if pending is not None:
+        yield FrameMessages(index, pending, {t: tuple(v) for t, v in buckets.items()})
+
+
+_BYTES_PER_PIXEL = {"mono8": 1, "mono16": 2}
+
+
+def image_from_raw(msg: Message | Any, topic: str | None = None) -> np.ndarray:
+    """A (H, W) uint8 / uint16 array from a ``foxglove.RawImage`` (a :class:`Message` or the protobuf).
+
+    Supports ``mono8`` and little-endian ``mono16``; rows may be padded (``step`` >= width * bytes
+    per pixel). Raises :class:`LogFormatError` naming the topic and frame time on a size mismatch.
+    """
+    if isinstance(msg, Message):
+        raw, topic, t_ns = msg.data, msg.topic, msg.log_time_ns
+    else:
+        raw = msg
+        t_ns = raw.timestamp.seconds * 1_000_000_000 + raw.timestamp.nanos
+    where = f"image on {topic or '(unknown topic)'} at {t_ns} ns"
+    bpp = _BYTES_PER_PIXEL.get(raw.encoding)
+    if bpp is None:
+        raise LogFormatError(f"{where}: encoding {raw.encoding!r} not supported (expected mono8 or mono16)")
+    width, height, step = int(raw.width), int(raw.height), int(raw.step)
+    if step < width * bpp:
+        raise LogFormatError(f"{where}: step {step} is less than width {width} x {bpp} bytes per pixel")
+    if len(raw.data) != step * height:
+        raise LogFormatError(
+            f"{where}: {raw.encoding} {width}x{height} with step {step} needs {step * height} bytes, "
+            f"data has {len(raw.data)}")
+    dtype = np.dtype("<u2") if bpp == 2 else np.dtype(np.uint8)
+    rows = np.frombuffer(raw.data, dtype=np.uint8).reshape(height, step)[:, : width * bpp]
+    image = np.ascontiguousarray(rows).view(dtype).reshape(height, width)
+    return image.astype(np.uint16) if bpp == 2 else image.copy()

@@ -1,0 +1,120 @@
+"""Turn a validated :class:`~pipelines.config.ScenarioConfig` into the sensor objects.
+
+This is the only place that converts config units (mm, us, deg/s, deg/h) into the SI units and
+integer nanoseconds the ``sensors`` package works in.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from estimators.data import SensorContext
+from pipelines.config import ScenarioConfig
+from pipelines.errors import ConfigError
+from sensors.camera import PinholeCamera
+from sensors.catalog import StarCatalog
+from sensors.conventions import attitude_from_radec_roll, seconds_to_ns
+from sensors.effects import EFFECTS, build_effect
+from sensors.gyro import GyroModel
+from sensors.motion import AttitudeMotion, JitterMotion, PiecewiseMotion, Segment
+from sensors.timing import DetectorTiming
+
+DEG = np.pi / 180.0
+ARCSEC = DEG / 3600.0
+HOUR = 3600.0
+
+
+def build_camera(cfg: ScenarioConfig) -> PinholeCamera:
+    s = cfg.sensor
+    cx, cy = s.principal_point_px if s.principal_point_px is not None else (None, None)
+    return PinholeCamera(s.focal_length_mm * 1e-3, s.pixel_size_um * 1e-6, s.width_px, s.height_px, cx, cy)
+
+
+def build_timing(cfg: ScenarioConfig) -> DetectorTiming:
+    sh = cfg.shutter
+    period = None if sh.frame_period_ms is None else seconds_to_ns(sh.frame_period_ms * 1e-3)
+    return DetectorTiming(
+        mode=sh.mode,
+        exposure_ns=seconds_to_ns(sh.exposure_ms * 1e-3),
+        line_delay_ns=seconds_to_ns(sh.line_delay_us * 1e-6),
+        rows=cfg.sensor.height_px,
+        frame_period_ns=period,
+    )
+
+
+def initial_attitude(cfg: ScenarioConfig) -> Rotation:
+    a = cfg.motion.initial_attitude
+    return attitude_from_radec_roll(a.ra_deg, a.dec_deg, a.roll_deg)
+
+
+def build_motion(cfg: ScenarioConfig) -> AttitudeMotion:
+    m = cfg.motion
+    if m.segments:
+        segments = [
+            Segment(seconds_to_ns(s.duration_s), np.asarray(s.rate_deg_s) * DEG, np.asarray(s.accel_deg_s2) * DEG)
+            for s in m.segments
+        ]
+    else:
+        long_ns = seconds_to_ns(1e6)  # the last segment's law continues past its end anyway
+        segments = [Segment(long_ns, np.asarray(m.rate_deg_s) * DEG, np.asarray(m.accel_deg_s2) * DEG)]
+    motion: AttitudeMotion = PiecewiseMotion(initial_attitude(cfg), segments)
+    if m.jitter:
+        motion = JitterMotion(
+            motion,
+            amplitude_rad=np.array([j.amplitude_arcsec for j in m.jitter]) * ARCSEC,
+            frequency_hz=np.array([j.frequency_hz for j in m.jitter]),
+            phase_rad=np.array([j.phase_deg for j in m.jitter]) * DEG,
+        )
+    return motion
+
+
+def build_catalog(cfg: ScenarioConfig, camera: PinholeCamera | None = None) -> StarCatalog:
+    """Hipparcos-2 at the scenario epoch, or synthetic stars that image at ``positions_px`` at t=0."""
+    c = cfg.catalog
+    if c.source == "hipparcos":
+        return StarCatalog.from_hipparcos(epoch_year=c.epoch_year, magnitude_limit=c.magnitude_limit)
+    if not c.positions_px:
+        raise ConfigError("catalog.positions_px: a synthetic catalogue needs at least one (x, y) position")
+    camera = camera or build_camera(cfg)
+    xy = np.asarray(c.positions_px, dtype=float)
+    w_cam = camera.unproject(xy[:, 0], xy[:, 1])
+    unit_icrs = initial_attitude(cfg).apply(w_cam)
+    return StarCatalog.synthetic(unit_icrs, magnitude=np.full(len(xy), c.magnitude), epoch_year=c.epoch_year)
+
+
+def build_effects(cfg: ScenarioConfig) -> list:
+    effects = []
+    for i, e in enumerate(cfg.effects):
+        if e.kind not in EFFECTS:
+            raise ConfigError(f"effects[{i}].kind: unknown effect {e.kind!r}; valid effects: {', '.join(sorted(EFFECTS))}")
+        try:
+            effects.append(build_effect(e.kind, dict(e.params)))
+        except ValueError as exc:
+            raise ConfigError(f"effects[{i}].params: {exc}") from None
+    return effects
+
+
+def build_gyro(cfg: ScenarioConfig) -> GyroModel | None:
+    g = cfg.gyro
+    if not g.enabled:
+        return None
+    return GyroModel(
+        rate_hz=g.rate_hz,
+        bias_rad_s=np.asarray(g.bias_deg_h) * DEG / HOUR,
+        arw_rad_sqrt_s=g.arw_deg_sqrt_h * DEG / np.sqrt(HOUR),
+        rrw_rad_s_sqrt_s=g.rrw_deg_h_sqrt_h * DEG / HOUR / np.sqrt(HOUR),
+        scale_factor=np.asarray(g.scale_ppm) * 1e-6,
+    )
+
+
+def build_context(cfg: ScenarioConfig, catalog: StarCatalog | None = None) -> SensorContext:
+    """The sensor context the pipeline stages receive for a recording made with ``cfg``."""
+    camera = build_camera(cfg)
+    return SensorContext(
+        camera=camera,
+        timing=build_timing(cfg),
+        catalog=catalog if catalog is not None else build_catalog(cfg, camera),
+        initial_attitude=initial_attitude(cfg),
+        centroid_sigma_px=cfg.noise.centroid_sigma_px if cfg.level == "centroid" else None,
+        bit_depth=cfg.image.bit_depth if cfg.level == "image" else None,
+    )

@@ -1,0 +1,198 @@
+"""The ``rollingstar`` command line (typer). Bad input exits 2 with a one-paragraph message."""
+from __future__ import annotations
+
+import functools
+import json
+import sys
+import tempfile
+import warnings
+from pathlib import Path
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from pipelines.errors import UserError
+
+app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, no_args_is_help=True,
+                  help="Star-tracker estimation with rolling-shutter CMOS sensors.")
+out = Console()
+err = Console(stderr=True)
+
+
+def _user_errors():
+    from logs.errors import LogFormatError
+
+    return (UserError, LogFormatError, FileNotFoundError, IsADirectoryError, PermissionError)
+
+
+def handle_errors(fn):
+    """Turn bad input into ``error: <message>`` on stderr and exit code 2 (no traceback)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("always")
+                warnings.showwarning = lambda message, category, *a, **k: err.print(f"[yellow]warning:[/] {message}")
+                return fn(*args, **kwargs)
+        except _user_errors() as exc:
+            text = str(exc)
+            if isinstance(exc, OSError) and exc.filename:
+                text = f"{exc.filename}: {exc.strerror}"
+            err.print(f"[bold red]error:[/] {text}", highlight=False, soft_wrap=True)
+            raise typer.Exit(2) from None
+
+    return wrapper
+
+
+@app.command()
+@handle_errors
+def simulate(scenario: Path = typer.Argument(..., help="scenario YAML"),
+             output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write"),
+             frames: int = typer.Option(None, "--frames", min=1, help="override the scenario's frame count"),
+             seed: int = typer.Option(None, "--seed", help="override the scenario's seed"),
+             quiet: bool = typer.Option(False, "--quiet", "-q")):
+    """Simulate a recording from a scenario."""
+    from pipelines.config import load_scenario
+    from pipelines.simulate import simulate_to_log
+
+    cfg = load_scenario(scenario)
+    summary = simulate_to_log(cfg, output, frames=frames, seed=seed, show_progress=not quiet)
+    out.print(f"wrote {summary.path}: {summary.frames} frames ({summary.level} level), "
+              f"{summary.stars_per_frame_mean:.1f} stars per frame, {summary.duration_s:.2f} s")
+
+
+@app.command()
+@handle_errors
+def run(pipeline: Path = typer.Argument(..., help="pipeline YAML"),
+        recording: Path = typer.Argument(..., help="input MCAP recording"),
+        output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write"),
+        quiet: bool = typer.Option(False, "--quiet", "-q")):
+    """Run a pipeline over a recording."""
+    from pipelines.config import load_pipeline
+    from pipelines.runner import run_pipeline
+
+    cfg = load_pipeline(pipeline)
+    s = run_pipeline(recording, cfg, output, pipeline_source=str(pipeline), show_progress=not quiet)
+    out.print(f"wrote {s.output}: {s.frames} frames, {s.valid_estimates}/{s.attitude_estimates} valid attitude "
+              f"estimates, {s.flagged_frames} flagged frames")
+
+
+@app.command()
+@handle_errors
+def evaluate(log: Path = typer.Argument(..., help="output MCAP of `rollingstar run`"),
+             as_json: bool = typer.Option(False, "--json", help="print one JSON object")):
+    """Metrics of an output log against the truth it carries."""
+    from pipelines.evaluate import evaluate_log
+
+    metrics = evaluate_log(log)
+    if as_json:
+        print(json.dumps(metrics, indent=2))
+    else:
+        print_metrics(metrics, title=str(log))
+
+
+def print_metrics(m: dict, title: str = "") -> None:
+    def f(v, fmt="{:.4g}"):
+        return "n/a" if v is None else fmt.format(v)
+
+    table = Table(title=title or None, show_header=True)
+    table.add_column("metric")
+    table.add_column("x", justify="right")
+    table.add_column("y", justify="right")
+    table.add_column("z", justify="right")
+    a, crb = m["attitude_error_arcsec"], m["attitude_crb_arcsec"]
+    table.add_row("attitude error RMSE [arcsec]", f(a["x_rmse"]), f(a["y_rmse"]), f(a["z_rmse"]))
+    table.add_row("attitude error max [arcsec]", f(a["x_max"]), f(a["y_max"]), f(a["z_max"]))
+    table.add_row("Cramér–Rao bound, per frame [arcsec]", f(crb["x"]), f(crb["y"]), f(crb["z"]))
+    out.print(table)
+    summary = Table(show_header=False)
+    summary.add_column("k")
+    summary.add_column("v", justify="right")
+    summary.add_row("frames", str(m["frames"]))
+    summary.add_row("attitude updates (valid)", str(m["attitude_updates"]))
+    summary.add_row("invalid estimates (flagged)", str(m["invalid_attitude_estimates"]))
+    summary.add_row("update rate [Hz]", f(m["update_rate_hz"]))
+    summary.add_row("identified stars per frame", f(m["identified_stars_per_frame"]))
+    summary.add_row("centroid error RMSE / max [px]", f"{f(m['centroid_error_px']['rmse'])} / {f(m['centroid_error_px']['max'])}")
+    p = m["star_pair_distance_error_px"]
+    summary.add_row("star-pair distance error RMSE / max [px]", f"{f(p['rmse'])} / {f(p['max'])}")
+    r = m["rate_error_deg_s"]
+    summary.add_row("rate error RMSE / max [deg/s]", f"{f(r['rmse'])} / {f(r['max'])}")
+    out.print(summary)
+
+
+@app.command()
+@handle_errors
+def info(log: Path = typer.Argument(..., help="MCAP file")):
+    """Topics, message counts, time range, schemas and metadata of a log."""
+    from logs.reader import LogReader
+
+    reader = LogReader(log)
+    s = reader.summary_info()
+    table = Table(title=str(log))
+    for col in ("topic", "schema", "encoding", "messages", "first [s]", "last [s]"):
+        table.add_column(col)
+    for t in s.topics.values():
+        table.add_row(t.topic, t.schema_name, t.encoding, str(t.message_count),
+                      f"{t.start_ns * 1e-9:.6f}" if t.start_ns is not None else "-",
+                      f"{t.end_ns * 1e-9:.6f}" if t.end_ns is not None else "-")
+    out.print(table)
+    for name, record in reader.metadata().items():
+        out.print(f"[bold]metadata {name}[/]")
+        for k, v in record.items():
+            text = v if len(v) < 2000 else v[:2000] + " ..."
+            out.print(f"  {k}: {text}", highlight=False)
+
+
+@app.command()
+@handle_errors
+def plugins():
+    """Every registered plugin by role, with its parameters and defaults."""
+    from pipelines.registry import available_kinds, plugins_by_role
+
+    kinds = {target: kind for kind, target in available_kinds().items()}
+    for role, classes in plugins_by_role().items():
+        table = Table(title=f"role: {role}", show_lines=False)
+        for col in ("kind", "class", "parameters (default)", "summary"):
+            table.add_column(col)
+        for cls in classes:
+            target = f"{cls.__module__}:{cls.__name__}"
+            params = ", ".join(
+                f"{name}={'required' if field.is_required() else repr(field.default)}"
+                for name, field in cls.Params.model_fields.items()
+            )
+            doc = (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ else ""
+            table.add_row(kinds.get(target, cls.name), target, params or "-", doc)
+        out.print(table)
+
+
+@app.command()
+@handle_errors
+def demo(frames: int = typer.Option(None, "--frames", min=2)):
+    """Simulate the embedded default scenario, run the baseline pipeline, print its evaluation."""
+    from pipelines.config import PipelineConfig, ScenarioConfig, parse_yaml, validate
+    from pipelines.demo import DEMO_PIPELINE_YAML, DEMO_SCENARIO_YAML
+    from pipelines.evaluate import evaluate_log
+    from pipelines.runner import run_pipeline
+    from pipelines.simulate import simulate_to_log
+
+    scenario = validate(ScenarioConfig, parse_yaml(DEMO_SCENARIO_YAML, "<demo scenario>"), "<demo scenario>")
+    pipeline = validate(PipelineConfig, parse_yaml(DEMO_PIPELINE_YAML, "<demo pipeline>"), "<demo pipeline>")
+    with tempfile.TemporaryDirectory() as tmp:
+        rec, res = Path(tmp) / "demo.mcap", Path(tmp) / "demo_out.mcap"
+        out.print(f"[bold]rollingstar demo[/]: scenario {scenario.name} (embedded), pipeline {pipeline.name}")
+        s = simulate_to_log(scenario, rec, frames=frames)
+        out.print(f"simulated {s.frames} frames, {s.stars_per_frame_mean:.1f} stars per frame")
+        r = run_pipeline(rec, pipeline, res, pipeline_source="<demo pipeline>")
+        out.print(f"ran {pipeline.name}: {r.valid_estimates}/{r.attitude_estimates} valid attitude estimates")
+        print_metrics(evaluate_log(res), title=f"{scenario.name}: baseline vs truth")
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,217 @@
+"""Metrics of an output log against the truth it carries.
+
+Attitude error: the rotation from truth (at each estimate's own timestamp) to the estimate,
+in the camera frame, per axis (arcsec). Centroid error: each output star against the true image
+position of its catalogue star at the time the position claims to refer to (``t_ns``). Star-pair
+distance error (he2021a section 3): for every pair of identified stars of a frame, the measured
+pixel distance minus the true distance of the two stars imaged at one common time (the mean of
+the two claimed times). Rate error: norm of the estimated minus the true body rate.
+"""
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from logs.reader import LogReader
+from logs.records import stars_to_arrays
+from pipelines import build
+from pipelines.config import scenario_from_yaml
+from pipelines.errors import UserError
+from pipelines.runner import TOPIC_EST_ATTITUDE, TOPIC_EST_FRAME, TOPIC_EST_RATE, TOPIC_EST_STARS
+from pipelines.simulate import TOPIC_TRUTH_ATTITUDE, TOPIC_TRUTH_STARS
+from pipelines.truth import TruthTrajectory, attitude_crb_rad2, true_positions
+from sensors.conventions import RAD_TO_ARCSEC, attitude_error_body_arcsec
+
+PAIR_MATCH_RADIUS_PX = 3.0
+
+
+def _stats(values: np.ndarray) -> dict[str, float | None]:
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return {"rmse": None, "max": None}
+    return {"rmse": float(np.sqrt(np.mean(v**2))), "max": float(np.max(np.abs(v)))}
+
+
+def _num(x) -> float | None:
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def evaluate_log(path: str | Path) -> dict:
+    """Compute the metrics dictionary (``rollingstar evaluate --json``) for an output log."""
+    reader = LogReader(path)
+    meta = reader.metadata()
+    if "scenario" not in meta:
+        raise UserError(f"{path}: no 'scenario' metadata: cannot evaluate without the sensor model")
+    scenario = scenario_from_yaml(meta["scenario"]["yaml"], f"{path} (metadata 'scenario')")
+    camera = build.build_camera(scenario)
+    timing = build.build_timing(scenario)
+    effects = build.build_effects(scenario)
+    reader.require_topics([TOPIC_EST_FRAME])
+
+    truth_t, truth_q, truth_w = [], [], []
+    truth_stars: dict[int, dict] = {}
+    est_stars: dict[int, dict] = {}
+    attitudes, rates, frames = [], [], []
+    for m in reader.messages([TOPIC_TRUTH_ATTITUDE, TOPIC_TRUTH_STARS, TOPIC_EST_STARS, TOPIC_EST_ATTITUDE,
+                              TOPIC_EST_RATE, TOPIC_EST_FRAME]):
+        d = m.data
+        if m.topic == TOPIC_TRUTH_ATTITUDE:
+            truth_t.append(np.asarray(d["t_ns"], dtype=np.int64))
+            truth_q.append(np.column_stack([d["qx"], d["qy"], d["qz"], d["qw"]]))
+            truth_w.append(np.column_stack([d["wx"], d["wy"], d["wz"]]))
+        elif m.topic == TOPIC_TRUTH_STARS:
+            truth_stars[int(d["frame"])] = stars_to_arrays(d)
+        elif m.topic == TOPIC_EST_STARS:
+            est_stars[int(d["frame"])] = stars_to_arrays(d)
+        elif m.topic == TOPIC_EST_ATTITUDE:
+            attitudes.append(d)
+        elif m.topic == TOPIC_EST_RATE:
+            rates.append(d)
+        else:
+            frames.append(d)
+
+    truth = None
+    if truth_t:
+        truth = TruthTrajectory(np.concatenate(truth_t), np.concatenate(truth_q), np.concatenate(truth_w))
+
+    valid = [a for a in attitudes if a.get("valid") and a.get("q") is not None]
+    n_frames = len(frames)
+    duration_s = n_frames * timing.frame_period_ns * 1e-9
+    result: dict = {
+        "frames": n_frames,
+        "attitude_updates": len(valid),
+        "invalid_attitude_estimates": len(attitudes) - len(valid),
+        "update_rate_hz": (len(valid) / duration_s) if duration_s > 0 else None,
+        "flagged_frames": sum(1 for f in frames if f.get("flags")),
+        "identified_stars_per_frame": float(np.mean([f["n_identified"] for f in frames])) if frames else None,
+    }
+    result["attitude_error_arcsec"] = _attitude_errors(valid, truth)
+    result["centroid_error_px"] = _centroid_errors(est_stars, truth_stars, truth, camera, effects)
+    result["star_pair_distance_error_px"] = _pair_errors(est_stars, truth_stars, truth, camera, effects)
+    result["rate_error_deg_s"] = _rate_errors(rates, truth)
+    result["attitude_crb_arcsec"] = _crb(est_stars, truth_stars, truth, camera, scenario)
+    return result
+
+
+def _attitude_errors(valid: list[dict], truth: TruthTrajectory | None) -> dict:
+    keys = ("x_rmse", "y_rmse", "z_rmse", "x_max", "y_max", "z_max")
+    if truth is None or not valid:
+        return dict.fromkeys(keys)
+    t = np.array([a["t_ns"] for a in valid], dtype=np.int64)
+    ok = truth.covers(t)
+    if not ok.any():
+        return dict.fromkeys(keys)
+    q = np.array([[a["q"]["x"], a["q"]["y"], a["q"]["z"], a["q"]["w"]] for a in valid])[ok]
+    err = attitude_error_body_arcsec(truth.attitude(t[ok]), Rotation.from_quat(q))
+    rmse = np.sqrt(np.mean(err**2, axis=0))
+    mx = np.max(np.abs(err), axis=0)
+    return {"x_rmse": float(rmse[0]), "y_rmse": float(rmse[1]), "z_rmse": float(rmse[2]),
+            "x_max": float(mx[0]), "y_max": float(mx[1]), "z_max": float(mx[2])}
+
+
+def _match_to_truth(est: dict, tru: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (est_i, truth_j) of matched stars: by catalogue id, else nearest within 3 px."""
+    ids_e = np.asarray(est.get("catalog_id", np.full(len(est["x"]), -1)), dtype=np.int64)
+    ids_t = np.asarray(tru["catalog_id"], dtype=np.int64)
+    pos = {int(c): j for j, c in enumerate(ids_t)}
+    ei, tj = [], []
+    for i, c in enumerate(ids_e):
+        if c >= 0 and int(c) in pos:
+            ei.append(i)
+            tj.append(pos[int(c)])
+    unid = np.flatnonzero(ids_e < 0)
+    if unid.size and len(ids_t):
+        d = np.hypot(est["x"][unid, None] - tru["x"][None, :], est["y"][unid, None] - tru["y"][None, :])
+        j = np.argmin(d, axis=1)
+        close = d[np.arange(unid.size), j] < PAIR_MATCH_RADIUS_PX
+        ei.extend(unid[close].tolist())
+        tj.extend(j[close].tolist())
+    return np.asarray(ei, dtype=int), np.asarray(tj, dtype=int)
+
+
+def _centroid_errors(est_stars, truth_stars, truth, camera, effects) -> dict:
+    if truth is None:
+        return {"rmse": None, "max": None}
+    errs = []
+    for frame, est in est_stars.items():
+        tru = truth_stars.get(frame)
+        if tru is None or len(est["x"]) == 0:
+            continue
+        ei, tj = _match_to_truth(est, tru)
+        if ei.size == 0:
+            continue
+        t = np.asarray(est["t_ns"], dtype=np.int64)[ei]
+        ok = truth.covers(t)
+        if not ok.any():
+            continue
+        ei, tj, t = ei[ok], tj[ok], t[ok]
+        x, y = true_positions(camera, effects, truth.attitude(t), tru["ref_icrs"][tj], t)
+        errs.append(np.hypot(est["x"][ei] - x, est["y"][ei] - y))
+    return _stats(np.concatenate(errs)) if errs else {"rmse": None, "max": None}
+
+
+def _pair_errors(est_stars, truth_stars, truth, camera, effects) -> dict:
+    if truth is None:
+        return {"rmse": None, "max": None}
+    errs = []
+    for frame, est in est_stars.items():
+        tru = truth_stars.get(frame)
+        if tru is None:
+            continue
+        ei, tj = _match_to_truth(est, tru)
+        if ei.size < 2:
+            continue
+        i, j = np.triu_indices(ei.size, k=1)
+        t = np.asarray(est["t_ns"], dtype=np.int64)[ei]
+        tc = (t[i] + t[j]) // 2
+        ok = truth.covers(tc)
+        if not ok.any():
+            continue
+        i, j, tc = i[ok], j[ok], tc[ok]
+        att = truth.attitude(tc)
+        xi, yi = true_positions(camera, effects, att, tru["ref_icrs"][tj[i]], tc)
+        xj, yj = true_positions(camera, effects, att, tru["ref_icrs"][tj[j]], tc)
+        d_true = np.hypot(xi - xj, yi - yj)
+        d_meas = np.hypot(est["x"][ei[i]] - est["x"][ei[j]], est["y"][ei[i]] - est["y"][ei[j]])
+        errs.append(d_meas - d_true)
+    return _stats(np.concatenate(errs)) if errs else {"rmse": None, "max": None}
+
+
+def _rate_errors(rates, truth) -> dict:
+    valid = [r for r in rates if r.get("valid") and r.get("omega") is not None]
+    if truth is None or not valid:
+        return {"rmse": None, "max": None}
+    t = np.array([r["t_ns"] for r in valid], dtype=np.int64)
+    w = np.array([[r["omega"]["x"], r["omega"]["y"], r["omega"]["z"]] for r in valid])
+    err = np.linalg.norm(w - truth.angular_velocity(t), axis=1) * 180.0 / np.pi
+    return _stats(err)
+
+
+def _crb(est_stars, truth_stars, truth, camera, scenario) -> dict:
+    """Mean single-frame Cramér–Rao bound (arcsec per axis) for each frame's identified stars."""
+    keys = ("x", "y", "z")
+    sigma = scenario.noise.centroid_sigma_px if scenario.level == "centroid" else None
+    if truth is None or not sigma:
+        return dict.fromkeys(keys)
+    variances = []
+    for frame, est in est_stars.items():
+        tru = truth_stars.get(frame)
+        if tru is None:
+            continue
+        ei, tj = _match_to_truth(est, tru)
+        if ei.size < 2:
+            continue
+        t = np.asarray(tru["t_ns"], dtype=np.int64)[tj]
+        if not truth.covers(t).all():
+            continue
+        w = truth.attitude(t).inv().apply(tru["ref_icrs"][tj])
+        variances.append(np.diag(attitude_crb_rad2(camera, w, sigma)))
+    if not variances:
+        return dict.fromkeys(keys)
+    rms = np.sqrt(np.mean(variances, axis=0)) * RAD_TO_ARCSEC
+    return dict(zip(keys, map(float, rms)))

@@ -1,0 +1,60 @@
+"""Bad input at the command line: exit code 2, a one-paragraph message, no traceback."""
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+SCENARIO = ROOT / "configs" / "scenarios" / "he2021b.yaml"
+BASELINE = ROOT / "configs" / "pipelines" / "baseline.yaml"
+
+
+def cli(*args, cwd=None):
+    proc = subprocess.run([sys.executable, "-m", "pipelines.cli", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd or ROOT, timeout=300)
+    return proc
+
+
+def assert_clean_error(proc, *needles):
+    assert proc.returncode == 2, (proc.returncode, proc.stdout, proc.stderr)
+    assert "Traceback" not in proc.stderr and "Traceback" not in proc.stdout, proc.stderr
+    for needle in needles:
+        assert needle in proc.stderr, (needle, proc.stderr)
+
+
+def test_unknown_plugin_kind(tmp_path, small_recording):
+    p = tmp_path / "p.yaml"
+    p.write_text("stages:\n  - {kind: qest}\n")
+    assert_clean_error(cli("run", p, small_recording, "-o", tmp_path / "o.mcap"), "qest", "valid kinds", "quest")
+
+
+def test_unknown_config_key(tmp_path):
+    p = tmp_path / "s.yaml"
+    p.write_text(SCENARIO.read_text().replace("frames: 300", "frames: 300\nframse: 3"))
+    assert_clean_error(cli("simulate", p, "-o", tmp_path / "r.mcap"), str(p), "framse", "unknown key")
+
+
+def test_yaml_syntax_error(tmp_path, small_recording):
+    p = tmp_path / "p.yaml"
+    p.write_text("stages:\n  - {kind: quest\n")
+    assert_clean_error(cli("run", p, small_recording, "-o", tmp_path / "o.mcap"), "line", "YAML syntax error")
+
+
+def test_missing_recording(tmp_path):
+    assert_clean_error(cli("run", BASELINE, tmp_path / "none.mcap", "-o", tmp_path / "o.mcap"), "none.mcap")
+
+
+def test_not_an_mcap(tmp_path):
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(b"this is not an mcap file at all" * 10)
+    assert_clean_error(cli("info", bad), "bad.mcap")
+
+
+def test_recording_missing_required_topic(tmp_path, small_output):
+    # an output log has no /camera/* topic: running a pipeline over it must name the missing topic
+    assert_clean_error(cli("run", BASELINE, small_output, "-o", tmp_path / "o.mcap"), "/camera/centroids")
+
+
+def test_unwritable_output(tmp_path, small_recording):
+    assert_clean_error(cli("run", BASELINE, small_recording, "-o", tmp_path / "no_such_dir" / "o.mcap"), "no_such_dir")

@@ -1,0 +1,91 @@
+"""Config loading: strict validation with errors naming the file, key path and expectation."""
+from pathlib import Path
+
+import pytest
+
+from pipelines.config import ScenarioConfig, load_pipeline, load_scenario, parse_yaml, to_yaml, validate
+from pipelines.errors import ConfigError
+from pipelines.runner import build_stages
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+@pytest.mark.parametrize("path", sorted((CONFIGS / "scenarios").glob("*.yaml")), ids=lambda p: p.name)
+def test_every_shipped_scenario_validates_and_round_trips(path):
+    cfg = load_scenario(path)
+    again = validate(ScenarioConfig, parse_yaml(to_yaml(cfg), "roundtrip"), "roundtrip")
+    assert again == cfg
+
+
+@pytest.mark.parametrize("path", sorted((CONFIGS / "pipelines").glob("*.yaml")), ids=lambda p: p.name)
+def test_every_shipped_pipeline_builds(path):
+    stages = build_stages(load_pipeline(path), str(path))
+    assert stages and all(s.role for s in stages)
+
+
+def test_unknown_key_names_file_and_key_path(tmp_path):
+    text = (CONFIGS / "scenarios" / "he2021b.yaml").read_text().replace("line_delay_us: 49.0", "line_delay_us: 49.0, line_dealy_us: 3")
+    p = tmp_path / "bad.yaml"
+    p.write_text(text)
+    with pytest.raises(ConfigError) as exc:
+        load_scenario(p)
+    assert str(p) in str(exc.value) and "shutter.line_dealy_us" in str(exc.value) and "unknown key" in str(exc.value)
+
+
+def test_mistyped_value_names_key_path_and_expectation(tmp_path):
+    text = (CONFIGS / "scenarios" / "he2021b.yaml").read_text().replace("rate_deg_s: [0.05, 0.0, 0.0]", "rate_deg_s: [0.05, fast, 0.0]")
+    p = tmp_path / "bad.yaml"
+    p.write_text(text)
+    with pytest.raises(ConfigError, match=r"motion\.rate_deg_s\[1\].*valid number"):
+        load_scenario(p)
+
+
+def test_out_of_range_value_rejected(tmp_path):
+    text = (CONFIGS / "scenarios" / "he2021b.yaml").read_text().replace("exposure_ms: 50.0", "exposure_ms: -50.0")
+    p = tmp_path / "bad.yaml"
+    p.write_text(text)
+    with pytest.raises(ConfigError, match=r"shutter\.exposure_ms.*greater than 0"):
+        load_scenario(p)
+
+
+def test_nan_in_config_rejected(tmp_path):
+    text = (CONFIGS / "scenarios" / "he2021b.yaml").read_text().replace("centroid_sigma_px: 0.05", "centroid_sigma_px: .nan")
+    p = tmp_path / "bad.yaml"
+    p.write_text(text)
+    with pytest.raises(ConfigError, match=r"noise\.centroid_sigma_px"):
+        load_scenario(p)
+
+
+def test_yaml_syntax_error_gives_line_number(tmp_path):
+    p = tmp_path / "broken.yaml"
+    p.write_text("name: x\nstages:\n  - {kind: quest\n  - {kind: none}\n")
+    with pytest.raises(ConfigError, match=r"broken\.yaml: line \d+, column \d+: YAML syntax error"):
+        load_pipeline(p)
+
+
+def test_missing_file_is_a_config_error(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_pipeline(tmp_path / "nope.yaml")
+
+
+def test_unknown_plugin_kind_lists_valid_kinds(tmp_path):
+    p = tmp_path / "p.yaml"
+    p.write_text("stages:\n  - {kind: quset}\n")
+    with pytest.raises(ConfigError) as exc:
+        build_stages(load_pipeline(p), str(p))
+    msg = str(exc.value)
+    assert "stages[0].kind" in msg and "'quset'" in msg and "quest" in msg and "tracking" in msg
+
+
+def test_bad_plugin_param_names_stage_key_path(tmp_path):
+    p = tmp_path / "p.yaml"
+    p.write_text("stages:\n  - {kind: tracking, params: {gate_pix: 3}}\n")
+    with pytest.raises(ConfigError, match=r"stages\[0\]\.params\.gate_pix: unknown key"):
+        build_stages(load_pipeline(p), str(p))
+
+
+def test_empty_pipeline_rejected(tmp_path):
+    p = tmp_path / "p.yaml"
+    p.write_text("stages: []\n")
+    with pytest.raises(ConfigError, match="stages"):
+        load_pipeline(p)

@@ -1,0 +1,55 @@
+"""Plugin registry: built-ins, third-party entry points validated exactly like built-ins."""
+import sys
+import textwrap
+
+import pytest
+
+from pipelines import registry
+from pipelines.config import PipelineConfig
+from pipelines.errors import ConfigError
+from pipelines.runner import build_stages
+
+
+def test_builtins_have_their_declared_role_and_name():
+    for kind, target in registry.BUILTIN.items():
+        cls = registry.get_plugin_class(kind)
+        assert cls.role in registry.ROLES
+        assert cls.name == kind, f"{target} declares name {cls.name!r}"
+
+
+@pytest.fixture
+def third_party_plugin(tmp_path, monkeypatch):
+    """A real installed distribution (dist-info on sys.path) exposing a plugin entry point."""
+    (tmp_path / "acme_plugin.py").write_text(textwrap.dedent("""
+        from pydantic import BaseModel, ConfigDict
+        from estimators.corrections.base import Correction
+
+        class Shift(Correction):
+            '''Adds a constant shift to every star (a test plugin).'''
+            name = "acme-shift"
+
+            class Params(BaseModel):
+                model_config = ConfigDict(extra="forbid")
+                dx_px: float = 0.0
+
+            def process(self, frame):
+                return frame
+    """))
+    dist = tmp_path / "acme_plugin-1.0.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: acme-plugin\nVersion: 1.0\n")
+    (dist / "entry_points.txt").write_text("[rollingstar.plugins]\nacme-shift = acme_plugin:Shift\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    registry._third_party.cache_clear()
+    yield
+    registry._third_party.cache_clear()
+    sys.modules.pop("acme_plugin", None)
+
+
+def test_third_party_plugin_is_found_and_validated_like_builtins(third_party_plugin):
+    assert "acme-shift" in registry.available_kinds()
+    stages = build_stages(PipelineConfig(stages=[{"kind": "acme-shift", "params": {"dx_px": 0.5}}]))
+    assert stages[0].params.dx_px == 0.5 and stages[0].role == "correction"
+    with pytest.raises(ConfigError, match=r"stages\[0\]\.params\.dy_px: unknown key"):
+        build_stages(PipelineConfig(stages=[{"kind": "acme-shift", "params": {"dy_px": 1}}]))
+    assert any(c.name == "acme-shift" for c in registry.plugins_by_role()["correction"])
