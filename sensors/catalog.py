@@ -202,6 +202,19 @@ class StarCatalog:
             sel = sel.astype(np.intp).reshape(-1)
         return StarCatalog(self.ids[sel], self.unit_icrs[sel], self.magnitude[sel], self.epoch_year)
 
+    def without_close_pairs(self, min_separation_rad: float) -> "StarCatalog":
+        """Drop both stars of every pair closer than ``min_separation_rad``.
+
+        Navigation catalogues exclude close doubles: their images blend into one spot whose
+        centroid belongs to neither star, and tracking cannot tell them apart.
+        """
+        if min_separation_rad <= 0 or len(self) < 2:
+            return self
+        pairs = self._tree.query_pairs(2.0 * np.sin(min_separation_rad / 2.0), output_type="ndarray")
+        keep = np.ones(len(self), dtype=bool)
+        keep[pairs.reshape(-1)] = False
+        return self.subset(keep)
+
     @classmethod
     def from_hipparcos(cls, epoch_year: float = 2000.0, magnitude_limit: float = 6.5) -> "StarCatalog":
         """Hipparcos-2 stars with ``Hp <= magnitude_limit`` at ``epoch_year`` (memoised)."""

@@ -14,11 +14,12 @@ Solved by fixed-point iteration ``y_{k+1} = Y(t0 + y_k ld + T / 2)``. The map is
 with factor ``|dY/dt| ld = |v_y| ld`` (image velocity in px/s times line delay in s); for a star
 tracker this is tiny (1 deg/s on the he2021a sensor: 76 px/s * 43.9 us = 3.3e-3), so each
 iteration gains ~2.5 decimal digits and 4-5 iterations reach 1e-9 px from the frame-reference
-guess (stopping when a step is below 1e-9 px leaves an error ~|v_y| ld * 1e-9). Newton's method would need ``dY/dt`` for no practical gain. The iteration converges
-whenever ``|v_y| ld < 1`` (image motion slower than one row per line delay, ~300 deg/s here).
-A global shutter has ``ld = 0`` and (1) is explicit. For stars far off the detector the row
-used for the time is clipped to ``[-1, H]`` (such rows have no exposure time; the clip keeps the
-map a contraction, so those stars converge too and are then discarded).
+guess (stopping when a step is below 1e-9 px leaves an error ~|v_y| ld * 1e-9). Newton's
+method would need ``dY/dt`` for no practical gain. The iteration converges whenever
+``|v_y| ld < 1`` (image slower than one row per line delay, ~300 deg/s here). A global shutter
+has ``ld = 0`` and (1) is explicit. For stars far off the detector the row used for the time is
+clipped to ``[-1, H]`` (such rows have no exposure time; the clip keeps the map a contraction, so
+those stars converge too and are then discarded).
 
 Times are integer ns; ``t0 + y ld + T/2`` is not, so the attitude at a fractional ns ``t + d``
 (``0 <= d < 1`` ns) is ``R(t) Exp(omega(t) d)`` (body-frame rate, the kinematics convention of

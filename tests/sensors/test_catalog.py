@@ -171,3 +171,17 @@ def test_cone_validation():
         cat.cone([0, 0, 0], 0.1)
     with pytest.raises(ValueError, match="radius_rad"):
         cat.cone([0, 0, 1], -0.1)
+
+
+def test_without_close_pairs_drops_both_stars_of_close_pairs_only():
+    from sensors.catalog import StarCatalog
+    from sensors.conventions import radec_to_unit
+
+    arcsec = np.pi / 180 / 3600
+    ra = np.array([0.0, 30.0, 0.0, 100.0]) * arcsec  # stars 0-1 are 30" apart, 2 duplicates 0
+    dec = np.array([0.0, 0.0, 0.0, 0.0])
+    cat = StarCatalog.synthetic(radec_to_unit(ra, dec), ids=[1, 2, 3, 4])
+    kept = cat.without_close_pairs(20 * arcsec)
+    assert kept.ids.tolist() == [2, 4]  # 1 and 3 coincide; 2 is 30" from both (kept at 20")
+    assert cat.without_close_pairs(40 * arcsec).ids.tolist() == [4]
+    assert len(cat.without_close_pairs(0.0)) == 4
