@@ -190,6 +190,33 @@ def demo(frames: int = typer.Option(None, "--frames", min=2)):
         print_metrics(evaluate_log(res), title=f"{scenario.name}: baseline vs truth")
 
 
+@app.command()
+@handle_errors
+def reproduce(paper: str = typer.Argument(..., help="he2021a | he2021b | fu2022 | liu2013"),
+              quick: bool = typer.Option(False, "--quick", help="the reduced version the test suite runs"),
+              as_json: bool = typer.Option(False, "--json", help="print one JSON object {rows: [...]}"),
+              plots: Path = typer.Option(None, "--plots", help="write the paper's figures redrawn from our runs here"),
+              seed: int = typer.Option(1, "--seed")):
+    """Reproduce a seed paper's experiment: paper value, ours (measured now), ratio."""
+    from pipelines.reproduce import run_reproduction
+
+    rows = run_reproduction(paper, quick=quick, plots_dir=plots, seed=seed)
+    if as_json:
+        print(json.dumps({"paper": paper, "quick": quick, "rows": [r.as_dict() for r in rows]}, indent=2))
+        return
+    table = Table(title=f"{paper}: paper vs ours{' (quick)' if quick else ''}")
+    for col in ("quantity", "condition", "paper", "ours", "unit", "ratio", "trials", "source"):
+        table.add_column(col)
+    for r in rows:
+        paper_txt = "-" if r.paper is None else (f"{r.paper:.4g}" if isinstance(r.paper, float) else str(r.paper))
+        table.add_row(r.quantity, r.condition, paper_txt, "-" if r.ours is None else f"{r.ours:.4g}", r.unit,
+                      "-" if r.ratio is None else f"{r.ratio:.2f}", "-" if r.trials is None else str(r.trials), r.source)
+    out.print(table)
+    for r in rows:
+        if r.note:
+            out.print(f"[dim]{r.quantity} ({r.condition}): {r.note}[/]")
+
+
 def main() -> None:
     app()
 

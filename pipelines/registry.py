@@ -25,6 +25,10 @@ BUILTIN: dict[str, str] = {
     "tracking": "estimators.identifiers.tracking:TrackingIdentifier",
     "none": "estimators.corrections.none:NoCorrection",
     "quest": "estimators.attitude.quest:QuestSolver",
+    # he2021a plugins:
+    # he2021b plugins:
+    # fu2022 plugins:
+    # liu2013 plugins:
 }
 
 
