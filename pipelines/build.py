@@ -14,7 +14,7 @@ from pipelines.errors import ConfigError
 from sensors.camera import PinholeCamera
 from sensors.catalog import StarCatalog
 from sensors.conventions import attitude_from_radec_roll, seconds_to_ns
-from sensors.effects import EFFECTS, build_effect
+from sensors.effects import UnknownEffectError, build_effect
 from sensors.gyro import GyroModel
 from sensors.motion import AttitudeMotion, JitterMotion, PiecewiseMotion, Segment
 from sensors.timing import DetectorTiming
@@ -86,10 +86,10 @@ def build_catalog(cfg: ScenarioConfig, camera: PinholeCamera | None = None) -> S
 def build_effects(cfg: ScenarioConfig) -> list:
     effects = []
     for i, e in enumerate(cfg.effects):
-        if e.kind not in EFFECTS:
-            raise ConfigError(f"effects[{i}].kind: unknown effect {e.kind!r}; valid effects: {', '.join(sorted(EFFECTS))}")
         try:
             effects.append(build_effect(e.kind, dict(e.params)))
+        except UnknownEffectError as exc:
+            raise ConfigError(f"effects[{i}].kind: {exc}") from None
         except ValueError as exc:
             raise ConfigError(f"effects[{i}].params: {exc}") from None
     return effects
