@@ -72,8 +72,9 @@ def build_catalog(cfg: ScenarioConfig, camera: PinholeCamera | None = None) -> S
     """Hipparcos-2 at the scenario epoch, or synthetic stars that image at ``positions_px`` at t=0."""
     c = cfg.catalog
     if c.source == "hipparcos":
+        camera = camera or build_camera(cfg)
         catalog = StarCatalog.from_hipparcos(epoch_year=c.epoch_year, magnitude_limit=c.magnitude_limit)
-        return catalog.without_close_pairs(c.min_separation_arcsec * ARCSEC)
+        return catalog.without_close_pairs(c.min_separation_px * camera.ifov_rad)
     if not c.positions_px:
         raise ConfigError("catalog.positions_px: a synthetic catalogue needs at least one (x, y) position")
     camera = camera or build_camera(cfg)

@@ -217,6 +217,28 @@ def reproduce(paper: str = typer.Argument(..., help="he2021a | he2021b | fu2022 
             out.print(f"[dim]{r.quantity} ({r.condition}): {r.note}[/]")
 
 
+@app.command()
+@handle_errors
+def figures(name: str = typer.Argument("foundation", help="foundation"),
+            quick: bool = typer.Option(False, "--quick"),
+            as_json: bool = typer.Option(False, "--json"),
+            out_dir: Path = typer.Option(None, "--out", help="write <out>/foundation.md, .json and img/*.png"),
+            seed: int = typer.Option(1, "--seed")):
+    """Measure the foundation figures (static vs Cramér–Rao bound, rolling shutter, image level)."""
+    from pipelines.figures import foundation_markdown, run_foundation, write_foundation_docs
+
+    if name != "foundation":
+        raise UserError(f"unknown figure set {name!r}; available: foundation")
+    result = run_foundation(quick=quick, seed=seed)
+    command = f"rollingstar figures foundation{' --quick' if quick else ''} --out {out_dir or 'docs'} --seed {seed}"
+    if out_dir is not None:
+        write_foundation_docs(result, Path(out_dir), command)
+    if as_json:
+        print(json.dumps(result, indent=2))
+    else:
+        out.print(foundation_markdown(result, command), highlight=False)
+
+
 def main() -> None:
     app()
 

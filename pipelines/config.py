@@ -53,8 +53,8 @@ class CatalogConfig(Strict):
         None, description="synthetic: stars placed so that they image at these (x, y) at t = 0"
     )
     magnitude: float = 5.0
-    min_separation_arcsec: float = Field(
-        60.0, ge=0.0, description="hipparcos: drop both stars of pairs closer than this (close doubles blend)"
+    min_separation_px: float = Field(
+        8.0, ge=0.0, description="hipparcos: drop both stars of pairs imaged closer than this many pixels (they blend)"
     )
 
 

@@ -32,6 +32,9 @@ class TrackingParams(BaseModel):
     gate_px: float = Field(default=10.0, gt=0, description="Largest detection-to-prediction distance of a match (px).")
     margin_deg: float = Field(default=0.5, ge=0, description="Extra cone radius beyond the detector's half diagonal (deg).")
     magnitude_limit: float | None = Field(default=None, description="Only predict stars at most this magnitude; None: all.")
+    extrapolate: bool = Field(default=True, description="Predict with the rate implied by the last two estimates.")
+    refine: bool = Field(default=True, description="Fit the attitude to the first matches and match again (drops mismatches).")
+    refine_gate_px: float = Field(default=2.0, gt=0, description="Smallest gate of the second matching pass (px).")
 
 
 class TrackingIdentifier(Identifier):
@@ -55,8 +58,17 @@ class TrackingIdentifier(Identifier):
     either, setup raises: use a lost-in-space identifier). **The prior is advanced by the runner**:
     after all stages of a frame have run it calls :meth:`update_prior` with the final frame, and the
     last valid attitude estimate becomes the next frame's prior (the identifier runs before the
-    solver, so it cannot see the estimate of the frame it is identifying). Rates are not used yet:
-    the gate must cover the image motion between frames.
+    solver, so it cannot see the estimate of the frame it is identifying). With ``extrapolate`` the
+    prior is propagated to the frame's reference time (middle row, mid-exposure) at the constant
+    body rate implied by the last two valid estimates, ``omega = Log(R0^T R1) / (t1 - t0)``, so the
+    gate only has to cover the change of rate between frames, not the motion itself.
+
+    Verification (``refine``): with at least three first-pass matches, the attitude that best fits
+    them (Wahba's problem, SVD via ``Rotation.align_vectors``) re-predicts the catalogue, and
+    matching runs again with the gate ``max(refine_gate_px, 5 * 1.4826 * median residual)``: a
+    detection matched to a neighbour of its true star leaves a residual of the neighbours'
+    separation and is dropped, while the rolling-shutter distortion common to all stars is absorbed
+    by the fit.
     """
 
     name = "tracking"
@@ -76,6 +88,8 @@ class TrackingIdentifier(Identifier):
                 "{ra_deg, dec_deg, roll_deg} or use a recording that declares an initial attitude; "
                 "otherwise a lost-in-space identifier is needed")
         self._last_attitude: Rotation = prior
+        self._last_t_ns: int | None = None
+        self._rate_rad_s = np.zeros(3)
         cam = context.camera
         self._radius = cam.half_diagonal_rad + np.radians(self.params.margin_deg)
         catalog = context.catalog
@@ -96,9 +110,20 @@ class TrackingIdentifier(Identifier):
         """
         for est in reversed(frame.attitudes):
             if est.valid and np.all(np.isfinite(est.q_xyzw)):
-                self._last_attitude = Rotation.from_quat(est.q_xyzw)
+                new = Rotation.from_quat(est.q_xyzw)
+                if self._last_t_ns is not None and est.t_ns > self._last_t_ns:
+                    dt = (int(est.t_ns) - self._last_t_ns) * 1e-9
+                    self._rate_rad_s = (self._last_attitude.inv() * new).as_rotvec() / dt
+                self._last_attitude, self._last_t_ns = new, int(est.t_ns)
                 return True
         return False
+
+    def prior_at(self, t_ns: int) -> Rotation:
+        """The prior propagated to ``t_ns`` at the last estimated body rate (no change without it)."""
+        if not self.params.extrapolate or self._last_t_ns is None:
+            return self._last_attitude
+        dt = (int(t_ns) - self._last_t_ns) * 1e-9
+        return self._last_attitude * Rotation.from_rotvec(self._rate_rad_s * dt)
 
     def predict(self, attitude: Rotation | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Catalogue indices and predicted pixel positions ``(idx, x, y)`` for ``attitude`` (default: prior)."""
@@ -118,28 +143,19 @@ class TrackingIdentifier(Identifier):
         if det is None:
             raise ValueError(f"frame {frame.index}: no detections (frame.stars is None); "
                              "the 'tracking' identifier needs a centroider or centroid-level recording before it")
-        idx, px, py = self.predict()
+        prior = self.prior_at(self.context.timing.frame_reference_ns(frame.t0_ns))
+        idx, px, py = self.predict(prior)
+        matched_det, matched_star = self._match(det, px, py, self.params.gate_px)
+        if self.params.refine and matched_det.size >= 3:
+            cam, catalog = self.context.camera, self.context.catalog
+            w = cam.unproject(det.x[matched_det], det.y[matched_det])
+            fit, _ = Rotation.align_vectors(catalog.unit_icrs[idx[matched_star]], w)
+            idx, px, py = self.predict(fit)
+            first = self._match(det, px, py, self.params.gate_px)
+            resid = np.hypot(det.x[first[0]] - px[first[1]], det.y[first[0]] - py[first[1]])
+            gate = max(self.params.refine_gate_px, 5.0 * 1.4826 * float(np.median(resid))) if resid.size else self.params.gate_px
+            matched_det, matched_star = self._match(det, px, py, min(gate, self.params.gate_px))
         n = det.n
-        matched_det = np.zeros(0, dtype=np.intp)
-        matched_star = np.zeros(0, dtype=np.intp)
-        if n and idx.size:
-            dpos = np.column_stack([det.x, det.y])
-            finite = np.isfinite(dpos).all(axis=1)
-            ppos = np.column_stack([px, py])
-            gate = self.params.gate_px
-            # detection -> nearest prediction
-            d1, j = cKDTree(ppos).query(np.where(finite[:, None], dpos, 0.0), k=1, distance_upper_bound=gate)
-            # prediction -> nearest (finite) detection
-            fin_idx = np.flatnonzero(finite)
-            if fin_idx.size:
-                _, i_back = cKDTree(dpos[fin_idx]).query(ppos, k=1, distance_upper_bound=gate)
-                back = np.full(idx.size + 1, -1, dtype=np.intp)  # index idx.size = "no neighbour"
-                has = i_back < fin_idx.size
-                back[:-1][has] = fin_idx[i_back[has]]
-                cand = finite & np.isfinite(d1) & (d1 <= gate)
-                mutual = cand & (back[np.where(cand, j, idx.size)] == np.arange(n))
-                matched_det = np.flatnonzero(mutual)
-                matched_star = j[matched_det]
         cat_idx = idx[matched_star]
         catalog = self.context.catalog
         stars = det.take(matched_det).with_columns(
@@ -148,3 +164,29 @@ class TrackingIdentifier(Identifier):
         rest[matched_det] = False
         flags = frame.flags if idx.size else frame.flags + ("no_catalog_stars_in_view",)
         return frame.evolve(stars=stars, unmatched=det.take(rest), flags=flags)
+
+    @staticmethod
+    def _match(det, px, py, gate: float) -> tuple[np.ndarray, np.ndarray]:
+        """Mutual nearest neighbours within ``gate``: (detection indices, prediction indices)."""
+        idx_size = px.size
+        n = det.n
+        matched_det = np.zeros(0, dtype=np.intp)
+        matched_star = np.zeros(0, dtype=np.intp)
+        if n and idx_size:
+            dpos = np.column_stack([det.x, det.y])
+            finite = np.isfinite(dpos).all(axis=1)
+            ppos = np.column_stack([px, py])
+            # detection -> nearest prediction
+            d1, j = cKDTree(ppos).query(np.where(finite[:, None], dpos, 0.0), k=1, distance_upper_bound=gate)
+            # prediction -> nearest (finite) detection
+            fin_idx = np.flatnonzero(finite)
+            if fin_idx.size:
+                _, i_back = cKDTree(dpos[fin_idx]).query(ppos, k=1, distance_upper_bound=gate)
+                back = np.full(idx_size + 1, -1, dtype=np.intp)  # index idx_size = "no neighbour"
+                has = i_back < fin_idx.size
+                back[:-1][has] = fin_idx[i_back[has]]
+                cand = finite & np.isfinite(d1) & (d1 <= gate)
+                mutual = cand & (back[np.where(cand, j, idx_size)] == np.arange(n))
+                matched_det = np.flatnonzero(mutual)
+                matched_star = j[matched_det]
+        return matched_det, matched_star

@@ -63,9 +63,12 @@ def test_spurious_spots_unmatched_and_gate():
     assert set(out.stars.catalog_id) == set(ids[1:])
     assert out.unmatched.n == 3
     np.testing.assert_array_equal(np.sort(out.unmatched.x), np.sort(np.concatenate([[x[0]], spur_x])))
-    # a wider gate takes the displaced star back
-    wide = _ident(scene, gate_px=15.0).process(FrameData(index=0, t0_ns=0, stars=table))
+    # without verification a wider gate takes the displaced star back ...
+    wide = _ident(scene, gate_px=15.0, refine=False).process(FrameData(index=0, t0_ns=0, stars=table))
     assert set(wide.stars.catalog_id) == set(ids)
+    # ... with verification it is rejected: 12 px off the attitude fitted to the other stars
+    verified = _ident(scene, gate_px=15.0).process(FrameData(index=0, t0_ns=0, stars=table))
+    assert set(verified.stars.catalog_id) == set(ids[1:])
 
 
 def test_one_spot_per_star():
@@ -133,3 +136,18 @@ def test_magnitude_limit_drops_faint_predictions():
     mag = scene.context.catalog.magnitude[scene.catalog_index]
     out = _ident(scene, magnitude_limit=4.0).process(FrameData(index=0, t0_ns=0, stars=det))
     assert set(out.stars.catalog_id) == set(_truth_ids(scene)[mag <= 4.0])
+
+
+def test_verification_drops_a_detection_matched_to_the_wrong_star():
+    """A detection placed on a neighbour-like position 4 px from its star, with a 3 px prior error:
+    the first pass may accept it, the verified pass keeps only detections consistent with one attitude."""
+    scene = make_scene(seed=31, min_sep_px=40.0)
+    rng = np.random.default_rng(3)
+    det = detections(scene, 0, rng)
+    x = det.x + np.where(np.arange(det.n) == 2, 4.0, 0.0)
+    table = StarTable.build(x, det.y, t_ns=np.zeros(det.n, dtype=np.int64))
+    ids = _truth_ids(scene)
+    out = _ident(scene, gate_px=10.0).process(FrameData(index=0, t0_ns=0, stars=table))
+    assert set(out.stars.catalog_id) == set(ids) - {ids[2]}
+    plain = _ident(scene, gate_px=10.0, refine=False).process(FrameData(index=0, t0_ns=0, stars=table))
+    assert ids[2] in set(plain.stars.catalog_id)
