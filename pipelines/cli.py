@@ -16,7 +16,7 @@ from pipelines.errors import UserError
 
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, no_args_is_help=True,
                   help="Star-tracker estimation with rolling-shutter CMOS sensors.")
-out = Console()
+out = Console(width=None if sys.stdout.isatty() else 200)  # no truncated cells when piped
 err = Console(stderr=True)
 
 
@@ -131,9 +131,12 @@ def info(log: Path = typer.Argument(..., help="MCAP file")):
 
     reader = LogReader(log)
     s = reader.summary_info()
-    table = Table(title=str(log))
+    span = "-" if s.start_ns is None else f"{s.start_ns * 1e-9:.6f} s to {s.end_ns * 1e-9:.6f} s"
+    out.print(f"[bold]{log}[/]: format {s.format_version}, {s.message_count} messages, {span}"
+              f"{' (TRUNCATED: complete messages only)' if s.truncated else ''}", highlight=False)
+    table = Table()
     for col in ("topic", "schema", "encoding", "messages", "first [s]", "last [s]"):
-        table.add_column(col)
+        table.add_column(col, no_wrap=True)
     for t in s.topics.values():
         table.add_row(t.topic, t.schema_name, t.encoding, str(t.message_count),
                       f"{t.start_ns * 1e-9:.6f}" if t.start_ns is not None else "-",

@@ -249,7 +249,7 @@ def foundation_markdown(result: dict, command: str) -> str:
         f"Baseline pipeline (no rolling-shutter correction), he2021b sensor (49 us line delay, 50 ms exposure), rate about "
         f"the camera x axis (stars move across rows), {rs['frames']} frames per point, tracking gate {SWEEP_GATE_PX:g} px "
         "(the first frame's stars are 11 px from the t = 0 prior at 3 deg/s). The pair-distance error of the "
-        "rolling shutter grows linearly with rate (he2021a section 3: 'the pair distance error before correction is "
+        "rolling shutter grows linearly with rate (he2021a section 3, our translation: 'before correction the star-pair distance error is "
         "linear in the angular rate'); with a global shutter it stays at the noise floor.",
         "",
         "| rate [deg/s] | rolling: pair RMSE [px] | rolling: pair max [px] | first-order RMS |v Δy Δt| [px] | global: pair RMSE [px] | rolling: attitude RMSE x/y/z [arcsec] |",
