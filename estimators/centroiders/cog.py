@@ -96,35 +96,37 @@ class CogCentroider(Centroider):
         labels, n_lab = ndimage.label(mask, structure=self._structure)
         if n_lab == 0:
             return frame.evolve(stars=StarTable.empty())
-        n_above = np.bincount(labels.ravel(), minlength=n_lab + 1)[1:]
-        raw_max = ndimage.maximum(img, labels, np.arange(1, n_lab + 1))
+        size = n_lab + 1
+        # Everything below works on the compact list of spot pixels (a few thousand), not the
+        # full frame: full-frame ndimage.maximum / grey_dilation cost 10-100x more (measured).
+        flat = np.flatnonzero(labels)
+        lab_core = labels.ravel()[flat]
+        n_above = np.bincount(lab_core, minlength=size)[1:]
+        raw_max = _label_max(raw.ravel()[flat].astype(float), lab_core, size)
         for _ in range(self.params.grow_px):
-            # a ring of below-threshold pixels around each spot, reduces the CoG truncation bias;
+            # a ring of below-threshold pixels around each spot reduces the CoG truncation bias;
             # where two spots' rings meet the higher label wins
-            grown = ndimage.grey_dilation(labels, footprint=self._structure)
-            labels = np.where(labels > 0, labels, grown)
+            flat, lab_core = _grow(flat, lab_core, self._shape, self.params.connectivity == 8)
 
-        lab = labels.ravel()
-        on = lab > 0
-        lab_on = lab[on]
-        d = resid.ravel()[on]
-        rows, cols = np.divmod(np.flatnonzero(on), self._shape[1])
+        lab_on = lab_core
+        d = resid.ravel()[flat]
+        rows, cols = np.divmod(flat, self._shape[1])
         rows = rows.astype(float)
         cols = cols.astype(float)
-        size = n_lab + 1
         npix = np.bincount(lab_on, minlength=size)[1:]
         flux = np.bincount(lab_on, weights=d, minlength=size)[1:]
         sx = np.bincount(lab_on, weights=d * cols, minlength=size)[1:]
         sy = np.bincount(lab_on, weights=d * rows, minlength=size)[1:]
-        peak = ndimage.maximum(resid, labels, np.arange(1, size))
+        peak = _label_max(d, lab_on, size)
 
         keep = (n_above >= self.params.min_pixels) & (flux > 0)
         if self.params.max_pixels is not None:
             keep &= n_above <= self.params.max_pixels
         if self.params.reject_border:
             border = np.zeros(size, dtype=bool)
-            edge = np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])
-            border[edge] = True
+            H, W = self._shape
+            on_edge = (rows == 0) | (rows == H - 1) | (cols == 0) | (cols == W - 1)
+            border[lab_on[on_edge]] = True
             keep &= ~border[1:]
 
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -152,9 +154,9 @@ class CogCentroider(Centroider):
         return frame.evolve(stars=stars)
 
     def _background(self, img: np.ndarray):
-        """Scalar median, or a (H, W) bilinear interpolation of tile medians."""
+        """Scalar median (of a strided subsample), or a (H, W) bilinear interpolation of tile medians."""
         if self.params.background == "median":
-            return float(np.median(img))
+            return float(np.median(_subsample(img)))
         t = self.params.tile_px
         H, W = img.shape
         ny, nx = -(-H // t), -(-W // t)
@@ -178,7 +180,7 @@ def _robust_sigma(resid: np.ndarray) -> float:
     normal truncated to +-3). The clipped-std steps remove the bias of the MAD on integer data
     (whose median absolute deviation is itself an integer or half-integer).
     """
-    r = resid.ravel()
+    r = _subsample(resid).ravel()
     med = float(np.median(r))
     dev = np.abs(r - med)
     s0 = _MAD_TO_SIGMA * float(np.median(dev))
@@ -189,6 +191,49 @@ def _robust_sigma(resid: np.ndarray) -> float:
         return s0
     sel = r[dev < 3.0 * s1]
     return float(np.sqrt(np.mean((sel - med) ** 2))) / 0.98658
+
+
+_MIN_STAT_SAMPLES = 65536
+
+
+def _subsample(img: np.ndarray) -> np.ndarray:
+    """A deterministic strided subsample with at least 65536 pixels, for robust statistics.
+
+    The median and MAD of 65536 background pixels have a relative standard error of ~0.5 %,
+    far below what the threshold needs, at 1/16 of the cost on a 1024 x 1024 frame.
+    """
+    step = max(1, int(np.sqrt(img.size / _MIN_STAT_SAMPLES)))
+    return img[::step, ::step] if step > 1 else img
+
+
+def _label_max(values: np.ndarray, labels: np.ndarray, size: int) -> np.ndarray:
+    """Per-label maximum of ``values`` (labels 1..size-1), -inf for empty labels."""
+    out = np.full(size, -np.inf)
+    np.maximum.at(out, labels, values)
+    return out[1:]
+
+
+def _grow(flat: np.ndarray, labels: np.ndarray, shape: tuple[int, int], eight: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Add the ring of neighbours around labelled pixels (flat indices); the higher label wins."""
+    H, W = shape
+    r, c = np.divmod(flat, W)
+    offsets = [(-1, 0), (1, 0), (0, -1), (0, 1)]
+    if eight:
+        offsets += [(-1, -1), (-1, 1), (1, -1), (1, 1)]
+    dr = np.array([o[0] for o in offsets])[:, None]
+    dc = np.array([o[1] for o in offsets])[:, None]
+    rr, cc = r[None, :] + dr, c[None, :] + dc
+    ok = (rr >= 0) & (rr < H) & (cc >= 0) & (cc < W)
+    nb_flat = (rr * W + cc)[ok]
+    nb_lab = np.broadcast_to(labels, rr.shape)[ok]
+    all_flat = np.concatenate([flat, nb_flat])
+    all_lab = np.concatenate([labels, nb_lab])
+    # core pixels keep their own label (a core pixel outranks any ring label: add a big offset)
+    rank = np.concatenate([labels.astype(np.int64) + (1 << 40), nb_lab.astype(np.int64)])
+    order = np.lexsort((-rank, all_flat))
+    all_flat, all_lab = all_flat[order], all_lab[order]
+    first = np.concatenate([[True], all_flat[1:] != all_flat[:-1]])
+    return all_flat[first], all_lab[first]
 
 
 def _interp_matrix(xq: np.ndarray, xp: np.ndarray) -> np.ndarray:
