@@ -134,17 +134,22 @@ def _match_to_truth(est: dict, tru: dict) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(ei, dtype=int), np.asarray(tj, dtype=int)
 
 
-def _centroid_errors(est_stars, truth_stars, truth, camera, effects) -> dict:
-    if truth is None:
-        return {"rmse": None, "max": None}
-    errs = []
+def _matched_frames(est_stars, truth_stars, min_matches: int):
+    """Per frame with truth: (est, truth, est indices, truth indices) of at least ``min_matches`` matches."""
     for frame, est in est_stars.items():
         tru = truth_stars.get(frame)
         if tru is None or len(est["x"]) == 0:
             continue
         ei, tj = _match_to_truth(est, tru)
-        if ei.size == 0:
-            continue
+        if ei.size >= min_matches:
+            yield est, tru, ei, tj
+
+
+def _centroid_errors(est_stars, truth_stars, truth, camera, effects) -> dict:
+    if truth is None:
+        return {"rmse": None, "max": None}
+    errs = []
+    for est, tru, ei, tj in _matched_frames(est_stars, truth_stars, 1):
         t = np.asarray(est["t_ns"], dtype=np.int64)[ei]
         ok = truth.covers(t)
         if not ok.any():
@@ -159,13 +164,7 @@ def _pair_errors(est_stars, truth_stars, truth, camera, effects) -> dict:
     if truth is None:
         return {"rmse": None, "max": None}
     errs = []
-    for frame, est in est_stars.items():
-        tru = truth_stars.get(frame)
-        if tru is None:
-            continue
-        ei, tj = _match_to_truth(est, tru)
-        if ei.size < 2:
-            continue
+    for est, tru, ei, tj in _matched_frames(est_stars, truth_stars, 2):
         i, j = np.triu_indices(ei.size, k=1)
         t = np.asarray(est["t_ns"], dtype=np.int64)[ei]
         tc = (t[i] + t[j]) // 2
@@ -199,13 +198,7 @@ def _crb(est_stars, truth_stars, truth, camera, scenario) -> dict:
     if truth is None or not sigma:
         return dict.fromkeys(keys)
     variances = []
-    for frame, est in est_stars.items():
-        tru = truth_stars.get(frame)
-        if tru is None:
-            continue
-        ei, tj = _match_to_truth(est, tru)
-        if ei.size < 2:
-            continue
+    for est, tru, ei, tj in _matched_frames(est_stars, truth_stars, 2):
         t = np.asarray(tru["t_ns"], dtype=np.int64)[tj]
         if not truth.covers(t).all():
             continue
