@@ -160,13 +160,29 @@ class GyroSamples:
 
 
 @dataclass(frozen=True)
+class TruthSamples:
+    """Truth attitude samples of a simulated recording (``/truth/attitude``) around one frame.
+
+    Only filled by the runner for stages that declare ``needs_truth = True`` (oracle baselines such
+    as ``request`` with ``rate_source: truth``); ``q_xyzw`` camera-to-ICRS, ``omega_rad_s`` the body
+    rate (camera frame, rad/s), both at ``t_ns``.
+    """
+
+    t_ns: np.ndarray
+    q_xyzw: np.ndarray
+    omega_rad_s: np.ndarray
+
+
+@dataclass(frozen=True)
 class FrameData:
     """Everything the stages know about one frame.
 
     ``image`` is the raw frame (H, W) when the recording has images; ``stars`` the current star
     table (detections, then identified, filtered, corrected stars); ``unmatched`` the detections an
     identifier could not match; ``attitudes`` one or more estimates (several per frame for
-    sub-frame solvers); ``flags`` short machine-readable notes (e.g. ``"too_few_stars"``).
+    sub-frame solvers); ``flags`` short machine-readable notes (e.g. ``"too_few_stars"``);
+    ``truth`` the recording's truth samples of this frame, present only when a stage of the
+    pipeline declares ``needs_truth`` (None otherwise, and always on real data).
     """
 
     index: int
@@ -178,6 +194,7 @@ class FrameData:
     attitudes: tuple[AttitudeEstimate, ...] = ()
     rate: RateEstimate | None = None
     flags: tuple[str, ...] = ()
+    truth: TruthSamples | None = None
 
     def evolve(self, **changes) -> "FrameData":
         """A new frame with some fields replaced (frames are immutable)."""

@@ -26,9 +26,16 @@ BUILTIN: dict[str, str] = {
     "none": "estimators.corrections.none:NoCorrection",
     "quest": "estimators.attitude.quest:QuestSolver",
     # he2021a plugins:
+    "kf-cv": "estimators.filters.kf_cv:KfCvFilter",
+    "time-domain": "estimators.corrections.time_domain:TimeDomainCorrection",
     # he2021b plugins:
+    "request": "estimators.attitude.request:RequestSolver",
     # fu2022 plugins:
+    "pso-rate": "estimators.rates.pso:PsoRateEstimator",
+    "pso-correction": "estimators.rates.pso:PsoCorrection",
     # liu2013 plugins:
+    "windowed": "estimators.centroiders.windowed:WindowedCentroider",
+    "gyro-kf": "estimators.filters.gyro_kf:GyroKalmanFilter",
 }
 
 

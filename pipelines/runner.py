@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from estimators.data import FrameData, GyroSamples, StarTable
+from estimators.data import FrameData, GyroSamples, StarTable, TruthSamples
 from estimators.plugin import Plugin
 from logs.reader import LogReader
 from logs.records import AttitudeEstimate as AttitudeRecord
@@ -81,6 +81,15 @@ def _gyro_from_messages(messages) -> GyroSamples:
     return GyroSamples(t, w)
 
 
+def _truth_from_messages(messages) -> TruthSamples | None:
+    if not messages:
+        return None
+    t = np.concatenate([np.asarray(m.data["t_ns"], dtype=np.int64) for m in messages])
+    q = np.concatenate([np.column_stack([m.data[k] for k in ("qx", "qy", "qz", "qw")]) for m in messages]).astype(float)
+    w = np.concatenate([np.column_stack([m.data[k] for k in ("wx", "wy", "wz")]) for m in messages]).astype(float)
+    return TruthSamples(t, q, w)
+
+
 def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | Path, pipeline_source: str = "<pipeline>",
                  show_progress: bool = True, max_frames: int | None = None) -> RunSummary:
     """Run ``pipeline`` over ``recording`` and write estimates (plus truth and metadata) to ``output``."""
@@ -99,6 +108,8 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
     for stage in stages:
         stage.setup(context)
     skip_centroiders = frame_topic == TOPIC_CENTROIDS
+    # Oracle stages (e.g. request with rate_source truth) declare needs_truth; only they get truth.
+    pass_truth = any(getattr(stage, "needs_truth", False) for stage in stages)
     total = None
     counts = getattr(info, "message_counts", None)
     if isinstance(counts, dict):
@@ -117,6 +128,8 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
             msg = group.frame
             frame = _frame_from_message(msg, frame_topic, n_frames)
             frame = frame.evolve(gyro=_gyro_from_messages(group.side.get(TOPIC_GYRO, [])))
+            if pass_truth:
+                frame = frame.evolve(truth=_truth_from_messages(group.side.get(TOPIC_TRUTH_ATTITUDE, [])))
             frame = _run_stages(stages, frame, skip_centroiders, stage_seconds)
             _write_frame(writer, frame)
             n_frames += 1

@@ -1,0 +1,283 @@
+"""Per-star constant-velocity Kalman filter of he2021a section 2.1 (eqs 5-11), batched over stars.
+
+State per star (eq 7): ``X = [x, vx, y, vy]`` in px and px/s. Model (eqs 8-10), with the step
+``dt`` between two measurements of the star::
+
+    X(k) = F X(k-1) + G W(k),   F = [[1, dt, 0, 0], [0, 1, 0, 0], [0, 0, 1, dt], [0, 0, 0, 1]]
+    Z(k) = H X(k) + V(k),       H = [[1, 0, 0, 0], [0, 0, 1, 0]]
+
+The noise input matrix ``G`` is printed in the seed with a missing row (known typo of eq 8); the
+random-acceleration model it describes is the 4 x 2 matrix
+
+    G = [[dt^2/2, 0], [dt, 0], [0, dt^2/2], [0, dt]],
+
+so the process noise covariance is ``Q_k = q G G^T`` with ``q`` the variance of the random
+acceleration ``W`` (px^2/s^4; the seed's "Q = 1e-4" read in these units). ``V`` has covariance
+``r I`` (``r`` the seed's "R", read as a centroid variance in px^2: R = 0.05 px^2 is a 0.224 px
+1-sigma centroid noise per axis).
+
+Initialisation (eq 6): a track's first measurement is stored; at its second, ``x, y`` = the second
+measurement and ``vx, vy`` = frame difference / ``dt``. The seed gives no initial covariance; we use
+the exact covariance of that differencing initialiser per axis, ``[[r, r/dt], [r/dt, 2 r/dt^2]]``.
+
+Recursion (eq 11): predict ``X = F X``, ``P = F P F^T + Q``; update with gain
+``K = P H^T (H P H^T + r I)^-1``. The covariance update uses the Joseph form
+``(I - K H) P (I - K H)^T + K r K^T`` (equal to eq 11's ``(I - K H) P`` for the optimal gain,
+numerically symmetric, and what filterpy computes, so both backends agree to rounding).
+
+``dt``: the seed's eq (5) frame interval ``t_f = t_e + N dt_line`` is the interval between frame
+timestamps. A rolling-shutter star's consecutive measurements are, however, ``t_f + (y_k - y_{k-1})
+dt_line`` apart (its row moves); with ``t_f`` the velocity comes out scaled by ``1/(1 - vy dt_line)``
+(1 % at 3 deg/s on the he2021a sensor, i.e. ~2 px/s). Default ``dt_source="star_time"`` uses each
+star's own measurement-time difference (``t_ns``, exact); ``"frame_start"`` uses the difference of
+the frames' ``t0`` (= eq 5 for a recording with the eq-5 period), as in the seed.
+"""
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from estimators.data import FrameData
+from estimators.filters.base import StarMotionFilter
+
+H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+_EYE4 = np.eye(4)
+
+
+# ------------------------------------------------------------------------ batched maths (numpy)
+def cv_transition(dt) -> tuple[np.ndarray, np.ndarray]:
+    """``F`` (n, 4, 4) and the random-acceleration input ``G`` (n, 4, 2) of eq (8) for steps ``dt`` (n,) s."""
+    dt = np.asarray(dt, dtype=float).reshape(-1)
+    n = dt.shape[0]
+    F = np.broadcast_to(_EYE4, (n, 4, 4)).copy()
+    F[:, 0, 1] = dt
+    F[:, 2, 3] = dt
+    G = np.zeros((n, 4, 2))
+    G[:, 0, 0] = G[:, 2, 1] = 0.5 * dt**2
+    G[:, 1, 0] = G[:, 3, 1] = dt
+    return F, G
+
+
+def cv_process_noise(dt, q: float) -> np.ndarray:
+    """Eq (8) (corrected): ``Q = q G G^T`` (n, 4, 4) for steps ``dt`` (n,) s and acceleration variance ``q``."""
+    _, G = cv_transition(dt)
+    return q * np.einsum("nik,njk->nij", G, G)
+
+
+def kf_cv_init(z_prev: np.ndarray, z: np.ndarray, dt, r: float) -> tuple[np.ndarray, np.ndarray]:
+    """Eq (6) initialisation from two measurements ``(n, 2)`` ``dt`` (n,) s apart: state (n, 4), covariance (n, 4, 4)."""
+    z_prev = np.asarray(z_prev, dtype=float).reshape(-1, 2)
+    z = np.asarray(z, dtype=float).reshape(-1, 2)
+    dt = np.broadcast_to(np.asarray(dt, dtype=float), (z.shape[0],))
+    v = (z - z_prev) / dt[:, None]
+    X = np.column_stack([z[:, 0], v[:, 0], z[:, 1], v[:, 1]])
+    P = np.zeros((z.shape[0], 4, 4))
+    for a in (0, 2):  # x block then y block (two fixed indices, not a loop over stars)
+        P[:, a, a] = r
+        P[:, a, a + 1] = P[:, a + 1, a] = r / dt
+        P[:, a + 1, a + 1] = 2.0 * r / dt**2
+    return X, P
+
+
+def kf_cv_predict(X: np.ndarray, P: np.ndarray, dt, q: float) -> tuple[np.ndarray, np.ndarray]:
+    """Eq (11) prediction for all stars at once: ``X = F X``, ``P = F P F^T + Q``."""
+    F, _ = cv_transition(dt)
+    Q = cv_process_noise(dt, q)
+    Xp = np.einsum("nij,nj->ni", F, X)
+    Pp = np.einsum("nij,njk,nlk->nil", F, P, F) + Q
+    return Xp, Pp
+
+
+def kf_cv_update(X: np.ndarray, P: np.ndarray, z: np.ndarray, r: float) -> tuple[np.ndarray, np.ndarray]:
+    """Eq (11) update for all stars at once (Joseph-form covariance, see the module docstring)."""
+    n = X.shape[0]
+    R = r * np.eye(2)
+    PHt = np.einsum("nij,kj->nik", P, H)  # (n, 4, 2)
+    S = np.einsum("ij,njk->nik", H, PHt) + R  # (n, 2, 2)
+    K = PHt @ np.linalg.inv(S)  # (n, 4, 2)
+    y = np.asarray(z, dtype=float).reshape(n, 2) - np.einsum("ij,nj->ni", H, X)
+    Xu = X + np.einsum("nij,nj->ni", K, y)
+    IKH = _EYE4 - np.einsum("nik,kj->nij", K, H)
+    Pu = np.einsum("nij,njk,nlk->nil", IKH, P, IKH) + r * np.einsum("nik,njk->nij", K, K)
+    return Xu, Pu
+
+
+def kf_cv_batch(z: np.ndarray, dt, q: float = 1e-4, r: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """Filter ``n`` complete tracks of ``T`` frames at once (benchmarks, tests).
+
+    ``z`` (T, n, 2) measured ``(x, y)`` px; ``dt`` seconds between frame ``t-1`` and ``t``: a scalar,
+    (T,) or (T, n) (entry 0 unused). Returns states (T, n, 4) ``[x, vx, y, vy]`` and covariances
+    (T, n, 4, 4): frame 0 holds the raw measurement with NaN velocity and NaN covariance, frame 1
+    the eq (6) initialisation, later frames eq (11).
+    """
+    z = np.asarray(z, dtype=float)
+    T, n, _ = z.shape
+    dts = np.broadcast_to(np.asarray(dt, dtype=float).reshape((-1, 1) if np.ndim(dt) == 1 else np.shape(dt)), (T, n))
+    states = np.full((T, n, 4), np.nan)
+    covs = np.full((T, n, 4, 4), np.nan)
+    states[0, :, 0], states[0, :, 2] = z[0, :, 0], z[0, :, 1]
+    if T < 2:
+        return states, covs
+    X, P = kf_cv_init(z[0], z[1], dts[1], r)
+    states[1], covs[1] = X, P
+    for t in range(2, T):  # the recursion over time is sequential; stars are batched
+        X, P = kf_cv_predict(X, P, dts[t], q)
+        X, P = kf_cv_update(X, P, z[t], r)
+        states[t], covs[t] = X, P
+    return states, covs
+
+
+def steady_state_covariance(dt: float, q: float, r: float) -> tuple[np.ndarray, np.ndarray]:
+    """Discrete algebraic Riccati solution of the model: (prior, posterior) 4 x 4 covariances."""
+    from scipy.linalg import solve_discrete_are
+
+    F, _ = cv_transition([dt])
+    Q = cv_process_noise([dt], q)[0]
+    prior = solve_discrete_are(F[0].T, H.T, Q, r * np.eye(2))
+    S = H @ prior @ H.T + r * np.eye(2)
+    post = prior - prior @ H.T @ np.linalg.solve(S, H @ prior)
+    return prior, post
+
+
+# ------------------------------------------------------------------------ plugin
+class KfCvParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    backend: Literal["batched", "filterpy"] = Field(
+        default="batched", description="'batched': numpy over all tracks; 'filterpy': one filterpy KalmanFilter per track (reference).")
+    q: float = Field(default=1e-4, ge=0, description="Random-acceleration variance (px^2/s^4), the seed's Q (eq 8).")
+    r: float = Field(default=0.05, gt=0, description="Centroid measurement-noise variance per axis (px^2), the seed's R (eq 9).")
+    dt_source: Literal["star_time", "frame_start"] = Field(
+        default="star_time", description="Step between measurements: each star's t_ns difference (exact) or the frames' t0 difference (eq 5).")
+
+
+class KfCvFilter(StarMotionFilter):
+    """he2021a constant-velocity Kalman filter per identified star (eqs 5-11; see the module docstring).
+
+    Tracks are keyed by ``catalog_id``: created when an identified star appears, retired as soon as
+    a frame does not contain it (a re-appearing star starts a new track). Unidentified stars
+    (``catalog_id < 0``) and stars of a duplicated id pass through unchanged.
+
+    Output per star (a new :class:`StarTable`, same rows and order):
+
+    - first sighting: position unchanged, ``vx = vy = NaN`` (no velocity can be estimated yet);
+    - second: eq (6) initialisation, position = measurement, velocity = difference / dt;
+    - later: eq (11) filtered ``x, y, vx, vy``.
+
+    ``sigma_px`` = ``sqrt((P_xx + P_yy) / 2)`` of the filtered state (unchanged on first sighting);
+    ``t_ns`` unchanged: the filtered state refers to the time of the star's current measurement.
+    Frames get flag ``"kf_cv_nonpositive_dt:<n>"`` when ``n`` tracks saw a step <= 0 (restarted).
+    """
+
+    name = "kf-cv"
+    Params = KfCvParams
+
+    def setup(self, context) -> None:
+        super().setup(context)
+        self._ids = np.zeros(0, dtype=np.int64)  # sorted track ids
+        self._X = np.zeros((0, 4))
+        self._P = np.zeros((0, 4, 4))
+        self._t = np.zeros(0, dtype=np.int64)  # time of the last measurement (ns)
+        self._stage = np.zeros(0, dtype=np.int8)  # 1: one measurement stored, 2: filtering
+        self._kf: dict[int, object] = {}  # filterpy backend: catalog_id -> KalmanFilter
+
+    def process(self, frame: FrameData) -> FrameData:
+        stars = frame.stars
+        if stars is None or stars.n == 0:
+            self.setup_empty()
+            return frame.evolve()
+        p = self.params
+        ids = stars.catalog_id
+        uniq, counts = np.unique(ids[ids >= 0], return_counts=True)
+        dup = np.isin(ids, uniq[counts > 1])
+        use = (ids >= 0) & ~dup & np.isfinite(stars.x) & np.isfinite(stars.y)
+        rows = np.flatnonzero(use)
+        sid = ids[rows]
+        z = np.column_stack([stars.x[rows], stars.y[rows]])
+        t = stars.t_ns[rows] if p.dt_source == "star_time" else np.full(rows.size, frame.t0_ns, dtype=np.int64)
+
+        # match to existing tracks (sorted ids), retire the absent ones
+        pos = np.searchsorted(self._ids, sid)
+        pos_c = np.minimum(pos, max(self._ids.size - 1, 0))
+        known = (self._ids.size > 0) & (self._ids[pos_c] == sid) if self._ids.size else np.zeros(sid.size, bool)
+        old = np.where(known, pos_c, -1)
+        X = np.full((sid.size, 4), np.nan)
+        P = np.full((sid.size, 4, 4), np.nan)
+        stage = np.ones(sid.size, dtype=np.int8)
+        X[:, 0], X[:, 2] = z[:, 0], z[:, 1]
+        dt = np.full(sid.size, np.nan)
+        k = old >= 0
+        dt[k] = (t[k] - self._t[old[k]]).astype(float) * 1e-9
+        bad_dt = k & ~(dt > 0)
+        k &= ~bad_dt
+        init = k & (self._stage[np.where(k, old, 0)] == 1) if sid.size and self._stage.size else np.zeros(sid.size, bool)
+        step = k & ~init
+        if init.any():
+            zp = np.column_stack([self._X[old[init], 0], self._X[old[init], 2]])
+            X[init], P[init] = kf_cv_init(zp, z[init], dt[init], p.r)
+            stage[init] = 2
+        if step.any():
+            if p.backend == "batched":
+                Xp, Pp = kf_cv_predict(self._X[old[step]], self._P[old[step]], dt[step], p.q)
+                X[step], P[step] = kf_cv_update(Xp, Pp, z[step], p.r)
+            else:
+                X[step], P[step] = self._filterpy_steps(sid[step], dt[step], z[step])
+            stage[step] = 2
+        if p.backend == "filterpy":
+            self._filterpy_sync(sid, X, P, stage)
+
+        order = np.argsort(sid, kind="stable")
+        self._ids, self._X, self._P, self._t, self._stage = sid[order], X[order], P[order], t[order], stage[order]
+
+        out_x, out_y = stars.x.copy(), stars.y.copy()
+        vx, vy = stars.vx.copy(), stars.vy.copy()
+        sigma = stars.sigma_px.copy()
+        f = stage == 2
+        r_f = rows[f]
+        out_x[r_f], out_y[r_f] = X[f, 0], X[f, 2]
+        vx[r_f], vy[r_f] = X[f, 1], X[f, 3]
+        sigma[r_f] = np.sqrt(0.5 * (P[f, 0, 0] + P[f, 2, 2]))
+        r1 = rows[~f]
+        vx[r1] = vy[r1] = np.nan
+        flags = frame.flags + ((f"kf_cv_nonpositive_dt:{int(bad_dt.sum())}",) if bad_dt.any() else ())
+        new = stars.with_columns(x=out_x, y=out_y, vx=vx, vy=vy, sigma_px=sigma)
+        return frame.evolve(stars=new, flags=flags)
+
+    def setup_empty(self) -> None:
+        """Retire every track (a frame without stars)."""
+        self.setup(self.context)
+
+    # filterpy reference backend: one KalmanFilter per track, stepped in a loop over tracks
+    def _filterpy_steps(self, ids, dt, z):
+        from filterpy.kalman import KalmanFilter
+
+        X = np.zeros((ids.size, 4))
+        P = np.zeros((ids.size, 4, 4))
+        for i, (cid, h, zi) in enumerate(zip(ids, dt, z)):
+            kf: KalmanFilter = self._kf[int(cid)]
+            F, _ = cv_transition([h])
+            kf.F = F[0]
+            kf.Q = cv_process_noise([h], self.params.q)[0]
+            kf.predict()
+            kf.update(zi.reshape(2, 1))
+            X[i], P[i] = kf.x.reshape(4), kf.P
+        return X, P
+
+    def _filterpy_sync(self, ids, X, P, stage) -> None:
+        from filterpy.kalman import KalmanFilter
+
+        kept = {}
+        for cid, x, cov, s in zip(ids, X, P, stage):
+            cid = int(cid)
+            kf = self._kf.get(cid)
+            if kf is None or s == 1:
+                kf = KalmanFilter(dim_x=4, dim_z=2)
+                kf.H = H.copy()
+                kf.R = self.params.r * np.eye(2)
+            if s == 2:
+                kf.x = x.reshape(4, 1).copy()
+                kf.P = cov.copy()
+            kept[cid] = kf
+        self._kf = kept
