@@ -103,9 +103,9 @@ def print_metrics(m: dict, title: str = "") -> None:
     table.add_column("y", justify="right")
     table.add_column("z", justify="right")
     a, crb = m["attitude_error_arcsec"], m["attitude_crb_arcsec"]
-    table.add_row("attitude error RMSE [arcsec]", f(a["x_rmse"]), f(a["y_rmse"]), f(a["z_rmse"]))
-    table.add_row("attitude error max [arcsec]", f(a["x_max"]), f(a["y_max"]), f(a["z_max"]))
-    table.add_row("Cramér–Rao bound, per frame [arcsec]", f(crb["x"]), f(crb["y"]), f(crb["z"]))
+    table.add_row("attitude error RMSE (arcsec)", f(a["x_rmse"]), f(a["y_rmse"]), f(a["z_rmse"]))
+    table.add_row("attitude error max (arcsec)", f(a["x_max"]), f(a["y_max"]), f(a["z_max"]))
+    table.add_row("Cramér–Rao bound, per frame (arcsec)", f(crb["x"]), f(crb["y"]), f(crb["z"]))
     out.print(table)
     summary = Table(show_header=False)
     summary.add_column("k")
@@ -113,13 +113,13 @@ def print_metrics(m: dict, title: str = "") -> None:
     summary.add_row("frames", str(m["frames"]))
     summary.add_row("attitude updates (valid)", str(m["attitude_updates"]))
     summary.add_row("invalid estimates (flagged)", str(m["invalid_attitude_estimates"]))
-    summary.add_row("update rate [Hz]", f(m["update_rate_hz"]))
+    summary.add_row("update rate (Hz)", f(m["update_rate_hz"]))
     summary.add_row("identified stars per frame", f(m["identified_stars_per_frame"]))
-    summary.add_row("centroid error RMSE / max [px]", f"{f(m['centroid_error_px']['rmse'])} / {f(m['centroid_error_px']['max'])}")
+    summary.add_row("centroid error RMSE / max (px)", f"{f(m['centroid_error_px']['rmse'])} / {f(m['centroid_error_px']['max'])}")
     p = m["star_pair_distance_error_px"]
-    summary.add_row("star-pair distance error RMSE / max [px]", f"{f(p['rmse'])} / {f(p['max'])}")
+    summary.add_row("star-pair distance error RMSE / max (px)", f"{f(p['rmse'])} / {f(p['max'])}")
     r = m["rate_error_deg_s"]
-    summary.add_row("rate error RMSE / max [deg/s]", f"{f(r['rmse'])} / {f(r['max'])}")
+    summary.add_row("rate error RMSE / max (deg/s)", f"{f(r['rmse'])} / {f(r['max'])}")
     out.print(summary)
 
 
@@ -135,7 +135,7 @@ def info(log: Path = typer.Argument(..., help="MCAP file")):
     out.print(f"[bold]{log}[/]: format {s.format_version}, {s.message_count} messages, {span}"
               f"{' (TRUNCATED: complete messages only)' if s.truncated else ''}", highlight=False)
     table = Table()
-    for col in ("topic", "schema", "encoding", "messages", "first [s]", "last [s]"):
+    for col in ("topic", "schema", "encoding", "messages", "first (s)", "last (s)"):
         table.add_column(col, no_wrap=True)
     for t in s.topics.values():
         table.add_row(t.topic, t.schema_name, t.encoding, str(t.message_count),
