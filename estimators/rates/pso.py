@@ -31,7 +31,7 @@ linear map of eqs 8 and 12. The corrected positions are ``x_i = x_i' - Delta_i``
 direction to ``t_ref``: ``w_i(t_ref) = Exp(omega (t_i - t_ref)) w_i(t_i)`` (no small-field
 approximation). The uniform pixel shift of ``model="linear"`` is not a rotation: off axis the
 plate scale grows as ``1 + tan^2``, so shifting all stars by ``v (T/2 + y ld)`` changes their
-angular distances and biases the rate (0.05 deg/s median at 1 deg/s with ``t_ref = t0`` on the
+angular distances and biases the rate (0.08 deg/s median at wx = wy = 1 deg/s, no noise, with ``t_ref = t0`` on the
 Table 1 sensor, see docs/reproductions/fu2022.md); ``reference="frame_mid"`` (default) shrinks the
 shifts but does not remove the bias.
 
