@@ -202,24 +202,16 @@ class RequestSolver(AttitudeSolver):
         if src == "gyro":
             g = frame.gyro
             if g is not None and len(g.t_ns):
-                t = np.concatenate([self._gyro_t, np.asarray(g.t_ns, dtype=np.int64)])
-                w = np.concatenate([self._gyro_w, np.asarray(g.omega_rad_s, dtype=float)])
-                order = np.argsort(t, kind="stable")
-                t, w = t[order], w[order]
-                keep = t >= t[-1] - 2_000_000_000  # the last 2 s are plenty
-                self._gyro_t, self._gyro_w = t[keep], w[keep]
+                self._gyro_t, self._gyro_w = _merge_window(  # the last 2 s are plenty
+                    self._gyro_t, self._gyro_w, g.t_ns, g.omega_rad_s, 2_000_000_000, unique=False)
             if self._gyro_t.size == 0:
                 return "no gyro samples yet", ("rate_unavailable",)
             return None, ()
         # truth
         tr = frame.truth
         if tr is not None and len(tr.t_ns):
-            t = np.concatenate([self._truth_t, np.asarray(tr.t_ns, dtype=np.int64)])
-            q = np.concatenate([self._truth_q, np.asarray(tr.q_xyzw, dtype=float)])
-            order = np.argsort(t, kind="stable")
-            t, q = t[order], q[order]
-            keep = np.concatenate([[True], np.diff(t) > 0]) & (t >= t[-1] - 500_000_000)
-            self._truth_t, self._truth_q = t[keep], q[keep]
+            self._truth_t, self._truth_q = _merge_window(
+                self._truth_t, self._truth_q, tr.t_ns, tr.q_xyzw, 500_000_000, unique=True)
         if self._truth_t.size < 2:
             return "rate_source 'truth' but the frame carries no truth (simulated recordings only)", ("rate_unavailable",)
         return None, ()
@@ -382,3 +374,15 @@ class RequestSolver(AttitudeSolver):
     @staticmethod
     def _append(frame: FrameData, ests: list[AttitudeEstimate], flags: tuple[str, ...]) -> FrameData:
         return frame.evolve(attitudes=frame.attitudes + tuple(ests), flags=frame.flags + flags)
+
+
+def _merge_window(t_old, v_old, t_new, v_new, window_ns: int, unique: bool):
+    """Append timed samples, sort by time, keep the last ``window_ns`` (and one sample per time if ``unique``)."""
+    t = np.concatenate([t_old, np.asarray(t_new, dtype=np.int64)])
+    v = np.concatenate([v_old, np.asarray(v_new, dtype=float)])
+    order = np.argsort(t, kind="stable")
+    t, v = t[order], v[order]
+    keep = t >= t[-1] - window_ns
+    if unique:
+        keep &= np.concatenate([[True], np.diff(t) > 0])
+    return t[keep], v[keep]
