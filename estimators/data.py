@@ -117,6 +117,8 @@ class AttitudeEstimate:
     ``q_xyzw`` is the camera-to-ICRS rotation (scalar-last); ``covariance_rad2`` the 3x3
     covariance of the attitude error in the camera frame (rad^2), or None. ``valid`` is False when
     the estimate could not be made (``reason`` says why); then ``q_xyzw`` is NaN.
+    ``gyro_bias_rad_s``: the gyro bias (camera frame, rad/s) estimated with the attitude by filters
+    and smoothers that estimate one (``mekf``, ``gtsam``), else None.
     """
 
     t_ns: int
@@ -125,6 +127,7 @@ class AttitudeEstimate:
     valid: bool = True
     reason: str = ""
     covariance_rad2: np.ndarray | None = None
+    gyro_bias_rad_s: np.ndarray | None = None
 
     @property
     def rotation(self) -> Rotation:

@@ -28,6 +28,9 @@ class Plugin:
     role: ClassVar[str] = ""
     name: ClassVar[str] = ""
     Params: ClassVar[type[BaseModel]] = NoParams
+    #: True for stages that hold frames back (smoothers): the runner then drops the provisional
+    #: frame :meth:`process` returns and passes on the frames of :meth:`release` and :meth:`finish`.
+    defers_output: ClassVar[bool] = False
 
     def __init__(self, **params):
         self.params = self.Params(**params)
@@ -41,6 +44,10 @@ class Plugin:
 
     def finish(self) -> list[FrameData]:
         """Frames still held back when the recording ends (smoothers); default none."""
+        return []
+
+    def release(self) -> list[FrameData]:
+        """Frames a ``defers_output`` stage has finalised since the last call (in frame order)."""
         return []
 
     def __repr__(self) -> str:

@@ -12,3 +12,8 @@ class LogFormatError(ValueError):
 
 class TruncatedLogWarning(UserWarning):
     """A log file was cut short or has a damaged part; the complete messages were still read."""
+
+
+class LogWriteError(OSError):
+    """The log could not be written (disk full, device error). The message names the file and how
+    much of it is on disk; every chunk finished before the failure stays readable."""

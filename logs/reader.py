@@ -27,9 +27,13 @@ from mcap_protobuf.decoder import DecoderFactory
 from pydantic import ValidationError
 
 from .errors import LogFormatError, TruncatedLogWarning
-from .records import FORMAT_VERSION, RECORD_TYPES
+from .records import FORMAT_VERSION, RECORD_TYPES, TOPIC_RECORDS
 
 MAGIC = b"\x89MCAP0\r\n"
+# The schema of every standard topic (docs/log-format.md); another schema there is an unknown version.
+STANDARD_SCHEMAS = {**{topic: model.SCHEMA_NAME for topic, model in TOPIC_RECORDS.items()},
+                    "/camera/image": "foxglove.RawImage", "/estimate/pose": "foxglove.PoseInFrame",
+                    "/estimate/spots": "foxglove.ImageAnnotations"}
 _KNOWN_MAJOR, _KNOWN_MINOR = (int(p) for p in FORMAT_VERSION.split("."))
 
 
@@ -134,6 +138,7 @@ class LogReader:
 
     def _iter_records(self) -> Iterator[tuple[int, Any]]:
         """Linear pass over the top-level records: (byte offset, record); stops at a cut."""
+        size = self.path.stat().st_size
         with open(self.path, "rb") as f:
             f.seek(MAGIC_SIZE)
             while True:
@@ -142,9 +147,9 @@ class LogReader:
                 if len(head) < 9:
                     return
                 opcode, length = head[0], struct.unpack("<Q", head[1:])[0]
-                body = f.read(length) if length < (1 << 40) else b""
-                if len(body) < length or length >= (1 << 40):
+                if length > size - offset - 9:  # runs past the end: a cut (or a damaged length); never allocate it
                     return
+                body = f.read(length)
                 if opcode == Opcode.FOOTER:
                     return
                 try:
@@ -265,6 +270,8 @@ class LogReader:
                     body = f.read(index.length)
                     try:
                         record = _parse_record(body[0], body[9:])
+                        if not isinstance(record, Metadata):
+                            raise ValueError("not a metadata record")
                     except Exception:
                         raise LogFormatError(f"{self.path}: metadata record {index.name!r} at byte offset "
                                              f"{index.offset} is unreadable") from None
@@ -361,6 +368,11 @@ class LogReader:
         channel, msg = raw.channel, raw.message
         schema_name = raw.schema.name if raw.schema is not None else ""
         where = f"{self.path}: topic {channel.topic} at log time {msg.log_time} ns"
+        expected = STANDARD_SCHEMAS.get(channel.topic)
+        if expected is not None and schema_name != expected:
+            raise LogFormatError(f"{where}: schema {schema_name!r} is not the format's {expected!r} for this topic "
+                                 f"(an unknown schema version?); this reader understands format {FORMAT_VERSION} "
+                                 "(docs/log-format.md)")
         record = None
         if channel.message_encoding == "json":
             try:

@@ -189,6 +189,9 @@ class AttitudeEstimateRecord(_Record):
     covariance_rad2: _Cov9 | None = Field(
         None, description="3x3 attitude-error covariance in the camera frame, rad^2, row-major"
     )
+    gyro_bias_rad_s: _Vec3 | None = Field(
+        None, description="gyro bias estimated with the attitude (camera frame, rad/s); null when not estimated"
+    )
 
     @model_validator(mode="after")
     def _valid_has_q(self) -> "AttitudeEstimateRecord":

@@ -6,6 +6,7 @@ into a numpy array.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Iterator
 
@@ -39,8 +40,8 @@ def iter_frames(reader: LogReader, frame_topic: str = "/camera/image",
                 side_topics: Iterable[str] = ()) -> Iterator[FrameMessages]:
     """Yield a :class:`FrameMessages` per message on ``frame_topic``, in log-time order.
 
-    Side messages logged after the last frame belong to no frame and are not yielded. Two frame
-    messages with the same log time raise :class:`LogFormatError` (frame times must increase).
+    Side messages logged after the last frame belong to no frame and are not yielded. Two different frame
+    messages with the same log time raise :class:`LogFormatError` (frame times must increase); an identical repeat is skipped with a DuplicateFrameWarning.
     """
     side = tuple(side_topics)
     if frame_topic in side:
@@ -57,14 +58,27 @@ def iter_frames(reader: LogReader, frame_topic: str = "/camera/image",
             pending = None
         if msg.topic == frame_topic:
             if pending is not None:
+                if _payload(msg) == _payload(pending):  # an exact duplicate (e.g. a re-sent frame): keep one
+                    warnings.warn(f"{reader.path}: duplicate frame on {frame_topic} at log time {msg.log_time_ns} ns "
+                                  "(identical content) skipped", DuplicateFrameWarning, stacklevel=2)
+                    continue
                 raise LogFormatError(
-                    f"{reader.path}: two messages on {frame_topic} at log time {msg.log_time_ns} ns; "
-                    "frame log times must strictly increase")
+                    f"{reader.path}: two messages on {frame_topic} at log time {msg.log_time_ns} ns with different "
+                    "content; frame log times must strictly increase")
             pending = msg
         else:
             buckets[msg.topic].append(msg)
     if pending is not None:
         yield FrameMessages(index, pending, {t: tuple(v) for t, v in buckets.items()})
+
+
+def _payload(msg: Message):
+    data = msg.data
+    return data.SerializeToString(deterministic=True) if hasattr(data, "SerializeToString") else data
+
+
+class DuplicateFrameWarning(UserWarning):
+    """A frame message repeated with identical content was skipped."""
 
 
 _BYTES_PER_PIXEL = {"mono8": 1, "mono16": 2}
@@ -89,9 +103,14 @@ def image_from_raw(msg: Message | Any, topic: str | None = None) -> np.ndarray:
     if step < width * bpp:
         raise LogFormatError(f"{where}: step {step} is less than width {width} x {bpp} bytes per pixel")
     if len(raw.data) != step * height:
+        hint = ""
+        if bpp == 2 and len(raw.data) == width * height:
+            hint = " (that is the size of 8-bit pixels: an 8-bit image declared as mono16?)"
+        elif bpp == 1 and len(raw.data) == 2 * width * height:
+            hint = " (that is the size of 16-bit pixels: a 16-bit image declared as mono8?)"
         raise LogFormatError(
             f"{where}: {raw.encoding} {width}x{height} with step {step} needs {step * height} bytes, "
-            f"data has {len(raw.data)}")
+            f"data has {len(raw.data)}{hint}")
     dtype = np.dtype("<u2") if bpp == 2 else np.dtype(np.uint8)
     rows = np.frombuffer(raw.data, dtype=np.uint8).reshape(height, step)[:, : width * bpp]
     image = np.ascontiguousarray(rows).view(dtype).reshape(height, width)

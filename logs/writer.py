@@ -27,6 +27,7 @@ from google.protobuf.timestamp_pb2 import Timestamp
 from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import register_schema
 
+from .errors import LogWriteError
 from .records import FORMAT_VERSION, TOPIC_RECORDS, _Record
 
 KINDS = ("simulation", "run", "import")
@@ -40,6 +41,18 @@ def software_version() -> str:
         return importlib.metadata.version("rollingstar")
     except importlib.metadata.PackageNotFoundError:
         return "0+unknown"
+
+
+def creation_time() -> datetime:
+    """Now (UTC), or ``SOURCE_DATE_EPOCH`` (reproducible-builds.org) when set: the only wall-clock
+    value in a log, so two runs with the same inputs and that variable give byte-identical files."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    if epoch is not None:
+        try:
+            return datetime.fromtimestamp(int(epoch), timezone.utc)
+        except ValueError:
+            raise ValueError(f"SOURCE_DATE_EPOCH must be an integer number of seconds, got {epoch!r}") from None
+    return datetime.now(timezone.utc)
 
 
 def timestamp_ns(t_ns: int) -> Timestamp:
@@ -58,13 +71,24 @@ class _UnbufferedFile:
     """
 
     def __init__(self, path: Path) -> None:
+        self.path = path
         self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         self._pos = 0
+        self.failed: OSError | None = None
 
     def write(self, data: bytes) -> int:
+        if self.failed is not None:
+            raise self.failed
         view = memoryview(data)
         while view:
-            n = os.write(self._fd, view)
+            try:
+                n = os.write(self._fd, view)
+            except OSError as exc:  # disk full, I/O error: what is on disk stays; no further writes
+                self.failed = LogWriteError(
+                    f"cannot write log {self.path}: {exc.strerror or exc} after {self._pos} bytes; the chunks "
+                    "finished before stay readable (`rollingstar info` reads them), the rest was not written")
+                self.failed.errno = exc.errno
+                raise self.failed from exc
             view = view[n:]
             self._pos += n
         return len(data)
@@ -129,7 +153,7 @@ class LogWriter:
         self.add_metadata("rollingstar", {
             "format_version": FORMAT_VERSION,
             "software_version": software_version(),
-            "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "created_utc": creation_time().isoformat(timespec="seconds"),
             "kind": kind,
         })
         for name, data in checked.items():
@@ -148,7 +172,8 @@ class LogWriter:
             return
         self._closed = True
         try:
-            self._mcap.finish()
+            if self._file.failed is None:  # after a failed write the summary cannot be written either
+                self._mcap.finish()
         finally:
             self._file.close()
 
@@ -216,6 +241,13 @@ class LogWriter:
         channel_id = self._channel(topic, cls.SCHEMA_NAME, register)
         t = record.default_log_time_ns() if log_time_ns is None else log_time_ns
         self._add(channel_id, t, record.model_dump_json().encode())
+
+    def write_message(self, message) -> None:
+        """Copy a message read by :class:`logs.reader.LogReader` (JSON record or protobuf) into this log."""
+        if hasattr(message.data, "SerializeToString"):
+            self._write_proto(message.topic, message.data, message.log_time_ns)
+        else:
+            self.write_json(message.topic, message.data, message.log_time_ns)
 
     def write_image(self, topic: str, image: np.ndarray, t_ns: int, frame_id: str = "camera") -> None:
         """Write a ``foxglove.RawImage`` (mono8 for uint8, little-endian mono16 for uint16)."""

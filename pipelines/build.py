@@ -12,8 +12,8 @@ from estimators.data import SensorContext
 from pipelines.config import ScenarioConfig
 from pipelines.errors import ConfigError
 from sensors.camera import PinholeCamera
-from sensors.catalog import StarCatalog
-from sensors.conventions import attitude_from_radec_roll, seconds_to_ns
+from sensors.catalog import StarCatalog, proper_motion_vector
+from sensors.conventions import attitude_from_radec_roll, seconds_to_ns, unit_to_radec
 from sensors.effects import UnknownEffectError, build_effect
 from sensors.gyro import GyroModel
 from sensors.motion import AttitudeMotion, JitterMotion, PiecewiseMotion, Segment
@@ -42,8 +42,13 @@ def build_timing(cfg: ScenarioConfig) -> DetectorTiming:
     )
 
 
-def initial_attitude(cfg: ScenarioConfig) -> Rotation:
+def initial_attitude(cfg: ScenarioConfig, required: bool = False) -> Rotation | None:
+    """The scenario's initial attitude; None when it declares none (imported real recordings)."""
     a = cfg.motion.initial_attitude
+    if a is None:
+        if required:
+            raise ConfigError("motion.initial_attitude: required to simulate (ra_deg, dec_deg, roll_deg)")
+        return None
     return attitude_from_radec_roll(a.ra_deg, a.dec_deg, a.roll_deg)
 
 
@@ -57,7 +62,7 @@ def build_motion(cfg: ScenarioConfig) -> AttitudeMotion:
     else:
         long_ns = seconds_to_ns(1e6)  # the last segment's law continues past its end anyway
         segments = [Segment(long_ns, np.asarray(m.rate_deg_s) * DEG, np.asarray(m.accel_deg_s2) * DEG)]
-    motion: AttitudeMotion = PiecewiseMotion(initial_attitude(cfg), segments)
+    motion: AttitudeMotion = PiecewiseMotion(initial_attitude(cfg, required=True), segments)
     if m.jitter:
         motion = JitterMotion(
             motion,
@@ -80,8 +85,17 @@ def build_catalog(cfg: ScenarioConfig, camera: PinholeCamera | None = None) -> S
     camera = camera or build_camera(cfg)
     xy = np.asarray(c.positions_px, dtype=float)
     w_cam = camera.unproject(xy[:, 0], xy[:, 1])
-    unit_icrs = initial_attitude(cfg).apply(w_cam)
-    return StarCatalog.synthetic(unit_icrs, magnitude=np.full(len(xy), c.magnitude), epoch_year=c.epoch_year)
+    unit_icrs = initial_attitude(cfg, required=True).apply(w_cam)
+    pm = None
+    if c.proper_motion_mas_yr:
+        if len(c.proper_motion_mas_yr) != len(xy):
+            raise ConfigError(f"catalog.proper_motion_mas_yr: expected one (pm_ra, pm_dec) per position "
+                              f"({len(xy)}), got {len(c.proper_motion_mas_yr)}")
+        ra, dec = unit_to_radec(unit_icrs)
+        mu = np.asarray(c.proper_motion_mas_yr, dtype=float)
+        pm = proper_motion_vector(ra, dec, mu[:, 0], mu[:, 1])
+    return StarCatalog.synthetic(unit_icrs, magnitude=np.full(len(xy), c.magnitude), epoch_year=c.epoch_year,
+                                 pm_rad_yr=pm)
 
 
 def build_effects(cfg: ScenarioConfig) -> list:
@@ -94,6 +108,32 @@ def build_effects(cfg: ScenarioConfig) -> list:
         except ValueError as exc:
             raise ConfigError(f"effects[{i}].params: {exc}") from None
     return effects
+
+
+def build_zenith(cfg: ScenarioConfig) -> np.ndarray | None:
+    """ICRS zenith of a ground-based scenario (``environment.elevation_deg``), else None.
+
+    At the initial attitude the boresight has elevation ``e`` and the zenith lies towards image
+    up (camera -y): ``zenith_cam = (0, -cos e, sin e)``. It is held fixed in ICRS (the sky's
+    diurnal rotation, 15 arcsec/s, is neglected over a recording).
+    """
+    e = cfg.environment.elevation_deg
+    att = initial_attitude(cfg)
+    if e is None or att is None:
+        return None
+    e = e * DEG
+    return att.apply([0.0, -np.cos(e), np.sin(e)])
+
+
+def build_covariates(cfg: ScenarioConfig) -> dict:
+    """Covariates as functions of int64 ns times (``environment.covariates``, see CovariateConfig)."""
+    out = {}
+    for name, c in cfg.environment.covariates.items():
+        def f(t_ns, c=c):
+            t = np.asarray(t_ns, dtype=np.int64).astype(float) * 1e-9
+            return c.offset + c.slope_per_h * t / HOUR + c.amplitude * np.sin(2.0 * np.pi * t / c.period_s)
+        out[name] = f
+    return out
 
 
 def build_gyro(cfg: ScenarioConfig) -> GyroModel | None:

@@ -20,10 +20,19 @@ out = Console(width=None if sys.stdout.isatty() else 200)  # no truncated cells 
 err = Console(stderr=True)
 
 
-def _user_errors():
-    from logs.errors import LogFormatError
+def _add_import_app() -> None:
+    from logs.importers.cli import import_app
 
-    return (UserError, LogFormatError, FileNotFoundError, IsADirectoryError, PermissionError)
+    app.add_typer(import_app, name="import")
+
+
+_add_import_app()
+
+
+def _user_errors():
+    from logs.errors import LogFormatError, LogWriteError
+
+    return (UserError, LogFormatError, LogWriteError, FileNotFoundError, IsADirectoryError, PermissionError)
 
 
 def handle_errors(fn):
@@ -42,6 +51,9 @@ def handle_errors(fn):
                 text = f"{exc.filename}: {exc.strerror}"
             err.print(f"[bold red]error:[/] {text}", highlight=False, soft_wrap=True)
             raise typer.Exit(2) from None
+        except KeyboardInterrupt as exc:  # SIGINT: the output was finalised (pipelines/interrupt.py)
+            err.print(str(exc) or "interrupted", highlight=False, soft_wrap=True)
+            raise typer.Exit(130) from None
 
     return wrapper
 
@@ -68,13 +80,14 @@ def simulate(scenario: Path = typer.Argument(..., help="scenario YAML"),
 def run(pipeline: Path = typer.Argument(..., help="pipeline YAML"),
         recording: Path = typer.Argument(..., help="input MCAP recording"),
         output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write"),
+        resume: bool = typer.Option(False, "--resume", help="continue from a partial output (killed or interrupted run)"),
         quiet: bool = typer.Option(False, "--quiet", "-q")):
     """Run a pipeline over a recording."""
     from pipelines.config import load_pipeline
     from pipelines.runner import run_pipeline
 
     cfg = load_pipeline(pipeline)
-    s = run_pipeline(recording, cfg, output, pipeline_source=str(pipeline), show_progress=not quiet)
+    s = run_pipeline(recording, cfg, output, pipeline_source=str(pipeline), show_progress=not quiet, resume=resume)
     out.print(f"wrote {s.output}: {s.frames} frames, {s.valid_estimates}/{s.attitude_estimates} valid attitude "
               f"estimates, {s.flagged_frames} flagged frames")
 
@@ -106,6 +119,14 @@ def print_metrics(m: dict, title: str = "") -> None:
     table.add_row("attitude error RMSE (arcsec)", f(a["x_rmse"]), f(a["y_rmse"]), f(a["z_rmse"]))
     table.add_row("attitude error max (arcsec)", f(a["x_max"]), f(a["y_max"]), f(a["z_max"]))
     table.add_row("Cramér–Rao bound, per frame (arcsec)", f(crb["x"]), f(crb["y"]), f(crb["z"]))
+    r, rcrb, eff = m["rate_error_deg_s"], m.get("rate_crb_deg_s") or {}, m.get("efficiency") or {}
+    if r.get("x_rmse") is not None:
+        table.add_row("rate error RMSE (deg/s)", f(r["x_rmse"]), f(r["y_rmse"]), f(r["z_rmse"]))
+        table.add_row("rate Cramér–Rao bound, per frame (deg/s)", f(rcrb.get("x")), f(rcrb.get("y")), f(rcrb.get("z")))
+    if eff:
+        table.add_row("efficiency: attitude RMSE / bound", *(f(eff.get(f"attitude_{a}"), "{:.3g}") for a in "xyz"))
+        if r.get("x_rmse") is not None:
+            table.add_row("efficiency: rate RMSE / bound", *(f(eff.get(f"rate_{a}"), "{:.3g}") for a in "xyz"))
     out.print(table)
     summary = Table(show_header=False)
     summary.add_column("k")
@@ -242,7 +263,89 @@ def figures(name: str = typer.Argument("foundation", help="foundation"),
         out.print(foundation_markdown(result, command), highlight=False)
 
 
+@app.command()
+@handle_errors
+def diagnose(recording: Path = typer.Option(..., "--recording", help="MCAP recording to diagnose"),
+             sim: Path = typer.Option(None, "--sim", help="scenario YAML (default: the sensor model the recording declares)"),
+             pipeline: Path = typer.Option(None, "--pipeline", help="pipeline YAML (default: cog, tracking, quest)"),
+             out_dir: Path = typer.Option(None, "-o", "--output", help="report directory (index.html, PNGs, scenario_updated.yaml)"),
+             as_json: bool = typer.Option(False, "--json", help="print one JSON object"),
+             seed: int = typer.Option(0, "--seed", help="held-out split and bootstrap seed"),
+             quiet: bool = typer.Option(False, "--quiet", "-q")):
+    """Locate a simulation/recording mismatch, name the physics left out, model it, show the fit improve."""
+    from pipelines.diagnose import DiagnoseOptions, print_summary, run_diagnose
+
+    result = run_diagnose(recording, sim, pipeline, out_dir, DiagnoseOptions(seed=seed, show_progress=not quiet and not as_json))
+    if as_json:
+        print(json.dumps(result, indent=2))
+    else:
+        print_summary(result, out)
+
+
+bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks that score an analysis against known truth.")
+app.add_typer(bench_app, name="bench")
+
+
+@bench_app.command("discrepancy")
+@handle_errors
+def bench_discrepancy(quick: bool = typer.Option(False, "--quick", help="the reduced set the test suite runs"),
+                      as_json: bool = typer.Option(False, "--json", help="print one JSON object"),
+                      seed: int = typer.Option(1, "--seed"),
+                      cases: int = typer.Option(None, "--cases", min=1, help="number of recordings (default 12 quick, 120 full)"),
+                      out_md: Path = typer.Option(None, "--markdown", help="also write the results table here")):
+    """Diagnose simulated recordings with concealed effects; score naming, nulls, parameters, held-out gain."""
+    from pipelines.bench.discrepancy import format_markdown, run_benchmark
+
+    result = run_benchmark(quick=quick, seed=seed, n_cases=cases, show_progress=not as_json)
+    if out_md is not None:
+        out_md.write_text(format_markdown(result))
+    if as_json:
+        print(json.dumps(result, indent=2))
+    else:
+        out.print(format_markdown(result), highlight=False)
+
+
+@app.command()
+@handle_errors
+def compare(config: Path = typer.Argument(..., help="comparison YAML (configs/compare/*.yaml)"),
+            output: Path = typer.Option(..., "-o", "--output", help="directory for results.json, results.md, report.html"),
+            executor: str = typer.Option(None, "--executor", help="serial | dask (default: dask when --workers > 1)"),
+            scheduler: str = typer.Option(None, "--scheduler", help="address of an existing dask scheduler, tcp://host:8786"),
+            workers: int = typer.Option(1, "--workers", help="local dask workers (a LocalCluster)"),
+            baseline: Path = typer.Option(None, "--baseline", help="results.json of an earlier run to compare against"),
+            fail_on_regression: bool = typer.Option(False, "--fail-on-regression",
+                                                    help="exit 1 naming every gated metric worse than --baseline"),
+            quiet: bool = typer.Option(False, "--quiet", "-q")):
+    """Scenarios x pipelines x seeds: metrics, spread, CPU time, efficiency vs the bound; optional regression gate."""
+    from pipelines.compare import run_compare
+
+    if fail_on_regression and baseline is None:
+        raise UserError("--fail-on-regression needs --baseline FILE")
+    command = "rollingstar " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["compare"] else ""
+    res = run_compare(config, output, executor, workers, scheduler, baseline, show_progress=not quiet, command=command)
+    run = res.results["run"]
+    out.print(f"wrote {res.output}/results.json, results.md, report.html: {run['tasks']} tasks, "
+              f"{run['executor']}, {run['wall_time_s']:.1f} s wall", highlight=False)
+    if baseline is not None:
+        if res.regressions:
+            err.print(f"[bold red]{len(res.regressions)} metric(s) worse than {baseline}:[/]", highlight=False)
+            for line in res.regressions:
+                err.print(f"  {line}", highlight=False, soft_wrap=True)
+            if fail_on_regression:
+                raise typer.Exit(1)
+        else:
+            out.print(f"no gated metric worse than {baseline}", highlight=False)
+
+
 def main() -> None:
+    # Single-threaded BLAS unless the user says otherwise: the estimators' matrices are small, and on
+    # a shared 2-core machine OpenBLAS threads spinning against each other made ls-rate's 72 x 630
+    # products 15-50x slower (measured: 106-363 ms vs 6-7 ms per frame, he2021b, 36 stars).
+    # Set before numpy is first imported (the commands import it lazily).
+    import os
+
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
     app()
 
 

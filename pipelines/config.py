@@ -11,7 +11,18 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, NonNegativeFloat, PositiveFloat, PositiveInt, ValidationError
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    NonNegativeFloat,
+    PositiveFloat,
+    PositiveInt,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from pipelines.errors import ConfigError
 
@@ -53,6 +64,8 @@ class CatalogConfig(Strict):
         None, description="synthetic: stars placed so that they image at these (x, y) at t = 0"
     )
     magnitude: float = 5.0
+    proper_motion_mas_yr: list[tuple[float, float]] | None = Field(
+        None, description="synthetic: (pm_ra*cos(dec), pm_dec) in mas/yr per position (default none)")
     min_separation_px: float = Field(
         8.0, ge=0.0, description="hipparcos: drop both stars of pairs imaged closer than this many pixels (they blend)"
     )
@@ -85,7 +98,8 @@ class MotionConfig(Strict):
     segment with ``rate_deg_s`` and ``accel_deg_s2``.
     """
 
-    initial_attitude: AttitudeConfig
+    initial_attitude: AttitudeConfig | None = Field(
+        None, description="required to simulate; None in imported recordings whose attitude is unknown (no prior)")
     rate_deg_s: Vec3 = (0.0, 0.0, 0.0)
     accel_deg_s2: Vec3 = (0.0, 0.0, 0.0)
     segments: list[SegmentConfig] = []
@@ -122,8 +136,62 @@ class ImageConfig(Strict):
 
 
 class EffectConfig(Strict):
+    """One effect of the library (``sensors.effects``): ``kind`` is its name (or a synonym), ``params``
+    its parameter values by name (defaults: effect absent). Checked against the library on load."""
+
     kind: str
     params: dict[str, float] = {}
+
+    @field_validator("kind")
+    @classmethod
+    def _known_kind(cls, v: str) -> str:
+        from sensors.effects import UnknownEffectError, resolve
+
+        try:
+            resolve(v)
+        except UnknownEffectError as exc:
+            raise ValueError(str(exc)) from None
+        return v
+
+    @field_validator("params")
+    @classmethod
+    def _known_params(cls, v: dict, info: ValidationInfo) -> dict:
+        from sensors.effects import resolve
+
+        kind = info.data.get("kind")
+        if kind is None:  # the kind itself was invalid: reported there
+            return v
+        effect = resolve(kind)
+        unknown = sorted(set(v) - set(effect.parameter_names()))
+        if unknown:
+            raise ValueError(f"unknown parameter(s) {', '.join(map(repr, unknown))} of effect {effect.name!r}; "
+                             f"valid parameters: {', '.join(effect.parameter_names())}")
+        try:
+            effect(**v)
+        except ValueError as exc:
+            raise ValueError(str(exc)) from None
+        return v
+
+
+class CovariateConfig(Strict):
+    """A logged covariate as a function of time since the recording start ``t`` (s):
+    ``offset + slope_per_h * t / 3600 + amplitude * sin(2 pi t / period_s)``."""
+
+    offset: float = 0.0
+    slope_per_h: float = 0.0
+    amplitude: float = 0.0
+    period_s: PositiveFloat = 3600.0
+
+
+class EnvironmentConfig(Strict):
+    """Where and in what conditions the recording is made (context of the effects)."""
+
+    elevation_deg: float | None = Field(
+        None, ge=0.0, le=90.0,
+        description="ground-based: boresight elevation at the initial attitude, zenith towards image up (-y); "
+                    "None in space (refraction needs it)")
+    covariates: dict[str, CovariateConfig] = Field(
+        {}, description="covariates by name (e.g. temperature_c for thermal_focal_drift)")
 
 
 class ScenarioConfig(Strict):
@@ -140,9 +208,31 @@ class ScenarioConfig(Strict):
     noise: NoiseConfig = NoiseConfig()
     image: ImageConfig = ImageConfig()
     effects: list[EffectConfig] = []
+    environment: EnvironmentConfig = EnvironmentConfig()
     frames: PositiveInt = 100
     seed: int = 0
     truth_rate_hz: PositiveFloat = Field(1000.0, description="truth attitude samples per second in the log")
+
+
+    @model_validator(mode="after")
+    def _effects_have_context(self):
+        from sensors.effects import resolve
+
+        for i, e in enumerate(self.effects):
+            cls = resolve(e.kind)
+            if self.level == "image" and not cls.image_level:
+                raise ValueError(f"effects[{i}].kind: {cls.name!r} is a centroid-estimation bias: simulate it at "
+                                 "level: centroid (an image-level recording produces it through the centroider)")
+            if cls.name == "refraction" and self.environment.elevation_deg is None:
+                raise ValueError(f"effects[{i}].kind: 'refraction' needs environment.elevation_deg (a ground-based "
+                                 "scenario)")
+            if cls.name == "thermal_focal_drift" and e.params.get("ppm_per_degc", 0.0) != 0.0 \
+                    and "temperature_c" not in self.environment.covariates:
+                raise ValueError(f"effects[{i}].params.ppm_per_degc: needs environment.covariates.temperature_c")
+            if cls.name == "catalog_epoch" and self.catalog.source == "synthetic" and not self.catalog.proper_motion_mas_yr:
+                raise ValueError(f"effects[{i}].kind: 'catalog_epoch' needs proper motions: use catalog.source: "
+                                 "hipparcos or give catalog.proper_motion_mas_yr")
+        return self
 
 
 class StageConfig(Strict):
@@ -165,14 +255,43 @@ def _key_path(loc: tuple) -> str:
     return out or "<top level>"
 
 
-def format_validation_error(source: str, err: ValidationError, prefix: tuple = ()) -> str:
-    """One line per problem: ``file: key.path: message (got <input>)``; ``prefix`` is prepended to each key path."""
+def _known_keys(model, loc: tuple) -> list[str]:
+    """The keys valid where ``loc`` (minus its last part) points inside ``model`` (best effort)."""
+    import typing
+
+    for part in loc[:-1]:
+        if isinstance(part, int) or model is None:
+            continue
+        field = getattr(model, "model_fields", {}).get(part)
+        if field is None:
+            return []
+        ann, model = field.annotation, None
+        for cand in (ann, *typing.get_args(ann), *(a for t in typing.get_args(ann) for a in typing.get_args(t))):
+            if isinstance(cand, type) and issubclass(cand, BaseModel):
+                model = cand
+                break
+    return list(getattr(model, "model_fields", {}))
+
+
+def format_validation_error(source: str, err: ValidationError, prefix: tuple = (), model=None) -> str:
+    """One line per problem: ``file: key.path: message (got <input>)``; ``prefix`` is prepended to each key path.
+
+    An unknown key gets the closest valid key as a hint (``exposure_s`` -> ``exposure_ms``: units are in
+    the key names) when ``model`` is given."""
+    import difflib
+
     lines = []
     for e in err.errors():
         path = _key_path(tuple(prefix) + tuple(e["loc"]))
         got = e.get("input")
         hint = "" if e["type"] == "missing" else f" (got {got!r})"
         msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
+        if e["type"] == "extra_forbidden" and model is not None:
+            close = difflib.get_close_matches(str(e["loc"][-1]), _known_keys(model, tuple(e["loc"])), n=1, cutoff=0.6)
+            if close:
+                key = str(e["loc"][-1])
+                same_stem = "_" in key and close[0].rsplit("_", 1)[0] == key.rsplit("_", 1)[0]
+                msg += f"; did you mean {close[0]!r}?" + (" (units are part of the key names)" if same_stem else "")
         lines.append(f"{source}: {path}: {msg}{hint}")
     return "\n".join(lines)
 
@@ -206,7 +325,7 @@ def validate(model: type[Strict], data: dict, source: str):
     try:
         return model.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(format_validation_error(source, err)) from None
+        raise ConfigError(format_validation_error(source, err, model=model)) from None
 
 
 def load_scenario(path: str | Path) -> ScenarioConfig:

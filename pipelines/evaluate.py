@@ -5,7 +5,14 @@ in the camera frame, per axis (arcsec). Centroid error: each output star against
 position of its catalogue star at the time the position claims to refer to (``t_ns``). Star-pair
 distance error (he2021a section 3): for every pair of identified stars of a frame, the measured
 pixel distance minus the true distance of the two stars imaged at one common time (the mean of
-the two claimed times). Rate error: norm of the estimated minus the true body rate.
+the two claimed times). Rate error: norm of the estimated minus the true body rate (``rmse``,
+``max``) and its RMSE per camera axis (``x_rmse`` ...).
+
+Bounds: the single-frame Cramér–Rao bounds on attitude (``attitude_crb_arcsec``) and, when the log
+holds rate estimates, on the rate (``rate_crb_deg_s``, :func:`pipelines.truth.rate_crb_rad2`), both
+for each frame's identified stars and the scenario's centroid noise (centroid-level recordings);
+``efficiency`` is RMSE / bound per axis (1 = efficient; below 1 is possible only for estimators
+that combine frames, which the single-frame bound does not cover).
 """
 from __future__ import annotations
 
@@ -23,7 +30,7 @@ from pipelines.config import scenario_from_yaml
 from pipelines.errors import UserError
 from pipelines.runner import TOPIC_EST_ATTITUDE, TOPIC_EST_FRAME, TOPIC_EST_RATE, TOPIC_EST_STARS
 from pipelines.simulate import TOPIC_TRUTH_ATTITUDE, TOPIC_TRUTH_STARS
-from pipelines.truth import TruthTrajectory, attitude_crb_rad2, true_positions
+from pipelines.truth import TruthTrajectory, attitude_crb_rad2, rate_crb_rad2, true_positions
 from sensors.conventions import RAD_TO_ARCSEC, attitude_error_body_arcsec
 
 PAIR_MATCH_RADIUS_PX = 3.0
@@ -67,7 +74,7 @@ def evaluate_log(path: str | Path) -> dict:
         elif m.topic == TOPIC_TRUTH_STARS:
             truth_stars[int(d["frame"])] = stars_to_arrays(d)
         elif m.topic == TOPIC_EST_STARS:
-            est_stars[int(d["frame"])] = stars_to_arrays(d)
+            est_stars[int(d["frame"])] = {**stars_to_arrays(d), "t0_ns": d.get("t0_ns")}  # t0: effects' context
         elif m.topic == TOPIC_EST_ATTITUDE:
             attitudes.append(d)
         elif m.topic == TOPIC_EST_RATE:
@@ -91,11 +98,26 @@ def evaluate_log(path: str | Path) -> dict:
         "identified_stars_per_frame": float(np.mean([f["n_identified"] for f in frames])) if frames else None,
     }
     result["attitude_error_arcsec"] = _attitude_errors(valid, truth)
-    result["centroid_error_px"] = _centroid_errors(est_stars, truth_stars, truth, camera, effects)
-    result["star_pair_distance_error_px"] = _pair_errors(est_stars, truth_stars, truth, camera, effects)
+    env = _EffectEnvironment(scenario, timing, effects) if effects else None
+    result["centroid_error_px"] = _centroid_errors(est_stars, truth_stars, truth, camera, effects, env)
+    result["star_pair_distance_error_px"] = _pair_errors(est_stars, truth_stars, truth, camera, effects, env)
     result["rate_error_deg_s"] = _rate_errors(rates, truth)
     result["attitude_crb_arcsec"] = _crb(est_stars, truth_stars, truth, camera, scenario)
+    has_rate = result["rate_error_deg_s"]["rmse"] is not None
+    result["rate_crb_deg_s"] = _rate_crb(est_stars, truth_stars, truth, camera, scenario, has_rate)
+    result["efficiency"] = _efficiency(result)
     return result
+
+
+def _efficiency(m: dict) -> dict:
+    """RMSE / Cramér–Rao bound per axis (None where either is missing)."""
+    out = {}
+    for prefix, err, crb in (("attitude", m["attitude_error_arcsec"], m["attitude_crb_arcsec"]),
+                             ("rate", m["rate_error_deg_s"], m["rate_crb_deg_s"])):
+        for ax in "xyz":
+            e, b = err.get(f"{ax}_rmse"), crb.get(ax)
+            out[f"{prefix}_{ax}"] = float(e / b) if e is not None and b else None
+    return out
 
 
 def _attitude_errors(valid: list[dict], truth: TruthTrajectory | None) -> dict:
@@ -145,7 +167,45 @@ def _matched_frames(est_stars, truth_stars, min_matches: int):
             yield est, tru, ei, tj
 
 
-def _centroid_errors(est_stars, truth_stars, truth, camera, effects) -> dict:
+class _EffectEnvironment:
+    """What the scenario's effects need besides the truth (sensors.effects.base.EffectContext fields):
+    timing, ground-site zenith, covariates and, only when an effect needs it, catalogue proper motions."""
+
+    def __init__(self, scenario, timing, effects):
+        self.timing = timing
+        self.zenith = build.build_zenith(scenario)
+        self.covariates = build.build_covariates(scenario)
+        self.needs = {n for e in effects for n in e.needs}
+        self._scenario = scenario
+        self._catalog = None
+
+    def pm(self, ids) -> np.ndarray | None:
+        if "pm_rad_yr" not in self.needs:
+            return None
+        if self._catalog is None:
+            self._catalog = build.build_catalog(self._scenario)
+        if self._catalog.pm_rad_yr is None:
+            return None
+        idx = self._catalog.index_of(ids)
+        return np.where((idx >= 0)[:, None], self._catalog.pm_rad_yr[np.maximum(idx, 0)], np.nan)
+
+
+def _effect_context(est, tru, tj, t, truth, env, row=None) -> dict:
+    """Context fields for the scenario's effects at the matched truth stars ``tj`` seen at ``t``
+    (``row``: the detector row timing each observation, for rolling-shutter effects)."""
+    if env is None:
+        return {}
+    mag = tru.get("magnitude")
+    ids = tru.get("catalog_id")
+    n = len(t)
+    return {"omega_rad_s": truth.angular_velocity(t), "timing": env.timing, "t0_ns": est.get("t0_ns"),
+            "magnitude": None if mag is None else np.asarray(mag, dtype=float)[tj],
+            "zenith_icrs": None if env.zenith is None else np.broadcast_to(env.zenith, (n, 3)),
+            "covariates": {k: f(t) for k, f in env.covariates.items()},
+            "pm_rad_yr": None if ids is None else env.pm(np.asarray(ids)[tj]), "row": row}
+
+
+def _centroid_errors(est_stars, truth_stars, truth, camera, effects, env=None) -> dict:
     if truth is None:
         return {"rmse": None, "max": None}
     errs = []
@@ -155,12 +215,13 @@ def _centroid_errors(est_stars, truth_stars, truth, camera, effects) -> dict:
         if not ok.any():
             continue
         ei, tj, t = ei[ok], tj[ok], t[ok]
-        x, y = true_positions(camera, effects, truth.attitude(t), tru["ref_icrs"][tj], t)
+        x, y = true_positions(camera, effects, truth.attitude(t), tru["ref_icrs"][tj], t,
+                              **_effect_context(est, tru, tj, t, truth, env, row=est["y"][ei]))
         errs.append(np.hypot(est["x"][ei] - x, est["y"][ei] - y))
     return _stats(np.concatenate(errs)) if errs else {"rmse": None, "max": None}
 
 
-def _pair_errors(est_stars, truth_stars, truth, camera, effects) -> dict:
+def _pair_errors(est_stars, truth_stars, truth, camera, effects, env=None) -> dict:
     if truth is None:
         return {"rmse": None, "max": None}
     errs = []
@@ -173,8 +234,10 @@ def _pair_errors(est_stars, truth_stars, truth, camera, effects) -> dict:
             continue
         i, j, tc = i[ok], j[ok], tc[ok]
         att = truth.attitude(tc)
-        xi, yi = true_positions(camera, effects, att, tru["ref_icrs"][tj[i]], tc)
-        xj, yj = true_positions(camera, effects, att, tru["ref_icrs"][tj[j]], tc)
+        ci = _effect_context(est, tru, tj[i], tc, truth, env)
+        cj = _effect_context(est, tru, tj[j], tc, truth, env)
+        xi, yi = true_positions(camera, effects, att, tru["ref_icrs"][tj[i]], tc, **ci)
+        xj, yj = true_positions(camera, effects, att, tru["ref_icrs"][tj[j]], tc, **cj)
         d_true = np.hypot(xi - xj, yi - yj)
         d_meas = np.hypot(est["x"][ei[i]] - est["x"][ei[j]], est["y"][ei[i]] - est["y"][ei[j]])
         errs.append(d_meas - d_true)
@@ -183,12 +246,38 @@ def _pair_errors(est_stars, truth_stars, truth, camera, effects) -> dict:
 
 def _rate_errors(rates, truth) -> dict:
     valid = [r for r in rates if r.get("valid") and r.get("omega") is not None]
+    empty = {"rmse": None, "max": None, "x_rmse": None, "y_rmse": None, "z_rmse": None}
     if truth is None or not valid:
-        return {"rmse": None, "max": None}
+        return empty
     t = np.array([r["t_ns"] for r in valid], dtype=np.int64)
     w = np.array([[r["omega"]["x"], r["omega"]["y"], r["omega"]["z"]] for r in valid])
-    err = np.linalg.norm(w - truth.angular_velocity(t), axis=1) * 180.0 / np.pi
-    return _stats(err)
+    diff = (w - truth.angular_velocity(t)) * 180.0 / np.pi
+    diff = diff[np.all(np.isfinite(diff), axis=1)]
+    if diff.size == 0:
+        return empty
+    out = _stats(np.linalg.norm(diff, axis=1))
+    rmse = np.sqrt(np.mean(diff**2, axis=0))
+    out.update({"x_rmse": float(rmse[0]), "y_rmse": float(rmse[1]), "z_rmse": float(rmse[2])})
+    return out
+
+
+def _rate_crb(est_stars, truth_stars, truth, camera, scenario, has_rate: bool) -> dict:
+    """RMS over frames of the single-frame rate bound (deg/s per axis), identified stars, row times exact."""
+    keys = ("x", "y", "z")
+    sigma = scenario.noise.centroid_sigma_px if scenario.level == "centroid" else None
+    if truth is None or not sigma or not has_rate:
+        return dict.fromkeys(keys)
+    variances = []
+    for est, tru, ei, tj in _matched_frames(est_stars, truth_stars, 3):
+        t = np.asarray(tru["t_ns"], dtype=np.int64)[tj]
+        if not truth.covers(t).all() or np.ptp(t) == 0:
+            continue
+        w = truth.attitude(t).inv().apply(tru["ref_icrs"][tj])
+        variances.append(np.diag(rate_crb_rad2(camera, w, (t - t.min()) * 1e-9, sigma)))
+    if not variances:
+        return dict.fromkeys(keys)
+    rms = np.sqrt(np.mean(variances, axis=0)) * 180.0 / np.pi
+    return dict(zip(keys, map(float, rms)))
 
 
 def _crb(est_stars, truth_stars, truth, camera, scenario) -> dict:

@@ -23,6 +23,7 @@ ROLES = ("centroider", "identifier", "filter", "correction", "attitude", "rate")
 BUILTIN: dict[str, str] = {
     "cog": "estimators.centroiders.cog:CogCentroider",
     "tracking": "estimators.identifiers.tracking:TrackingIdentifier",
+    "lost-in-space": "estimators.identifiers.lost_in_space:LostInSpaceIdentifier",
     "none": "estimators.corrections.none:NoCorrection",
     "quest": "estimators.attitude.quest:QuestSolver",
     # he2021a plugins:
@@ -33,9 +34,15 @@ BUILTIN: dict[str, str] = {
     # fu2022 plugins:
     "pso-rate": "estimators.rates.pso:PsoRateEstimator",
     "pso-correction": "estimators.rates.pso:PsoCorrection",
+    # issue 5: least-squares 3-axis single-frame rate (and the correction with it):
+    "ls-rate": "estimators.rates.ls_rate:LsRateEstimator",
+    "ls-correction": "estimators.rates.ls_rate:LsRateCorrection",
     # liu2013 plugins:
     "windowed": "estimators.centroiders.windowed:WindowedCentroider",
     "gyro-kf": "estimators.filters.gyro_kf:GyroKalmanFilter",
+    # issue 5 attitude estimators:
+    "mekf": "estimators.attitude.mekf:MekfFilter",
+    "gtsam": "estimators.attitude.gtsam_smoother:GtsamSmoother",
 }
 
 

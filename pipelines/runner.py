@@ -6,6 +6,7 @@ holds the recording's scenario metadata and truth topics, the pipeline config, a
 """
 from __future__ import annotations
 
+import os
 import time
 import warnings
 from dataclasses import dataclass
@@ -15,6 +16,7 @@ import numpy as np
 
 from estimators.data import FrameData, GyroSamples, StarTable, TruthSamples
 from estimators.plugin import Plugin
+from logs.errors import LogFormatError
 from logs.reader import LogReader
 from logs.records import AttitudeEstimate as AttitudeRecord
 from logs.records import FrameStatus, RateEstimate as RateRecord, arrays_to_stars, stars_to_arrays
@@ -23,6 +25,9 @@ from logs.writer import LogWriter
 from pipelines import build
 from pipelines.config import PipelineConfig, format_validation_error, scenario_from_yaml, to_yaml
 from pipelines.errors import ConfigError, PipelineError, UserError
+from pipelines.frame_checks import FrameChecker
+from pipelines.interrupt import Interrupted, stop_on_sigint
+from pipelines.resume import Partial, load_partial, temp_path
 from pipelines.progress import progress_bar
 from pipelines.registry import UnknownPluginError, get_plugin_class
 from pipelines.simulate import TOPIC_CENTROIDS, TOPIC_GYRO, TOPIC_IMAGE, TOPIC_TRUTH_ATTITUDE, TOPIC_TRUTH_STARS
@@ -91,8 +96,12 @@ def _truth_from_messages(messages) -> TruthSamples | None:
 
 
 def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | Path, pipeline_source: str = "<pipeline>",
-                 show_progress: bool = True, max_frames: int | None = None) -> RunSummary:
-    """Run ``pipeline`` over ``recording`` and write estimates (plus truth and metadata) to ``output``."""
+                 show_progress: bool = True, max_frames: int | None = None, resume: bool = False) -> RunSummary:
+    """Run ``pipeline`` over ``recording`` and write estimates (plus truth and metadata) to ``output``.
+
+    ``resume``: continue from a partial ``output`` (see :mod:`pipelines.resume`). On SIGINT the frame
+    in hand is finished, the log finalised and :class:`pipelines.interrupt.Interrupted` raised.
+    """
     stages = build_stages(pipeline, pipeline_source)
     reader = LogReader(recording)
     meta = reader.metadata()
@@ -105,8 +114,11 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
     topics = set(info.topics) if hasattr(info, "topics") else set(info)
     frame_topic = TOPIC_IMAGE if TOPIC_IMAGE in topics else TOPIC_CENTROIDS
     reader.require_topics([frame_topic])
-    for stage in stages:
-        stage.setup(context)
+    for i, stage in enumerate(stages):
+        try:
+            stage.setup(context)
+        except ValueError as exc:  # a stage that cannot work with this recording says why; no traceback
+            raise PipelineError(f"{pipeline_source}: stages[{i}] ({stage.name!r}) cannot run on {recording}: {exc}") from exc
     skip_centroiders = frame_topic == TOPIC_CENTROIDS
     # Oracle stages (e.g. request with rate_source truth) declare needs_truth; only they get truth.
     pass_truth = any(getattr(stage, "needs_truth", False) for stage in stages)
@@ -117,29 +129,67 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
     n_frames = n_att = n_valid = n_flagged = 0
     stage_seconds = {f"{i}:{s.name}": 0.0 for i, s in enumerate(stages)}
     metadata = {"scenario": meta["scenario"], "pipeline": {"yaml": to_yaml(pipeline), "source": str(pipeline_source)}}
-    with LogWriter(output, kind="run", metadata=metadata) as writer, \
+    checker = FrameChecker(recording, frame_topic, context)  # sizes, bit depth, time order, gaps
+    output = Path(output)
+    # --resume: keep the partial output's complete frames, re-run every stage from the start (pipelines/resume.py)
+    partial = load_partial(output, metadata) if resume else Partial()
+    target = temp_path(output) if resume else output
+    counts_ = {"att": 0, "valid": 0, "flagged": 0}
+
+    def emit(out: FrameData) -> None:
+        if out.index not in partial.done:
+            _write_frame(writer, out)
+        counts_["att"] += len(out.attitudes)
+        counts_["valid"] += sum(a.valid for a in out.attitudes)
+        counts_["flagged"] += bool(out.flags)
+
+    with stop_on_sigint() as stop, LogWriter(target, kind="run", metadata=metadata) as writer, \
             progress_bar(f"run {pipeline.name}", total, show_progress) as advance:
+        for m in partial.copy:
+            writer.write_message(m)
         for group in iter_frames(reader, frame_topic, [TOPIC_GYRO, *TRUTH_TOPICS]):
-            if max_frames is not None and n_frames >= max_frames:
+            if (max_frames is not None and n_frames >= max_frames) or stop.requested:
                 break
             for topic in TRUTH_TOPICS:
                 for m in group.side.get(topic, []):
-                    writer.write_json(topic, m.data, m.log_time_ns)
+                    if (topic, m.log_time_ns) not in partial.truth_keys:
+                        writer.write_json(topic, m.data, m.log_time_ns)
             msg = group.frame
-            frame = _frame_from_message(msg, frame_topic, n_frames)
+            try:
+                frame = _frame_from_message(msg, frame_topic, n_frames)
+            except LogFormatError as exc:  # a record that cannot be a frame: name the file and frame
+                raise LogFormatError(f"{recording}: {frame_topic} frame {n_frames}: {exc}") from None
+            frame = checker.check(frame, msg.data)
+            if frame is None:  # an exact duplicate of the previous frame (warned)
+                continue
             frame = frame.evolve(gyro=_gyro_from_messages(group.side.get(TOPIC_GYRO, [])))
             if pass_truth:
                 frame = frame.evolve(truth=_truth_from_messages(group.side.get(TOPIC_TRUTH_ATTITUDE, [])))
-            frame = _run_stages(stages, frame, skip_centroiders, stage_seconds)
-            _write_frame(writer, frame)
             n_frames += 1
-            n_att += len(frame.attitudes)
-            n_valid += sum(a.valid for a in frame.attitudes)
-            n_flagged += bool(frame.flags)
+            for out in _run_stages(stages, frame, skip_centroiders, stage_seconds):
+                emit(out)
             advance()
-        for stage in stages:
-            for frame in stage.finish():
-                _write_frame(writer, frame)
+        # Frames still held back (smoothers) flow on through the later stages, stage by stage.
+        # Not after SIGINT: they would be estimates of a cut recording, not the ones a full run writes.
+        for i, stage in enumerate(stages if not stop.requested else []):
+            start = time.perf_counter()
+            try:
+                held_frames = stage.finish()
+            except UserError:
+                raise
+            except Exception as exc:
+                raise PipelineError(f"stage {stage.name!r} ({stage.role}) failed at the end of the recording (finish): "
+                                    f"{type(exc).__name__}: {exc}") from exc
+            stage_seconds[f"{i}:{stage.name}"] += time.perf_counter() - start
+            for held in held_frames:
+                for out in _run_stages(stages, held, skip_centroiders, stage_seconds, first=i + 1, priors=False):
+                    emit(out)
+    if resume:
+        os.replace(target, output)
+    n_att, n_valid, n_flagged = counts_["att"], counts_["valid"], counts_["flagged"]
+    if stop.requested:
+        raise Interrupted(f"interrupted: {output} is finalised and holds the {n_frames} frame(s) processed before "
+                          f"SIGINT; continue with `rollingstar run ... -o {output} --resume`")
     return RunSummary(str(output), n_frames, n_att, n_valid, n_flagged, stage_seconds)
 
 
@@ -156,24 +206,62 @@ def _frame_from_message(msg, frame_topic: str, ordinal: int) -> FrameData:
     return frame
 
 
+def _identified_in_recording(frame: FrameData) -> bool:
+    """True when a centroid recording's stars all carry a catalogue id and direction (``import corr``)."""
+    stars = frame.stars
+    return (stars is not None and stars.n > 0 and bool(stars.identified.all())
+            and bool(np.isfinite(stars.ref_icrs).all()))
+
+
 def _run_stages(stages: list[Plugin], frame: FrameData, skip_centroiders: bool,
-                stage_seconds: dict[str, float]) -> FrameData:
-    for i, stage in enumerate(stages):
-        if skip_centroiders and stage.role == "centroider":
+                stage_seconds: dict[str, float], first: int = 0, skip_identifiers: bool | None = None,
+                priors: bool = True) -> list[FrameData]:
+    """Frames to write after passing ``frame`` through ``stages[first:]``.
+
+    Identifier stages are skipped on frames of a centroid recording whose stars are already all
+    identified (``skip_identifiers`` None: decided from ``frame`` as it enters).
+
+    Normally the one processed frame. A stage with ``defers_output`` (a smoother) holds frames
+    back: its direct output is provisional (a causal estimate) and is not written, but it feeds
+    the stages' ``update_prior`` hooks (e.g. the tracking identifier's prior for the next frame);
+    the frames the stage releases (``release()``, and ``finish()`` at the end of the recording)
+    continue through the later stages and are written without feeding the priors again
+    (``priors`` False: they are late).
+    """
+    if skip_identifiers is None:
+        skip_identifiers = skip_centroiders and _identified_in_recording(frame)
+    for i in range(first, len(stages)):
+        stage = stages[i]
+        if (skip_centroiders and stage.role == "centroider") or (skip_identifiers and stage.role == "identifier"):
             continue
         try:
             start = time.perf_counter()
             frame = stage.process(frame)
+            released = stage.release() if stage.defers_output else None
             stage_seconds[f"{i}:{stage.name}"] += time.perf_counter() - start
         except UserError:
             raise
         except Exception as exc:  # a plugin that raises: name it and the frame, keep what was written
             raise PipelineError(f"stage {stage.name!r} ({stage.role}) failed on frame {frame.index} "
                                 f"(t0 = {frame.t0_ns} ns): {type(exc).__name__}: {exc}") from exc
+        if released is not None:
+            if priors:
+                _update_priors(stages, frame)
+            return [out for f in released for out in _run_stages(stages, f, skip_centroiders, stage_seconds, i + 1,
+                                                                                      skip_identifiers, priors=False)]
+    if priors:
+        _update_priors(stages, frame)
+    return [_finish_frame(frame)]
+
+
+def _update_priors(stages: list[Plugin], frame: FrameData) -> None:
     for stage in stages:
         update = getattr(stage, "update_prior", None)
         if update is not None:
             update(frame)
+
+
+def _finish_frame(frame: FrameData) -> FrameData:
     if frame.stars is not None and frame.stars.identified.sum() < 2 and not any(a.valid for a in frame.attitudes):
         frame = frame.flagged("too_few_stars")
     return frame
@@ -193,7 +281,9 @@ def _write_frame(writer: LogWriter, frame: FrameData) -> None:
         cov = None if est.covariance_rad2 is None else np.asarray(est.covariance_rad2, dtype=float).reshape(-1).tolist()
         writer.write_json(TOPIC_EST_ATTITUDE, AttitudeRecord(
             frame=frame.index, t_ns=int(est.t_ns), q=quat_to_fields(est.q_xyzw) if est.valid else None, valid=bool(est.valid),
-            reason=est.reason, n_stars=int(est.n_stars), covariance_rad2=cov), int(est.t_ns))
+            reason=est.reason, n_stars=int(est.n_stars), covariance_rad2=cov,
+            gyro_bias_rad_s=None if est.gyro_bias_rad_s is None else [float(v) for v in np.ravel(est.gyro_bias_rad_s)]),
+            int(est.t_ns))
         if est.valid:
             writer.write_pose(TOPIC_EST_POSE, int(est.t_ns), est.q_xyzw)
     if frame.rate is not None:

@@ -6,6 +6,7 @@ interpolate it at any estimate's own time.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from logs.records import arrays_to_stars
 from logs.writer import LogWriter
 from pipelines import build
 from pipelines.config import ScenarioConfig, to_yaml
+from pipelines.interrupt import Interrupted, stop_on_sigint
 from pipelines.progress import progress_bar
 from sensors.gyro import simulate_gyro
 from sensors.simulate import ImageModel, StarTrackerSimulator
@@ -49,6 +51,8 @@ def build_simulator(cfg: ScenarioConfig) -> StarTrackerSimulator:
         image_model=image_model,
         level=cfg.level,
         seed=cfg.seed,
+        zenith_icrs=build.build_zenith(cfg),
+        covariates=build.build_covariates(cfg),
     )
 
 
@@ -72,10 +76,14 @@ def simulate_to_log(cfg: ScenarioConfig, output: str | Path, frames: int | None 
     gyro = None
     if gyro_model is not None:
         gyro = simulate_gyro(gyro_model, motion, timing.frame_start_ns(0) - period, timing.frame_start_ns(n_frames), cfg.seed)
+        gyro = dataclasses.replace(gyro, omega_rad_s=sim.apply_gyro(gyro.t_ns, gyro.omega_rad_s))  # gyro effects
     star_counts = []
-    with LogWriter(output, kind="simulation", metadata={"scenario": {"yaml": to_yaml(cfg)}}) as writer, \
+    with stop_on_sigint() as stop, \
+            LogWriter(output, kind="simulation", metadata={"scenario": {"yaml": to_yaml(cfg)}}) as writer, \
             progress_bar(f"simulate {cfg.name}", n_frames, show_progress) as advance:
         for frame in sim.frames(n_frames):
+            if stop.requested:  # SIGINT: end at a frame boundary with a finalised log
+                break
             t0 = int(frame.t0_ns)
             if gyro is not None:
                 sel = (gyro.t_ns > t0 - period) & (gyro.t_ns <= t0)
@@ -102,5 +110,8 @@ def simulate_to_log(cfg: ScenarioConfig, output: str | Path, frames: int | None 
                     flux=c.get("flux"), sigma_px=np.full(len(c["x"]), cfg.noise.centroid_sigma_px)), t0)
             star_counts.append(len(tr.x))
             advance()
+    if stop.requested:
+        raise Interrupted(f"interrupted: {output} is finalised and holds the {len(star_counts)} of {n_frames} "
+                          "frame(s) simulated before SIGINT")
     return SimulationSummary(str(output), n_frames, cfg.level, float(np.mean(star_counts)) if star_counts else 0.0,
                              n_frames * period * 1e-9)

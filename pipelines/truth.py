@@ -4,6 +4,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from sensors.effects.chain import predict
+from sensors.effects.context import context_from_attitude
+
 
 class TruthTrajectory:
     """Attitude and body rate from ``/truth/attitude`` samples, interpolated at any time.
@@ -40,13 +43,19 @@ class TruthTrajectory:
         return np.stack([np.interp(s, ref, self.omega[:, i], left=np.nan, right=np.nan) for i in range(3)], axis=-1)
 
 
-def true_positions(camera, effects, attitude: Rotation, unit_icrs: np.ndarray, t_ns: np.ndarray):
-    """Where catalogue directions image at ``t_ns`` (one attitude per star), effects included."""
-    w = attitude.inv().apply(unit_icrs)
-    x, y, _ = camera.project(w)
-    for effect in effects:
-        x, y = effect.apply(x, y, t_ns, camera)
-    return x, y
+def true_positions(camera, effects, attitude: Rotation, unit_icrs: np.ndarray, t_ns: np.ndarray,
+                   omega_rad_s=None, **context):
+    """Where catalogue directions image at ``t_ns`` (one attitude per star), effects included.
+
+    The effects are applied by :func:`sensors.effects.chain.predict` on the context built from the
+    attitude (:func:`sensors.effects.context.context_from_attitude`): pass the body rate
+    ``omega_rad_s`` (n, 3) for time effects and any other context field they need in ``context``.
+    """
+    if not effects:
+        x, y, _ = camera.project(attitude.inv().apply(np.array(unit_icrs, dtype=float)))
+        return x, y
+    ctx = context_from_attitude(camera, attitude, unit_icrs, t_ns, omega_rad_s, **context)
+    return predict(effects, ctx)
 
 
 def attitude_crb_rad2(camera, w_cam: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -65,3 +74,38 @@ def attitude_crb_rad2(camera, w_cam: np.ndarray, sigma_px: float) -> np.ndarray:
     jac = camera.projection_jacobian(w) @ skew
     fisher = np.einsum("nki,nkj->ij", jac, jac) / sigma_px**2
     return np.linalg.pinv(fisher)
+
+
+def rate_crb_rad2(camera, w_cam: np.ndarray, dt_s: np.ndarray, sigma_px, timing_sigma_s: float = 0.0,
+                  omega_rad_s: np.ndarray | None = None) -> np.ndarray:
+    """Single-frame Cramér–Rao bound on the body rate from one rolling-shutter frame's stars (3x3, (rad/s)^2).
+
+    Star ``i`` is imaged at its own time ``t_i = t_ref + dt_i``; with constant rate over the frame
+    its attitude is ``R_ref Exp(delta + omega dt_i)``, so a perturbation ``(delta, eps)`` of the
+    reference attitude and the rate moves its camera vector by ``[w]x (delta + eps dt_i)``: pixel
+    Jacobian ``J_i = P(w_i) [w_i]x [I, dt_i I]`` (2 x 6, P the projection Jacobian). Fisher
+    information ``F = sum J_i^T S_i^-1 J_i`` with the pixel covariance
+    ``S_i = sigma_i^2 I + timing_sigma^2 v_i v_i^T`` (a row-time error moves the star along its
+    image velocity ``v_i = P(w_i) (w_i x omega)``; ``timing_sigma_s`` 0 = row times known exactly,
+    as in the simulator). The attitude is a nuisance: the bound is the rate block of ``F^-1``
+    (pseudo-inverse when singular, e.g. all stars at one time: no rate information). The row-time
+    spread is what makes the rate observable at all; shifting every ``dt_i`` by a constant
+    re-labels ``delta`` and leaves the rate block unchanged.
+    """
+    w = np.asarray(w_cam, dtype=float)
+    dt = np.asarray(dt_s, dtype=float)
+    n = w.shape[0]
+    skew = np.zeros((n, 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2] = -w[:, 2], w[:, 1]
+    skew[:, 1, 0], skew[:, 1, 2] = w[:, 2], -w[:, 0]
+    skew[:, 2, 0], skew[:, 2, 1] = -w[:, 1], w[:, 0]
+    P = camera.projection_jacobian(w)  # (n, 2, 3)
+    A = P @ skew  # (n, 2, 3)
+    jac = np.concatenate([A, A * dt[:, None, None]], axis=-1)  # (n, 2, 6)
+    sig = np.broadcast_to(np.asarray(sigma_px, dtype=float), (n,))
+    S = sig[:, None, None] ** 2 * np.eye(2)
+    if timing_sigma_s > 0.0 and omega_rad_s is not None:
+        v = np.einsum("nij,nj->ni", P, np.cross(w, np.asarray(omega_rad_s, dtype=float)))
+        S = S + timing_sigma_s**2 * v[:, :, None] * v[:, None, :]
+    fisher = np.einsum("nki,nkl,nlj->ij", jac, np.linalg.inv(S), jac)
+    return np.linalg.pinv(fisher)[3:, 3:]

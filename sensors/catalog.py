@@ -103,18 +103,26 @@ def propagate_proper_motion(ra_rad, dec_rad, pmra_mas_yr, pmdec_mas_yr, dt_years
     """
     ra = np.asarray(ra_rad, dtype=float)
     dec = np.asarray(dec_rad, dtype=float)
+    u = radec_to_unit(ra, dec) + float(dt_years) * proper_motion_vector(ra, dec, pmra_mas_yr, pmdec_mas_yr)
+    return u / np.linalg.norm(u, axis=-1, keepdims=True)
+
+
+def proper_motion_vector(ra_rad, dec_rad, pmra_mas_yr, pmdec_mas_yr) -> np.ndarray:
+    """Proper motion as an ICRS tangent vector ``mu_a* e_alpha + mu_d e_delta`` (rad/yr), (n, 3)."""
+    ra = np.asarray(ra_rad, dtype=float)
+    dec = np.asarray(dec_rad, dtype=float)
     sa, ca, sd, cd = np.sin(ra), np.cos(ra), np.sin(dec), np.cos(dec)
     e_alpha = np.stack([-sa, ca, np.zeros_like(ra)], axis=-1)
     e_delta = np.stack([-sd * ca, -sd * sa, cd], axis=-1)
     mu_a = np.asarray(pmra_mas_yr, dtype=float)[..., None] * MAS_TO_RAD
     mu_d = np.asarray(pmdec_mas_yr, dtype=float)[..., None] * MAS_TO_RAD
-    u = radec_to_unit(ra, dec) + float(dt_years) * (mu_a * e_alpha + mu_d * e_delta)
-    return u / np.linalg.norm(u, axis=-1, keepdims=True)
+    return mu_a * e_alpha + mu_d * e_delta
 
 
 class StarCatalog:
     """A set of stars: ``ids`` (n,) int64, ``unit_icrs`` (n, 3) ICRS unit vectors at ``epoch_year``,
-    ``magnitude`` (n,) float.
+    ``magnitude`` (n,) float, and optionally ``pm_rad_yr`` (n, 3): proper motion as an ICRS tangent
+    vector in rad/yr (:func:`proper_motion_vector`; None when unknown, e.g. synthetic stars).
 
     For :meth:`from_hipparcos` the ids are HIP numbers and the magnitude is the Hipparcos
     broad-band ``Hp`` magnitude (not Johnson V). Treat catalogues as immutable: ``from_hipparcos``
@@ -123,7 +131,7 @@ class StarCatalog:
     ``Rotation.apply`` rejects read-only inputs.)
     """
 
-    def __init__(self, ids, unit_icrs, magnitude, epoch_year: float):
+    def __init__(self, ids, unit_icrs, magnitude, epoch_year: float, pm_rad_yr=None):
         ids = np.asarray(ids)
         unit = np.asarray(unit_icrs, dtype=float)
         mag = np.asarray(magnitude, dtype=float)
@@ -144,6 +152,11 @@ class StarCatalog:
         self.unit_icrs = unit.copy()
         self.magnitude = mag.copy()
         self.epoch_year = float(epoch_year)
+        if pm_rad_yr is not None:
+            pm_rad_yr = np.array(pm_rad_yr, dtype=float)
+            if pm_rad_yr.shape != (n, 3) or not np.all(np.isfinite(pm_rad_yr)):
+                raise ValueError(f"pm_rad_yr: expected finite values of shape ({n}, 3), got {pm_rad_yr.shape}")
+        self.pm_rad_yr = pm_rad_yr
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
@@ -200,7 +213,8 @@ class StarCatalog:
             raise ValueError(f"indices: expected integer indices or a boolean mask, got dtype {sel.dtype}")
         if sel.dtype != bool:
             sel = sel.astype(np.intp).reshape(-1)
-        return StarCatalog(self.ids[sel], self.unit_icrs[sel], self.magnitude[sel], self.epoch_year)
+        pm = None if self.pm_rad_yr is None else self.pm_rad_yr[sel]
+        return StarCatalog(self.ids[sel], self.unit_icrs[sel], self.magnitude[sel], self.epoch_year, pm)
 
     def without_close_pairs(self, min_separation_rad: float) -> "StarCatalog":
         """Drop both stars of every pair closer than ``min_separation_rad``.
@@ -227,8 +241,10 @@ class StarCatalog:
         return _hipparcos_cached(epoch_year, magnitude_limit)
 
     @classmethod
-    def synthetic(cls, unit_icrs, magnitude=None, ids=None, epoch_year: float = 2000.0) -> "StarCatalog":
-        """A catalogue from arbitrary directions (normalised); magnitude defaults to 5.0, ids to 1..n."""
+    def synthetic(cls, unit_icrs, magnitude=None, ids=None, epoch_year: float = 2000.0,
+                  pm_rad_yr=None) -> "StarCatalog":
+        """A catalogue from arbitrary directions (normalised); magnitude defaults to 5.0, ids to 1..n,
+        proper motion (ICRS tangent vectors, rad/yr) to None."""
         u = np.asarray(unit_icrs, dtype=float)
         if u.ndim != 2 or u.shape[1] != 3:
             raise ValueError(f"unit_icrs: expected shape (n, 3), got {u.shape}")
@@ -238,7 +254,7 @@ class StarCatalog:
         n = u.shape[0]
         mag = np.full(n, 5.0) if magnitude is None else np.broadcast_to(np.asarray(magnitude, dtype=float), (n,))
         ids = np.arange(1, n + 1, dtype=np.int64) if ids is None else np.asarray(ids)
-        return cls(ids, u / norm, mag, epoch_year)
+        return cls(ids, u / norm, mag, epoch_year, pm_rad_yr)
 
 
 @functools.lru_cache(maxsize=16)
@@ -249,4 +265,6 @@ def _hipparcos_cached(epoch_year: float, magnitude_limit: float) -> StarCatalog:
         cols["ra_rad"][keep], cols["dec_rad"][keep], cols["pmra_mas_yr"][keep], cols["pmdec_mas_yr"][keep],
         epoch_year - HIPPARCOS_EPOCH_YEAR,
     )
-    return StarCatalog(cols["hip"][keep], unit, cols["hpmag"][keep], epoch_year)
+    pm = proper_motion_vector(cols["ra_rad"][keep], cols["dec_rad"][keep], cols["pmra_mas_yr"][keep],
+                              cols["pmdec_mas_yr"][keep])
+    return StarCatalog(cols["hip"][keep], unit, cols["hpmag"][keep], epoch_year, pm)

@@ -26,8 +26,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sensors.centroid_sim import image_positions, solve_star_rows
+from sensors.centroid_sim import ObservationInfo, image_positions, solve_star_rows
 from sensors.effects.base import Effect
+from sensors.effects.chain import apply_gyro, ordered
 from sensors.image_sim import ImageModel, digitise, hot_pixel_mask, mean_electrons, render_star_electrons
 
 __all__ = ["ImageModel", "SimulatedFrame", "StarTrackerSimulator", "TrueStars"]
@@ -75,14 +76,17 @@ class SimulatedFrame:
 class StarTrackerSimulator:
     """Simulate frames of a star tracker looking at ``catalog`` while moving as ``motion``.
 
-    ``effects`` (a sequence of :class:`sensors.effects.Effect`) are applied in order to the true
-    pinhole positions. ``level`` is ``"centroid"`` or ``"image"``; ``image_model`` (default
+    ``effects`` (a sequence of :class:`sensors.effects.Effect`) are applied in canonical stage
+    order (:func:`sensors.effects.chain.ordered`): time effects shift the instant each star is
+    seen on the true motion, the others map the pinhole positions. ``zenith_icrs`` (3,) (ground
+    tests) and ``covariates`` (name -> function of int64 ns) feed the effects' context.
+    ``level`` is ``"centroid"`` or ``"image"``; ``image_model`` (default
     :class:`ImageModel()`) sets the photometry of both levels and the detector of the image level.
     """
 
     def __init__(self, camera, timing, catalog, motion, effects=(), centroid_sigma_px: float = 0.0,
                  image_model: ImageModel | None = None, level: str = "centroid", seed: int = 0,
-                 magnitude_limit: float | None = None):
+                 magnitude_limit: float | None = None, zenith_icrs=None, covariates=None):
         if level not in LEVELS:
             raise ValueError(f"level must be one of {LEVELS}, got {level!r}")
         if timing.rows != camera.height:
@@ -91,6 +95,12 @@ class StarTrackerSimulator:
         bad = [e for e in effects if not isinstance(e, Effect)]
         if bad:
             raise ValueError(f"effects must be Effect instances (see sensors.effects.build_effect), got {bad!r}")
+        if level == "image":
+            centroid_only = [e.name for e in effects if not e.image_level]
+            if centroid_only:
+                raise ValueError(f"effect(s) {', '.join(centroid_only)} are centroid-estimation biases: simulate them at "
+                                 "level 'centroid' (an image-level simulation produces them through the centroider)")
+        effects = ordered(effects)
         if not (np.isfinite(centroid_sigma_px) and centroid_sigma_px >= 0):
             raise ValueError(f"centroid_sigma_px must be finite and >= 0, got {centroid_sigma_px!r}")
         if image_model is not None and not isinstance(image_model, ImageModel):
@@ -109,18 +119,20 @@ class StarTrackerSimulator:
         self.level = level
         self.seed = int(seed)
         self.magnitude_limit = None if magnitude_limit is None else float(magnitude_limit)
+        self.zenith_icrs = None if zenith_icrs is None else np.asarray(zenith_icrs, dtype=float).reshape(3)
+        self.covariates = dict(covariates or {})
 
     # ------------------------------------------------------------------ public
     def frame(self, k: int) -> SimulatedFrame:
         """Simulate frame ``k`` (deterministic in ``seed`` and ``k`` only)."""
         k = self._check_index(k)
         t0 = int(self.timing.frame_start_ns(k))
-        cand, x, y = self._solve(t0)
+        cand, x, y, info = self._solve(t0, k)
         keep = self.camera.contains(x, y)
         truth = self._truth(cand[keep], x[keep], y[keep], t0)
         if self.level == "centroid":
             return SimulatedFrame(k, t0, truth, centroids=self._measure(truth, k, t0))
-        star_e = self._render(cand, y, t0)
+        star_e = self._render(cand, y, t0, info)
         return SimulatedFrame(k, t0, truth, image=self._digitise(star_e, k))
 
     def frames(self, n: int, start: int = 0) -> Iterator[SimulatedFrame]:
@@ -134,8 +146,8 @@ class StarTrackerSimulator:
         """Noise-free star signal of frame ``k`` in electrons, float (H, W) (no background)."""
         k = self._check_index(k)
         t0 = int(self.timing.frame_start_ns(k))
-        cand, _, y = self._solve(t0)
-        return self._render(cand, y, t0)
+        cand, _, y, info = self._solve(t0, k)
+        return self._render(cand, y, t0, info)
 
     def expected_electrons(self, k: int) -> np.ndarray:
         """Mean electrons per pixel of frame ``k`` before noise: stars + background + dark + hot pixels."""
@@ -158,8 +170,25 @@ class StarTrackerSimulator:
     def _rng(self, k: int, stream: int) -> np.random.Generator:
         return np.random.default_rng([self.seed, k, stream])
 
-    def _positions(self, unit, t_ns, frac_ns=None):
-        return image_positions(self.camera, self.motion, self.effects, unit, t_ns, frac_ns)
+    def apply_gyro(self, t_ns, omega_rad_s) -> np.ndarray:
+        """Gyro samples (m, 3) after the gyro-channel effects (gyro_bias, gyro_scale, ...)."""
+        return apply_gyro(self.effects, t_ns, omega_rad_s)
+
+    def covariates_at(self, t_ns) -> dict[str, np.ndarray]:
+        """The scenario's covariates (e.g. ``temperature_c``) at int64 ns times."""
+        t = np.asarray(t_ns, dtype=np.int64)
+        return {name: np.asarray(f(t), dtype=float) for name, f in self.covariates.items()}
+
+    def _info(self, cand: np.ndarray, t0: int, k: int) -> ObservationInfo:
+        """Per-star context of the candidates (only built when there are effects)."""
+        cat = self.catalog
+        mag = cat.magnitude[cand]
+        pm = getattr(cat, "pm_rad_yr", None)
+        return ObservationInfo(
+            magnitude=mag, flux_e=self.image_model.star_electrons(mag, self.timing.exposure_ns),
+            pm_rad_yr=None if pm is None else pm[cand], t0_ns=t0, frame=k, timing=self.timing,
+            zenith_icrs=self.zenith_icrs, covariates=self.covariates, t_start_ns=int(self.timing.start_ns),
+        )
 
     def _candidates(self, t0: int) -> np.ndarray:
         """Catalogue indices of stars that may be imaged during the frame."""
@@ -176,11 +205,12 @@ class StarTrackerSimulator:
             idx = idx[self.catalog.magnitude[idx] <= self.magnitude_limit]
         return idx
 
-    def _solve(self, t0: int):
+    def _solve(self, t0: int, k: int):
         cand = self._candidates(t0)
+        info = self._info(cand, t0, k) if self.effects else None
         x, y, _ = solve_star_rows(self.camera, self.timing, self.motion, self.effects,
-                                  self.catalog.unit_icrs[cand], t0)
-        return cand, x, y
+                                  self.catalog.unit_icrs[cand], t0, info=info)
+        return cand, x, y, info
 
     def _truth(self, idx, x, y, t0: int) -> TrueStars:
         cat = self.catalog
@@ -211,13 +241,20 @@ class StarTrackerSimulator:
             "flux": flux,
         }
 
-    def _render(self, cand, y_star, t0: int) -> np.ndarray:
+    def _render(self, cand, y_star, t0: int, info: ObservationInfo | None) -> np.ndarray:
         model = self.image_model
         finite = np.isfinite(y_star)
+        idx = np.flatnonzero(finite)
         cand, y_star = cand[finite], y_star[finite]
+        unit = self.catalog.unit_icrs[cand]
         electrons = model.star_electrons(self.catalog.magnitude[cand], self.timing.exposure_ns)
-        return render_star_electrons(self._positions, self.timing, (self.camera.height, self.camera.width), t0,
-                                     self.catalog.unit_icrs[cand], electrons, y_star, model.psf_sigma_px)
+
+        def positions(star, t_ns, rows):  # star: indices into the rendered stars
+            return image_positions(self.camera, self.motion, self.effects, unit[star], t_ns, rows=rows,
+                                   info=info, index=None if info is None else idx[star])
+
+        return render_star_electrons(positions, self.timing, (self.camera.height, self.camera.width), t0,
+                                     unit, electrons, y_star, model.psf_sigma_px)
 
     def _digitise(self, star_e: np.ndarray, k: int) -> np.ndarray:
         mean = mean_electrons(star_e, self.image_model, self.timing.exposure_ns, self.hot_pixels)

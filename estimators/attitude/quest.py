@@ -2,14 +2,15 @@
 from __future__ import annotations
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
 from estimators.attitude.base import AttitudeSolver
+from estimators.attitude.robust import RobustParams, apply_robust
 from estimators.attitude.wahba import quest, quest_covariance
 from estimators.data import AttitudeEstimate, FrameData
 
 
-class QuestParams(BaseModel):
+class QuestParams(RobustParams):
     model_config = ConfigDict(extra="forbid")
 
     sigma_px: float | None = Field(
@@ -58,6 +59,7 @@ class QuestSolver(AttitudeSolver):
         self._focal_px = float(context.camera.focal_px)
 
     def process(self, frame: FrameData) -> FrameData:
+        frame = apply_robust(frame, self.context.camera, self.params, self._sigma_px, self.params.use_star_sigma)
         stars = frame.stars
         t_frame = int(self.context.timing.frame_reference_ns(frame.t0_ns))
         if stars is None or stars.n == 0:

@@ -15,16 +15,17 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 from scipy.spatial.transform import Rotation
 
 from estimators.attitude.base import AttitudeSolver
+from estimators.attitude.robust import RobustParams, apply_robust
 from estimators.data import AttitudeEstimate, FrameData
 
 __all__ = ["RequestSolver", "RequestParams", "davenport_k", "transition_matrix", "propagate_k", "dominant_quaternion"]
 
 
-class RequestParams(BaseModel):
+class RequestParams(RobustParams):  # robust: the shared outlier gate (robust.py)
     model_config = ConfigDict(extra="forbid")
 
     group_size: Annotated[int, Field(ge=1)] | Literal["frame"] = Field(
@@ -252,6 +253,7 @@ class RequestSolver(AttitudeSolver):
     # ------------------------------------------------------------------ per frame
     def process(self, frame: FrameData) -> FrameData:
         p = self.params
+        frame = apply_robust(frame, self.context.camera, p, self._sigma_px, p.use_star_sigma)
         t_frame = int(self.context.timing.frame_reference_ns(frame.t0_ns))
         stars = frame.stars
         if stars is None or stars.n == 0 or not stars.identified.any():

@@ -6,6 +6,8 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from estimators.centroiders.base import Centroider
 from estimators.data import FrameData, StarTable
@@ -17,13 +19,20 @@ class CogParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     threshold_sigma: float = Field(default=5.0, gt=0, description="Detection threshold above background, in noise sigmas.")
-    background: Literal["median", "tiles"] = Field(
-        default="median", description="'median': one global median; 'tiles': bilinear interpolation of tile medians.")
-    tile_px: int = Field(default=64, ge=4, description="Tile size (px) for background='tiles'.")
-    min_pixels: int = Field(default=3, ge=1, description="Smallest spot kept (pixels above threshold).")
+    background: Literal["median", "tiles", "map"] = Field(
+        default="median", description="'median': one global median; 'tiles': bilinear interpolation of tile medians; "
+        "'map': the same after a median filter over the tile grid (robust to bright stars, for real images).")
+    tile_px: int = Field(default=64, ge=4, description="Tile size (px) for background='tiles' or 'map'.")
+    map_filter_tiles: int = Field(default=3, ge=1, description="Median-filter width (tiles) of background='map'.")
+    min_pixels: int = Field(default=3, ge=1, description="Smallest spot kept (pixels above threshold): rejects hot pixels.")
     max_pixels: int | None = Field(default=None, ge=1, description="Largest spot kept; None: no limit.")
+    max_sharpness: float | None = Field(
+        default=None, gt=0, le=1, description="Reject unsaturated spots whose peak sharpness (peak - mean of its 8 "
+        "neighbours) / peak exceeds this (hot pixels, cosmic rays; a critically sampled PSF scores ~0.5); None: off.")
     saturation_adu: float | None = Field(
         default=None, description="Saturation level; None: 2**bit_depth - 1 from the context, else the image dtype's max.")
+    gain_e_per_adu: float | None = Field(
+        default=None, gt=0, description="Conversion gain for the shot-noise term of snr; None: background noise only.")
     connectivity: Literal[4, 8] = Field(default=8, description="Pixel connectivity of a spot.")
     reject_border: bool = Field(default=False, description="Drop spots with a pixel on the detector's outermost rows/columns.")
     grow_px: int = Field(default=1, ge=0, description="Grow each spot by this many pixel rings (below threshold) before the CoG.")
@@ -34,26 +43,37 @@ class CogParams(BaseModel):
 class CogCentroider(Centroider):
     """Thresholded centre-of-gravity centroiding (e.g. Liebe 2002, IEEE AES Magazine 17(1); he2021b sec 2).
 
-    1. Background ``b``: the image median, or (``tiles``) the medians of ``tile_px`` tiles
-       bilinearly interpolated between tile centres (clamped at the edges).
+    1. Background ``b``: the median of a strided subsample (``median``), or (``tiles``) the medians
+       of ``tile_px`` tiles (each from a stride-2 subsample of its pixels when ``tile_px >= 64``)
+       bilinearly interpolated between tile centres (clamped at the edges), or (``map``) the same
+       after a ``map_filter_tiles`` median filter over the tile grid, so that a tile dominated by a
+       bright star or cluster takes its neighbours' level (gradients and vignetting are smooth on
+       the tile scale, stars are not).
     2. Noise ``s``: ``1.4826 * MAD(I - b)``, refined by a clipped standard deviation (see
        :func:`_robust_sigma`: the MAD of integer pixels is itself quantised), floored at ``noise_floor_adu``
        (default the quantisation noise ``1/sqrt(12)`` ADU, so a noise-free image still has a
        finite threshold).
     3. Pixels with ``I - b > threshold_sigma * s`` are grouped into connected components
-       (8- or 4-connectivity, ``scipy.ndimage.label``); components with fewer than ``min_pixels``
-       (or more than ``max_pixels``) pixels above threshold are dropped. Each component is then
-       grown by ``grow_px`` rings of pixels (grey dilation of the label image): the thresholded
-       CoG otherwise truncates the PSF wings and is biased towards the brightest pixel.
+       (8- or 4-connectivity, :func:`_components`); components with fewer than ``min_pixels``
+       (or more than ``max_pixels``) pixels above threshold are dropped: a hot pixel or a
+       single-pixel cosmic-ray hit is one pixel. With ``max_sharpness``, an unsaturated component
+       whose peak is isolated, ``(peak - mean8) / peak > max_sharpness`` (``mean8``: mean of the 8
+       neighbours of the peak pixel, above background; the criterion of tetra3's extractor), is
+       dropped too (multi-pixel hot clusters and cosmic rays are sharper than any PSF the optics
+       pass). Each component is then grown by ``grow_px`` rings of pixels (below threshold): the
+       thresholded CoG otherwise truncates the PSF wings and is biased towards the brightest pixel.
     4. Per component ``k`` (vectorised with ``np.bincount``), with ``d = I - b`` over its pixels:
        ``flux = sum d``, ``x = sum d x / flux``, ``y = sum d y / flux``, ``peak = max d``,
-       ``npix``, ``saturated = max I >= saturation``, ``snr = flux / (s sqrt(npix))``,
+       ``npix``, ``saturated = max I >= saturation`` (saturated spots are kept, flagged: their CoG
+       is still usable but their flux is a lower bound), ``snr = flux / sqrt(npix s^2 + flux / g)``
+       (``g = gain_e_per_adu``; without it the shot-noise term is left out),
        ``sigma_px = s sqrt(sum (x_i - x)^2 + (y_i - y)^2) / (sqrt(2) flux)`` (background-noise
        propagation through the CoG, per axis; shot noise and PSF-sampling bias not included).
     5. Times: ``row_time_ns = timing.row_start_ns(t0, y)`` and ``t_ns = timing.row_mid_exposure_ns(t0, y)``
        (the time a static-PSF centroid refers to).
 
-    Spots are ordered by decreasing flux.
+    Spots are ordered by decreasing flux. Only the subsample, the threshold comparison and the
+    list of above-threshold pixels touch the full frame (``benchmarks/centroid_speed.py``).
     """
 
     name = "cog"
@@ -63,7 +83,21 @@ class CogCentroider(Centroider):
         super().setup(context)
         cam = context.camera
         self._shape = (int(cam.height), int(cam.width))
-        self._structure = np.ones((3, 3), dtype=bool) if self.params.connectivity == 8 else ndimage.generate_binary_structure(2, 1)
+        H, W = self._shape
+        if self.params.background != "median":
+            t = self.params.tile_px
+            ny, nx = -(-H // t), -(-W // t)
+            starts_y, starts_x = np.arange(ny) * t, np.arange(nx) * t
+            cy = (starts_y + np.minimum(starts_y + t, H) - 1) / 2.0
+            cx = (starts_x + np.minimum(starts_x + t, W) - 1) / 2.0
+            wy = _interp_matrix(np.arange(H, dtype=float), cy)
+            wx = _interp_matrix(np.arange(W, dtype=float), cx)
+            step = _subsample_step(self._shape)
+            # contiguous copies: matmul with strided or transposed views is 10x slower (measured)
+            self._wy = np.ascontiguousarray(wy)
+            self._kx, self._fx = _interp_index(np.arange(W, dtype=float), cx)
+            self._wy_sub = np.ascontiguousarray(wy[::step])
+            self._wxT_sub = np.ascontiguousarray(wx[::step].T)
 
     def _saturation(self, image: np.ndarray) -> float:
         if self.params.saturation_adu is not None:
@@ -83,34 +117,103 @@ class CogCentroider(Centroider):
             raise ValueError(f"frame {frame.index}: image must be 2-D (rows, columns), got shape {raw.shape}")
         if raw.shape != self._shape:
             raise ValueError(f"frame {frame.index}: image shape {raw.shape} differs from the camera's (height, width) {self._shape}")
-        img = raw.astype(float)
-        if not np.all(np.isfinite(img)):
-            bad = int(np.count_nonzero(~np.isfinite(img)))
+        integer = np.issubdtype(raw.dtype, np.integer) or raw.dtype == bool
+        if not integer and not np.all(np.isfinite(raw)):
+            bad = int(np.count_nonzero(~np.isfinite(raw)))
             raise ValueError(f"frame {frame.index}: image has {bad} non-finite pixel(s) (NaN/inf); cannot centroid")
+        if raw.dtype == bool:
+            raw = raw.astype(np.uint8)
+        H, W = self._shape
+        p = self.params
 
-        bg = self._background(img)
-        resid = img - bg
-        noise = max(_robust_sigma(resid), self.params.noise_floor_adu)
+        # 1-2. background and noise from a strided subsample; no full-size float copy or map of the frame
+        step = _subsample_step(raw.shape)
+        sub = raw[::step, ::step].astype(float)
+        raw_flat = raw.ravel()
+        if p.background == "median":
+            bg = float(np.median(sub))
+            noise = max(_robust_sigma(sub - bg), p.noise_floor_adu)
+            thr = p.threshold_sigma * noise
+            level = bg + thr
+            if integer:  # compare in the image's dtype (exact for integers, no float copy of the frame)
+                hi = np.iinfo(raw.dtype).max
+                mask = raw > int(min(np.floor(level), hi)) if level < hi else np.zeros(raw.shape, dtype=bool)
+            else:
+                mask = raw > level
+            flat = np.flatnonzero(mask)
 
-        mask = resid > self.params.threshold_sigma * noise
-        labels, n_lab = ndimage.label(mask, structure=self._structure)
-        if n_lab == 0:
+            def bg_flat(f):
+                return bg
+        else:
+            t = p.tile_px
+            tiles = _tile_medians(raw, t)
+            if p.background == "map" and p.map_filter_tiles > 1:
+                tiles = ndimage.median_filter(tiles, size=p.map_filter_tiles, mode="nearest")
+            bg_sub = (self._wy_sub @ tiles) @ self._wxT_sub
+            noise = max(_robust_sigma(sub - bg_sub), p.noise_floor_adu)
+            thr = p.threshold_sigma * noise
+            A = self._wy @ tiles  # (H, nx) interpolated along y; then linear along x per pixel
+            A = np.concatenate([A, A[:, -1:]], axis=1)  # so that column k + 1 exists for the last k
+
+            def bg_flat(f):
+                r, c = np.divmod(f, W)
+                k, fx = self._kx[c], self._fx[c]
+                return A[r, k] * (1.0 - fx) + A[r, k + 1] * fx
+
+            # Candidates against a per-tile lower bound of the bilinear background (the minimum of
+            # the 3 x 3 neighbouring tile medians bounds every pixel's interpolation from below),
+            # then the exact test on the candidates only: no full-size background map (measured:
+            # building one costs 5-10 frame.sum() passes).
+            low = ndimage.minimum_filter(tiles, size=3, mode="nearest") + thr
+            mask = np.empty(raw.shape, dtype=bool)
+            if integer:  # raw > level <=> raw > floor(level) for integers: compare in the image's dtype
+                info = np.iinfo(raw.dtype)
+                low = np.clip(np.floor(low), info.min, info.max).astype(raw.dtype)
+            else:
+                low = low.astype(raw.dtype)
+            for i in range(low.shape[0]):
+                rows = slice(i * t, min((i + 1) * t, H))
+                np.greater(raw[rows], np.repeat(low[i], t)[:W], out=mask[rows])
+            cand = np.flatnonzero(mask)
+            if cand.size > raw.size // 16:
+                # a background far from flat within tiles (bloom, strong vignetting): the lower bound
+                # passes most pixels, so one full-size map is cheaper than per-candidate look-ups
+                full = (A[:, self._kx] * (1.0 - self._fx) + A[:, self._kx + 1] * self._fx).ravel()
+
+                def bg_flat(f):
+                    return full[f]
+
+                flat = np.flatnonzero(raw_flat > full + thr)
+            else:
+                flat = cand[raw_flat[cand] - bg_flat(cand) > thr]
+        if flat.size == 0:
             return frame.evolve(stars=StarTable.empty())
+        lab_core, n_lab = _components(flat, W, p.connectivity == 8)
         size = n_lab + 1
-        # Everything below works on the compact list of spot pixels (a few thousand), not the
-        # full frame: full-frame ndimage.maximum / grey_dilation cost 10-100x more (measured).
-        flat = np.flatnonzero(labels)
-        lab_core = labels.ravel()[flat]
         n_above = np.bincount(lab_core, minlength=size)[1:]
-        raw_max = _label_max(raw.ravel()[flat].astype(float), lab_core, size)
-        for _ in range(self.params.grow_px):
+        raw_core = raw_flat[flat].astype(float)
+        raw_max = _label_max(raw_core, lab_core, size)
+        saturated = raw_max >= self._saturation(raw)
+        keep = n_above >= p.min_pixels
+        if p.max_pixels is not None:
+            keep &= n_above <= p.max_pixels
+        if p.max_sharpness is not None:
+            sharp = _sharpness(flat, raw_core - bg_flat(flat), lab_core, size, raw_flat, bg_flat, self._shape)
+            keep &= ~(sharp > p.max_sharpness) | saturated
+        # Everything below works on the compact list of spot pixels (a few thousand), not the
+        # full frame; drop rejected components first so that they do not grow into their neighbours.
+        sel = keep[lab_core - 1]
+        flat, lab_core = flat[sel], lab_core[sel]
+        if flat.size == 0:
+            return frame.evolve(stars=StarTable.empty())
+        for _ in range(p.grow_px):
             # a ring of below-threshold pixels around each spot reduces the CoG truncation bias;
             # where two spots' rings meet the higher label wins
-            flat, lab_core = _grow(flat, lab_core, self._shape, self.params.connectivity == 8)
+            flat, lab_core = _grow(flat, lab_core, self._shape, p.connectivity == 8)
 
         lab_on = lab_core
-        d = resid.ravel()[flat]
-        rows, cols = np.divmod(flat, self._shape[1])
+        d = raw_flat[flat].astype(float) - bg_flat(flat)
+        rows, cols = np.divmod(flat, W)
         rows = rows.astype(float)
         cols = cols.astype(float)
         npix = np.bincount(lab_on, minlength=size)[1:]
@@ -119,12 +222,9 @@ class CogCentroider(Centroider):
         sy = np.bincount(lab_on, weights=d * rows, minlength=size)[1:]
         peak = _label_max(d, lab_on, size)
 
-        keep = (n_above >= self.params.min_pixels) & (flux > 0)
-        if self.params.max_pixels is not None:
-            keep &= n_above <= self.params.max_pixels
-        if self.params.reject_border:
+        keep &= flux > 0
+        if p.reject_border:
             border = np.zeros(size, dtype=bool)
-            H, W = self._shape
             on_edge = (rows == 0) | (rows == H - 1) | (cols == 0) | (cols == W - 1)
             border[lab_on[on_edge]] = True
             keep &= ~border[1:]
@@ -137,7 +237,10 @@ class CogCentroider(Centroider):
             yc = np.concatenate([[0.0], y])[lab_on]
             m2 = np.bincount(lab_on, weights=(cols - xc) ** 2 + (rows - yc) ** 2, minlength=size)[1:]
             sigma_px = noise * np.sqrt(m2 / 2.0) / flux
-            snr = flux / (noise * np.sqrt(npix))
+            var = npix * noise**2
+            if p.gain_e_per_adu is not None:
+                var = var + np.maximum(flux, 0.0) / p.gain_e_per_adu
+            snr = flux / np.sqrt(var)
 
         order = np.flatnonzero(keep)
         order = order[np.argsort(-flux[order], kind="stable")]
@@ -148,28 +251,10 @@ class CogCentroider(Centroider):
             t_ns=timing.row_mid_exposure_ns(frame.t0_ns, y),
             row_time_ns=timing.row_start_ns(frame.t0_ns, y),
             flux=flux[order], peak=peak[order], npix=npix[order],
-            saturated=raw_max[order] >= self._saturation(raw),
+            saturated=saturated[order],
             snr=snr[order], sigma_px=sigma_px[order],
         )
         return frame.evolve(stars=stars)
-
-    def _background(self, img: np.ndarray):
-        """Scalar median (of a strided subsample), or a (H, W) bilinear interpolation of tile medians."""
-        if self.params.background == "median":
-            return float(np.median(_subsample(img)))
-        t = self.params.tile_px
-        H, W = img.shape
-        ny, nx = -(-H // t), -(-W // t)
-        padded = np.full((ny * t, nx * t), np.nan)
-        padded[:H, :W] = img
-        tiles = np.nanmedian(padded.reshape(ny, t, nx, t).transpose(0, 2, 1, 3).reshape(ny, nx, t * t), axis=-1)
-        # tile centres (the partial last tile's centre is the centre of its valid part)
-        starts_y, starts_x = np.arange(ny) * t, np.arange(nx) * t
-        cy = (starts_y + np.minimum(starts_y + t, H) - 1) / 2.0
-        cx = (starts_x + np.minimum(starts_x + t, W) - 1) / 2.0
-        wy = _interp_matrix(np.arange(H, dtype=float), cy)
-        wx = _interp_matrix(np.arange(W, dtype=float), cx)
-        return wy @ tiles @ wx.T
 
 
 def _robust_sigma(resid: np.ndarray) -> float:
@@ -179,13 +264,18 @@ def _robust_sigma(resid: np.ndarray) -> float:
     and finally of those within ``3 s1``, divided by 0.98658 (the standard deviation of a unit
     normal truncated to +-3). The clipped-std steps remove the bias of the MAD on integer data
     (whose median absolute deviation is itself an integer or half-integer).
+
+    When the MAD is 0 (more than half of the pixels share one value: a dark 8-bit frame clipped
+    at 0), the clipped-std steps would be biased by the clipping; the one-sided estimate
+    ``P84.13 - median`` (one sigma above the median of a Gaussian; the upper side is not
+    clipped) is returned instead.
     """
-    r = _subsample(resid).ravel()
+    r = np.asarray(resid, dtype=float).ravel()
     med = float(np.median(r))
     dev = np.abs(r - med)
     s0 = _MAD_TO_SIGMA * float(np.median(dev))
     if s0 <= 0:
-        return 0.0
+        return max(0.0, float(np.percentile(r, 84.134)) - med)
     s1 = float(np.std(r[dev < 5.0 * s0]))
     if s1 <= 0:
         return s0
@@ -193,17 +283,87 @@ def _robust_sigma(resid: np.ndarray) -> float:
     return float(np.sqrt(np.mean((sel - med) ** 2))) / 0.98658
 
 
-_MIN_STAT_SAMPLES = 65536
+_MIN_STAT_SAMPLES = 16384
 
 
-def _subsample(img: np.ndarray) -> np.ndarray:
-    """A deterministic strided subsample with at least 65536 pixels, for robust statistics.
+def _subsample_step(shape: tuple[int, int]) -> int:
+    """Stride of a deterministic subsample with at least 16384 pixels, for robust statistics.
 
-    The median and MAD of 65536 background pixels have a relative standard error of ~0.5 %,
-    far below what the threshold needs, at 1/16 of the cost on a 1024 x 1024 frame.
+    The median and MAD of 16384 background pixels have a relative standard error of ~1 %,
+    far below what the threshold needs, at 1/64 of the cost on a 1024 x 1024 frame.
     """
-    step = max(1, int(np.sqrt(img.size / _MIN_STAT_SAMPLES)))
-    return img[::step, ::step] if step > 1 else img
+    return max(1, int(np.sqrt(shape[0] * shape[1] / _MIN_STAT_SAMPLES)))
+
+
+def _tile_medians(img: np.ndarray, t: int) -> np.ndarray:
+    """(ny, nx) medians of ``t x t`` tiles (the last row/column of tiles may be partial).
+
+    Each tile's median is taken over a stride-``s`` subsample of its pixels (``s = t // 16`` when
+    that divides ``t``, so a tile keeps ~256 samples: the median's standard error is then
+    ``1.25 sigma / 16``, under a tenth of the pixel noise, at a sixteenth of the cost). Partial tiles are completed by mirroring the image
+    (``np.pad(mode="symmetric")``), which keeps a smooth background's median.
+    """
+    H, W = img.shape
+    s = max(1, t // 16)
+    while t % s:
+        s -= 1
+    sub = img[::s, ::s]
+    ts = t // s
+    ny, nx = -(-H // t), -(-W // t)
+    ph, pw = ny * ts - sub.shape[0], nx * ts - sub.shape[1]
+    if ph or pw:
+        sub = np.pad(sub, ((0, ph), (0, pw)), mode="symmetric")
+    blocks = sub.reshape(ny, ts, nx, ts).transpose(0, 2, 1, 3).reshape(ny, nx, ts * ts)
+    return np.median(blocks, axis=-1).astype(float)
+
+
+def _components(flat: np.ndarray, W: int, eight: bool) -> tuple[np.ndarray, int]:
+    """Connected components of the pixels with sorted flat indices ``flat`` (row-major, width ``W``).
+
+    Returns labels 1..n (one per pixel) and n. Hand-written instead of ``ndimage.label`` because
+    the above-threshold pixels of a star field are sparse: linking each pixel to its forward
+    neighbours found by binary search in ``flat`` and taking the components of that graph
+    (``scipy.sparse.csgraph``) costs O(n log n) in the pixel count instead of a pass over the
+    frame (measured: 0.1 ms vs 2 ms on a 1024 x 1024 frame).
+    """
+    n = flat.size
+    col = flat % W
+    offsets = [(1, col < W - 1), (W, None)]
+    if eight:
+        offsets += [(W - 1, col > 0), (W + 1, col < W - 1)]
+    src, dst = [], []
+    for off, valid in offsets:
+        target = flat + off
+        pos = np.searchsorted(flat, target)
+        hit = pos < n
+        hit[hit] = flat[pos[hit]] == target[hit]
+        if valid is not None:
+            hit &= valid
+        src.append(np.flatnonzero(hit))
+        dst.append(pos[hit])
+    src, dst = np.concatenate(src), np.concatenate(dst)
+    graph = coo_matrix((np.ones(src.size, dtype=np.int8), (src, dst)), shape=(n, n))
+    n_comp, labels = connected_components(graph, directed=False)
+    return labels.astype(np.intp) + 1, int(n_comp)
+
+
+def _sharpness(flat, d, labels, size, raw_flat, bg_flat, shape) -> np.ndarray:
+    """Per label ``(peak - mean8) / peak`` of its brightest pixel (``d``: values above background);
+    neighbours outside the frame are replaced by the nearest edge pixel."""
+    H, W = shape
+    order = np.lexsort((-d, labels))
+    first = np.concatenate([[True], labels[order][1:] != labels[order][:-1]])
+    pk = order[first]
+    peak_flat, peak_val, lab = flat[pk], d[pk], labels[pk]
+    r, c = np.divmod(peak_flat, W)
+    dr = np.array([-1, -1, -1, 0, 0, 1, 1, 1])[:, None]
+    dc = np.array([-1, 0, 1, -1, 1, -1, 0, 1])[:, None]
+    nb = np.clip(r[None] + dr, 0, H - 1) * W + np.clip(c[None] + dc, 0, W - 1)
+    mean8 = (raw_flat[nb].astype(float) - bg_flat(nb)).mean(axis=0)
+    out = np.zeros(size - 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out[lab - 1] = np.where(peak_val > 0, (peak_val - mean8) / peak_val, 0.0)
+    return out
 
 
 def _label_max(values: np.ndarray, labels: np.ndarray, size: int) -> np.ndarray:
@@ -234,6 +394,14 @@ def _grow(flat: np.ndarray, labels: np.ndarray, shape: tuple[int, int], eight: b
     all_flat, all_lab = all_flat[order], all_lab[order]
     first = np.concatenate([[True], all_flat[1:] != all_flat[:-1]])
     return all_flat[first], all_lab[first]
+
+
+def _interp_index(xq: np.ndarray, xp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Left node ``j`` and fraction ``f`` of linear interpolation (clamped): value = (1-f) v[j] + f v[j+1]."""
+    if xp.size == 1:
+        return np.zeros(xq.size, dtype=np.intp), np.zeros(xq.size)
+    j = np.clip(np.searchsorted(xp, xq, side="right") - 1, 0, xp.size - 2)
+    return j, np.clip((xq - xp[j]) / (xp[j + 1] - xp[j]), 0.0, 1.0)
 
 
 def _interp_matrix(xq: np.ndarray, xp: np.ndarray) -> np.ndarray:

@@ -118,15 +118,17 @@ def corrected_positions(camera, omega_xy, x, y, dt_s) -> tuple[np.ndarray, np.nd
 def corrected_directions(camera, omega_xy, x, y, dt_s, model: str = "linear") -> np.ndarray:
     """Camera-frame unit directions (..., n, 3) of the stars moved to the reference time.
 
-    ``model="linear"``: eqs 11-14 then eq 2; ``model="rotation"``: ``Exp(omega dt_i) w_i`` exactly
-    (``omega = (omega_x, omega_y, 0)``).
+    ``model="linear"``: eqs 11-14 then eq 2 (``omega_x, omega_y`` only: eq 8 assumes ``omega_z = 0``);
+    ``model="rotation"``: ``Exp(omega dt_i) w_i`` exactly, with ``omega = (omega_x, omega_y, 0)`` for a
+    (..., 2) ``omega_xy`` or the full body rate for a (..., 3) one (e.g. a gyro rate reused by
+    :class:`PsoCorrection`).
     """
     om = np.asarray(omega_xy, dtype=float)
     if model == "linear":
-        xc, yc = corrected_positions(camera, om, x, y, dt_s)
+        xc, yc = corrected_positions(camera, om[..., :2], x, y, dt_s)
         return _unit_from_pixels(camera, xc, yc)
     w = _unit_from_pixels(camera, x, y)  # (n, 3)
-    om3 = np.concatenate([om, np.zeros(om.shape[:-1] + (1,))], axis=-1)  # (..., 3)
+    om3 = om if om.shape[-1] == 3 else np.concatenate([om, np.zeros(om.shape[:-1] + (1,))], axis=-1)  # (..., 3)
     rotvec = om3[..., None, :] * np.asarray(dt_s, dtype=float)[:, None]  # (..., n, 3)
     return _rodrigues(rotvec, w)
 
@@ -344,10 +346,19 @@ class PsoRateEstimator(_PsoCore, RateEstimator):
         return out if rate.valid else out.flagged("rate_invalid")
 
 
+class PsoCorrectionParams(PsoParams):
+    reuse_rate: bool = Field(
+        default=True, description="Use the frame's valid rate (frame.rate, e.g. from a pso-rate stage earlier in the "
+        "pipeline) instead of running the PSO again; False: always estimate.")
+
+
 class PsoCorrection(_PsoCore, Correction):
     """Rolling-shutter correction with the PSO rate (fu2022 eqs 11-14 applied with the eq 16 solution).
 
-    Estimates ``(omega_x, omega_y)`` exactly as ``pso-rate`` does, then moves **every** star of
+    Rate: when ``reuse_rate`` and the frame already carries a valid, finite ``frame.rate`` (a
+    ``pso-rate`` stage earlier in the pipeline, or any rate stage), that rate is used and the PSO is
+    not run again (``model="rotation"`` then applies its full 3-vector, ``"linear"`` its x and y);
+    otherwise ``(omega_x, omega_y)`` is estimated exactly as ``pso-rate`` does. Then moves **every** star of
     ``frame.stars`` (identified or not) to the reference time: ``model="linear"``:
     ``x_i = x_i' - v_x (t_i - t_ref)``, ``y_i = y_i' - v_y (t_i - t_ref)`` with eq 8's ``v``;
     ``model="rotation"``: the direction rotated exactly and re-projected. Sets ``t_ns = t_ref`` for
@@ -357,16 +368,22 @@ class PsoCorrection(_PsoCore, Correction):
     """
 
     name = "pso-correction"
-    Params = PsoParams
+    Params = PsoCorrectionParams
 
     def process(self, frame: FrameData) -> FrameData:
-        rate, t_ref = self.estimate(frame)
+        prior = frame.rate
+        if (self.params.reuse_rate and prior is not None and prior.valid
+                and np.all(np.isfinite(np.asarray(prior.omega_rad_s, dtype=float)))):
+            rate, t_ref = prior, self._reference_ns(frame)
+            om = np.asarray(prior.omega_rad_s, dtype=float)
+        else:
+            rate, t_ref = self.estimate(frame)
+            om = rate.omega_rad_s[:2]
         stars = frame.stars
         if not rate.valid or stars is None:
             return frame.evolve(rate=rate).flagged("rate_invalid")
         dt = (stars.t_ns - np.int64(t_ref)).astype(float) * 1e-9
         cam = self.context.camera
-        om = rate.omega_rad_s[:2]
         if self.params.model == "linear":
             x, y = corrected_positions(cam, om, stars.x, stars.y, dt)
         else:

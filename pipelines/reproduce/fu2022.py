@@ -38,6 +38,18 @@ RATES = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 5.0)  # section 3.2 / Fig 11
 FIELD_RATES = (0.5, 1.0, 3.0, 5.0)  # section 3.3 / Fig 14
 SIGMAS = (0.01, 0.02, 0.03, 0.04, 0.05)  # Fig 12
 DEG = np.pi / 180.0
+# Line-delay sweep (us per row; the paper does not state it). 20: our default assumption (25.6 ms
+# readout); 78.125: the 1280 rows read out over the 100 ms exposure, i.e. continuous rolling
+# operation at 10 frames/s, the longest readout for which exposure and readout overlap in one frame
+# period as the paper's Fig 4 draws; 156.25: readout 200 ms ("exposure time no more than 200 ms",
+# sec 3.1); 39.06, 312.5 and 625 bracket them.
+LINE_DELAYS_US = (20.0, 39.0625, 78.125, 156.25, 312.5, 625.0)
+LINE_DELAYS_US_QUICK = (20.0, 78.125, 312.5)
+# (key, omega deg/s, sigma px, paper quantity, statistic) of the sweep
+SWEEP = (("fig9_noisy", (1, 1, 0), 0.02, "fig9_rate_error_median_noisy", "median"),
+         ("fig11_x3", (3, 0, 0), 0.02, "fig11_max_error_x", "max"),
+         ("fig12_0.01", (3, 0, 0), 0.01, "fig12_q3_error", "q3"),
+         ("fig12_0.05", (3, 0, 0), 0.05, "fig12_q3_error", "q3"))
 
 
 @lru_cache(maxsize=1)
@@ -73,10 +85,21 @@ def simulate_frame(ctx, omega_deg, sigma_px: float, rng: np.random.Generator, in
     return FrameData(index=index, t0_ns=t0, stars=stars), redraws
 
 
+def context_with_line_delay(ctx, line_delay_us: float | None):
+    """The Table 1 context with another rolling-shutter line delay (None: the scenario's)."""
+    if line_delay_us is None:
+        return ctx
+    t = ctx.timing
+    timing = type(t)(mode=t.mode, exposure_ns=t.exposure_ns, line_delay_ns=int(round(line_delay_us * 1e3)), rows=t.rows)
+    return type(ctx)(camera=ctx.camera, timing=timing, catalog=ctx.catalog, initial_attitude=ctx.initial_attitude,
+                     centroid_sigma_px=ctx.centroid_sigma_px, bit_depth=ctx.bit_depth)
+
+
 def run_condition(args) -> dict:
-    """Monte Carlo of one condition: (cond_id, omega_deg, sigma, trials, seed, estimator overrides)."""
-    cond_id, omega_deg, sigma, trials, seed, overrides = args
+    """Monte Carlo of one condition: (cond_id, omega_deg, sigma, trials, seed, estimator overrides[, line delay us])."""
+    cond_id, omega_deg, sigma, trials, seed, overrides = args[:6]
     cfg, ctx, params = _setup()
+    ctx = context_with_line_delay(ctx, args[6] if len(args) > 6 else None)
     est = PsoRateEstimator(**{**params, **overrides})
     est.setup(ctx)
     true = np.asarray(omega_deg, dtype=float)[:2]
@@ -122,8 +145,8 @@ def run(quick: bool, plots_dir: Path | None, seed: int) -> list[Row]:
     workers = 1 if quick else 2
     conds: dict[str, tuple] = {}
 
-    def add(key, omega, sigma, overrides=None, trials=n):
-        conds[key] = (len(conds), tuple(omega), float(sigma), trials, seed, overrides or {})
+    def add(key, omega, sigma, overrides=None, trials=n, line_delay_us=None):
+        conds[key] = (len(conds), tuple(omega), float(sigma), trials, seed, overrides or {}, line_delay_us)
 
     add("fig9_clean", (1, 1, 0), 0.0)
     add("fig9_noisy", (1, 1, 0), sig0)
@@ -140,6 +163,10 @@ def run(quick: bool, plots_dir: Path | None, seed: int) -> list[Row]:
             if kind in ("x", "y") and f"fig11_{kind}_{r}" in conds:
                 continue  # same condition as Fig 11: reuse those trials
             add(f"fig14_{kind}_{r}", om, sig0)
+    line_delays = LINE_DELAYS_US_QUICK if quick else LINE_DELAYS_US
+    for ld in line_delays:
+        for key, om, sg, _, _ in SWEEP:
+            add(f"ld_{ld}_{key}", om, sg, line_delay_us=ld)
     keys = list(conds)
     results = dict(zip(keys, _run_all([conds[k] for k in keys], workers)))
     elapsed = time.perf_counter() - start
@@ -197,6 +224,19 @@ def run(quick: bool, plots_dir: Path | None, seed: int) -> list[Row]:
         row(f"fig14_rmse_{kind}", f"{kind} motion, 0.5-5 deg/s, sigma {sig0} px, worst axis and rate (eq 19)",
             max(rm.values()), trials=n * len(FIELD_RATES),
             note="per-rate RMSE: " + ", ".join(f"{r}: {v:.2g}" for r, v in rm.items()))
+    # Line-delay sweep: which line delay would the paper's bounds need?
+    sweep = line_delay_sweep(results, line_delays)
+    for key, om, sg, qid, stat in SWEEP:
+        cond = f"{_sweep_condition(om, sg)}, {stat} error"
+        for ld in line_delays:
+            row(qid, f"{cond}, line delay {ld:g} us (readout {ld * 1280e-3:.1f} ms)", sweep[key][ld], trials=n)
+        implied = implied_line_delay_us(line_delays, [sweep[key][ld] for ld in line_delays], pv[qid]["value"])
+        rows.append(Row("implied_line_delay", f"{cond}: line delay at which ours meets the paper's {pv[qid]['value']} deg/s",
+                        None, implied, "us", "ours (log-log interpolation of the sweep; nan: not reached within "
+                        f"{line_delays[0]:g}-{line_delays[-1]:g} us)", n * len(line_delays), seed,
+                        f"readout {implied * 1280e-3:.0f} ms for the 1280 rows" if np.isfinite(implied) else
+                        f"1 / line delay extrapolation from {line_delays[-1]:g} us: "
+                        f"{line_delays[-1] * sweep[key][line_delays[-1]] / pv[qid]['value']:.0f} us"))
     # Figs 6-7
     gx, gy, vx, vy = velocity_field(ctx, (0, 0, 1), step=8)
     row("fig7_max_velocity_wz1", "wz = 1 deg/s, Table 1 detector", np.hypot(vx, vy).max(), unit="px/s", trials=None,
@@ -207,7 +247,69 @@ def run(quick: bool, plots_dir: Path | None, seed: int) -> list[Row]:
                     f"{redraws} pointings with < 3 stars redrawn", None, elapsed, "s", "", total, seed))
     if plots_dir is not None:
         _plots(Path(plots_dir), ctx, results, RATES, FIELD_RATES, SIGMAS, fig14)
+        _plot_sweep(Path(plots_dir), sweep, line_delays, pv)
     return rows
+
+
+def _sweep_condition(om, sg) -> str:
+    axes = " = ".join(f"w{a}" for a, v in zip("xyz", om) if v)
+    return f"{axes} = {max(om):g} deg/s, sigma {sg:g} px"
+
+
+def _statistic(err: np.ndarray, stat: str) -> float:
+    return float({"median": np.median, "max": np.max, "q3": lambda e: np.percentile(e, 75)}[stat](err))
+
+
+def line_delay_sweep(results: dict, line_delays) -> dict:
+    """``{sweep key: {line delay us: statistic of |rate error| (deg/s)}}``."""
+    return {key: {ld: _statistic(_norm(results[f"ld_{ld}_{key}"]), stat) for ld in line_delays}
+            for key, _, _, _, stat in SWEEP}
+
+
+def implied_line_delay_us(line_delays, errors, bound) -> float:
+    """Line delay (us) at which ``errors`` (at ``line_delays``) first fall to ``bound``: linear
+    interpolation in log-log between the bracketing sweep points; nan when the sweep never gets
+    there (or the bound is not numeric). The noise-limited error falls as 1 / line delay (the rate
+    is observed through the row-time differences), so log-log interpolation is the natural one."""
+    if not isinstance(bound, (int, float)):
+        return float("nan")
+    ld = np.log(np.asarray(line_delays, dtype=float))
+    e = np.log(np.maximum(np.asarray(errors, dtype=float), 1e-300))
+    b = np.log(bound)
+    if e[0] <= b:
+        return float(line_delays[0])
+    for k in range(1, ld.size):
+        if e[k] <= b:
+            f = (b - e[k - 1]) / (e[k] - e[k - 1])
+            return float(np.exp(ld[k - 1] + f * (ld[k] - ld[k - 1])))
+    return float("nan")
+
+
+def _plot_sweep(out: Path, sweep: dict, line_delays, pv) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for k, (key, om, sg, qid, stat) in enumerate(SWEEP):
+        c = f"C{k}"
+        ax.plot(line_delays, [sweep[key][ld] for ld in line_delays], "o-", color=c,
+                label=f"{_sweep_condition(om, sg)}: {stat}")
+        ax.axhline(pv[qid]["value"], color=c, ls=":", lw=1)
+    ld = np.asarray(line_delays, dtype=float)
+    ax.plot(ld, sweep["fig12_0.01"][line_delays[0]] * ld[0] / ld, "k--", lw=0.8, label="1 / line delay")
+    ax.axvline(78.125, color="grey", lw=0.8)
+    ax.text(82, 0.05, "readout = exposure = 100 ms", rotation=90, fontsize=7, color="grey", transform=ax.get_xaxis_transform())
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("line delay (us per row)")
+    ax.set_ylabel("|rate error| (deg/s)")
+    ax.set_title("fu2022: rate error vs the unstated line delay (dotted: paper bounds)", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "fu2022_line_delay.png", dpi=90)
+    plt.close(fig)
 
 
 def _plots(out: Path, ctx, results, rates, field_rates, sigmas, fig14) -> None:

@@ -1,36 +1,76 @@
-"""Sensor effects: small forward models on true image-plane positions, with analytic Jacobians.
+"""The effect library: named physical effects shared by the simulator and the diagnosis.
 
-``EFFECTS`` maps each effect's ``name`` to its class; :func:`build_effect` also accepts the
-aliases an effect declares. See :mod:`sensors.effects.base` for the interface.
+``EFFECTS`` maps each effect's ``name`` to its class (one module per effect); :func:`build_effect`
+also accepts the ``synonyms`` an effect declares. See :mod:`sensors.effects.base` for the
+interface, :mod:`sensors.effects.chain` for chains (prediction, stacked Jacobians, gyro hook),
+:mod:`sensors.effects.design` for detection limits and :mod:`sensors.effects.doc` for the
+generated ``docs/effects.md``.
 """
 from __future__ import annotations
 
-from sensors.effects.base import Effect, EffectParameter
+from sensors.effects.angular_acceleration import AngularAcceleration
+from sensors.effects.base import (
+    CHANNELS,
+    NUISANCE,
+    STAGE_DETECTOR,
+    STAGE_GYRO,
+    STAGE_OPTICS,
+    STAGE_SKY,
+    STAGE_TIME,
+    Alias,
+    Effect,
+    EffectContext,
+    EffectParameter,
+    MissingContextError,
+)
+from sensors.effects.boresight_rotation import BoresightRotation
+from sensors.effects.catalog_epoch import CatalogEpoch
+from sensors.effects.exposure_smear import ExposureSmear
+from sensors.effects.focal_length import FocalLength
+from sensors.effects.gyro_bias import GyroBias
+from sensors.effects.gyro_scale import GyroScale
+from sensors.effects.magnitude_bias import MagnitudeBias
+from sensors.effects.pixel_phase_bias import PixelPhaseBias
 from sensors.effects.principal_point import PrincipalPointOffset
 from sensors.effects.radial_distortion import RadialDistortion
+from sensors.effects.refraction import Refraction
+from sensors.effects.rolling_shutter import RollingShutter
+from sensors.effects.stellar_aberration import StellarAberration
+from sensors.effects.tangential_distortion import TangentialDistortion
+from sensors.effects.thermal_focal_drift import ThermalFocalDrift
+from sensors.effects.time_offset import TimeOffset
 
-EFFECTS: dict[str, type[Effect]] = {cls.name: cls for cls in (RadialDistortion, PrincipalPointOffset)}
+_CLASSES = (
+    RollingShutter, ExposureSmear, RadialDistortion, TangentialDistortion, PrincipalPointOffset, FocalLength,
+    BoresightRotation, StellarAberration, TimeOffset, GyroBias, GyroScale, ThermalFocalDrift, PixelPhaseBias,
+    MagnitudeBias, AngularAcceleration, CatalogEpoch, Refraction,
+)
+EFFECTS: dict[str, type[Effect]] = {cls.name: cls for cls in _CLASSES}
 
 
 class UnknownEffectError(ValueError):
     """Raised for an effect name nobody registered; the message lists the valid names."""
 
 
-def _resolve(name: str) -> type[Effect]:
+def resolve(name: str) -> type[Effect]:
+    """The effect class registered as ``name`` or declaring it as a synonym."""
     if name in EFFECTS:
         return EFFECTS[name]
     for cls in EFFECTS.values():
-        if name in cls.aliases:
+        if name in cls.synonyms:
             return cls
-    listing = ", ".join(
-        f"{n} (aliases: {', '.join(c.aliases)})" if c.aliases else n for n, c in sorted(EFFECTS.items())
-    )
-    raise UnknownEffectError(f"unknown effect {name!r}; valid effects: {listing}")
+    raise UnknownEffectError(f"unknown effect {name!r}; valid effects: {', '.join(sorted(EFFECTS))}")
 
 
 def build_effect(name: str, params: dict | None = None) -> Effect:
-    """Instantiate the effect registered as ``name`` (or one of its aliases) with ``params``."""
-    return _resolve(name)(**(params or {}))
+    """Instantiate the effect registered as ``name`` (or one of its synonyms) with ``params``."""
+    return resolve(name)(**(params or {}))
 
 
-__all__ = ["EFFECTS", "Effect", "EffectParameter", "PrincipalPointOffset", "RadialDistortion", "UnknownEffectError", "build_effect"]
+__all__ = [
+    "CHANNELS", "EFFECTS", "NUISANCE", "STAGE_DETECTOR", "STAGE_GYRO", "STAGE_OPTICS", "STAGE_SKY", "STAGE_TIME",
+    "Alias", "AngularAcceleration", "BoresightRotation", "CatalogEpoch", "Effect", "EffectContext", "EffectParameter",
+    "ExposureSmear", "FocalLength", "GyroBias", "GyroScale", "MagnitudeBias", "MissingContextError", "PixelPhaseBias",
+    "PrincipalPointOffset", "RadialDistortion", "Refraction", "RollingShutter", "StellarAberration",
+    "TangentialDistortion", "ThermalFocalDrift", "TimeOffset", "UnknownEffectError", "build_effect", "resolve",
+]

@@ -5,7 +5,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from sensors.effects.base import Effect, EffectParameter, as_positions
+from sensors.effects.base import STAGE_OPTICS, Alias, Effect, EffectParameter, as_positions
 
 
 class PrincipalPointOffset(Effect):
@@ -16,7 +16,9 @@ class PrincipalPointOffset(Effect):
     """
 
     name: ClassVar[str] = "principal_point"
-    aliases: ClassVar[tuple[str, ...]] = ("principal_point_offset", "boresight_offset")
+    synonyms: ClassVar[tuple[str, ...]] = ("principal_point_offset", "boresight_offset")
+    stage: ClassVar[int] = STAGE_OPTICS
+    channels: ClassVar[frozenset[str]] = frozenset({"image", "attitude"})
     parameters: ClassVar[tuple[EffectParameter, ...]] = (
         EffectParameter("dx", "px", 0.0, 5.0, (-500.0, 500.0), "column offset of the true principal point"),
         EffectParameter("dy", "px", 0.0, 5.0, (-500.0, 500.0), "row offset of the true principal point"),
@@ -29,12 +31,18 @@ class PrincipalPointOffset(Effect):
         "one IFOV), so it appears as a fixed bias against an external attitude reference, and as "
         "a slight field-dependent scale error when the attitude absorbs it."
     )
+    aliases: ClassVar[tuple[Alias, ...]] = (
+        Alias("attitude", "a uniform shift of the field is, to first order, a cross-boresight rotation",
+              "compare with an external attitude reference (e.g. a second tracker or a gyro-propagated attitude "
+              "through a known rotation), or use a wide field where the residual scale error is measurable"),
+        Alias("tangential_distortion", "the mean of a decentring distortion over the field is a shift",
+              "use stars over the whole detector: decentring grows as r^2"),
+    )
 
-    def apply(self, x, y, t_ns, camera):
+    def apply(self, x, y, ctx):
         x, y = as_positions(x, y)
         return x + self._values["dx"], y + self._values["dy"]
 
-    def jacobian(self, x, y, t_ns, camera):
+    def jacobian(self, x, y, ctx):
         x, _ = as_positions(x, y)
-        n = x.size
-        return np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
+        return np.broadcast_to(np.eye(2), (x.size, 2, 2)).copy()

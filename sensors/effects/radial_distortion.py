@@ -5,7 +5,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from sensors.effects.base import Effect, EffectParameter, as_positions
+from sensors.effects.base import STAGE_OPTICS, Alias, Effect, EffectParameter, as_positions
 
 
 class RadialDistortion(Effect):
@@ -21,7 +21,8 @@ class RadialDistortion(Effect):
     """
 
     name: ClassVar[str] = "radial_distortion"
-    aliases: ClassVar[tuple[str, ...]] = ("radial", "brown_conrady_radial", "distortion")
+    synonyms: ClassVar[tuple[str, ...]] = ("radial", "brown_conrady_radial", "distortion")
+    stage: ClassVar[int] = STAGE_OPTICS
     parameters: ClassVar[tuple[EffectParameter, ...]] = (
         EffectParameter("k1", "1", 0.0, 1e-2, (-1.0, 1.0), "second-order radial coefficient (normalised coordinates)"),
         EffectParameter("k2", "1", 0.0, 1e-1, (-10.0, 10.0), "fourth-order radial coefficient (normalised coordinates)"),
@@ -34,17 +35,25 @@ class RadialDistortion(Effect):
         "in every frame and independent of motion; a focal-length error instead grows only "
         "linearly with radius."
     )
+    aliases: ClassVar[tuple[Alias, ...]] = (
+        Alias("focal_length", "over a narrow field the r^3 displacement is partly fitted by a linear scale",
+              "use stars out to the detector corners (or a wider field): distortion grows as r^3, a focal error as r"),
+        Alias("refraction", "refraction compresses the field like a (one-directional) scale/distortion",
+              "rotate about the boresight or change elevation: refraction follows the zenith, lens distortion the detector"),
+    )
 
-    def apply(self, x, y, t_ns, camera):
+    def apply(self, x, y, ctx):
         x, y = as_positions(x, y)
-        dx, dy = x - camera.cx, y - camera.cy
-        r2 = (dx * dx + dy * dy) / camera.focal_px**2
+        cam = ctx.camera
+        dx, dy = x - cam.cx, y - cam.cy
+        r2 = (dx * dx + dy * dy) / cam.focal_px**2
         scale = 1.0 + r2 * (self._values["k1"] + self._values["k2"] * r2)
-        return camera.cx + dx * scale, camera.cy + dy * scale
+        return cam.cx + dx * scale, cam.cy + dy * scale
 
-    def jacobian(self, x, y, t_ns, camera):
+    def jacobian(self, x, y, ctx):
         x, y = as_positions(x, y)
-        dx, dy = (x - camera.cx).ravel(), (y - camera.cy).ravel()
-        r2 = (dx * dx + dy * dy) / camera.focal_px**2
+        cam = ctx.camera
+        dx, dy = x - cam.cx, y - cam.cy
+        r2 = (dx * dx + dy * dy) / cam.focal_px**2
         d = np.stack([dx, dy], axis=-1)  # (n, 2)
         return np.stack([d * r2[:, None], d * (r2 * r2)[:, None]], axis=-1)  # (n, 2, 2)

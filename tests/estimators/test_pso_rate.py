@@ -114,3 +114,56 @@ def test_correction_moves_stars_to_reference_time(setup):
     x, y, _ = ctx.camera.project(att.inv().apply(frame.stars.ref_icrs))
     assert np.max(np.hypot(out.stars.x - x, out.stars.y - y)) < 1e-3
     assert np.max(np.hypot(frame.stars.x - x, frame.stars.y - y)) > 0.5  # the correction did something
+
+
+def test_correction_reuses_the_pipeline_rate_and_runs_the_pso_once(setup, monkeypatch):
+    """pso-rate then pso-correction (configs/pipelines/fu2022.yaml): the correction takes frame.rate
+    instead of re-running the swarm, and its stars equal those of a correction that estimates itself."""
+    import estimators.rates.pso as pso
+
+    ctx, frame = setup
+    calls = []
+    real = pso.pso_minimise
+
+    def counting(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pso, "pso_minimise", counting)
+    kw = dict(particles=40, max_iterations=200, tolerance_deg_s=1e-4)
+    rate_stage, corr = PsoRateEstimator(**kw), PsoCorrection(**kw)
+    for st in (rate_stage, corr):
+        st.setup(ctx)
+    out = corr.process(rate_stage.process(frame))
+    assert len(calls) == 1  # the PSO ran once for the two stages
+    alone = PsoCorrection(**kw, reuse_rate=False)
+    alone.setup(ctx)
+    ref = alone.process(frame)
+    assert len(calls) == 2  # reuse_rate=False estimates again
+    assert out.rate is not None and np.array_equal(out.rate.omega_rad_s, ref.rate.omega_rad_s)
+    np.testing.assert_array_equal(out.stars.x, ref.stars.x)
+    np.testing.assert_array_equal(out.stars.y, ref.stars.y)
+
+
+def test_correction_with_an_exact_external_rate_is_exact(setup, monkeypatch):
+    """A valid frame.rate from elsewhere (here the true 3-axis rate, as a gyro would give) is used as
+    is: no PSO, and the rotation model moves the stars exactly to the reference time."""
+    import estimators.rates.pso as pso
+    from estimators.data import RateEstimate
+
+    ctx, frame = setup
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("the PSO must not run when frame.rate is valid")
+
+    monkeypatch.setattr(pso, "pso_minimise", forbidden)
+    corr = PsoCorrection()
+    corr.setup(ctx)
+    out = corr.process(frame.evolve(rate=RateEstimate(t_ns=0, omega_rad_s=OMEGA.copy(), valid=True)))
+    t_ref = ctx.timing.frame_reference_ns(0)
+    att = constant_rate(ctx.initial_attitude, OMEGA).attitude(np.array([t_ref]))[0]
+    x, y, _ = ctx.camera.project(att.inv().apply(frame.stars.ref_icrs))
+    assert np.max(np.hypot(out.stars.x - x, out.stars.y - y)) < 1e-6
+    # an invalid frame.rate is not reused: the PSO runs (and here is forbidden)
+    with pytest.raises(AssertionError, match="must not run"):
+        corr.process(frame.evolve(rate=RateEstimate(t_ns=0, omega_rad_s=np.full(3, np.nan), valid=False, reason="x")))

@@ -25,3 +25,23 @@ def test_every_frame_measured_and_windows_used(summary):
     assert summary["window_frac"] > 0.9
     assert np.all(summary["pred_max"] < 1.0)  # the paper's 1 px coarse-position accuracy
 
+
+
+def test_std_reduction_factor_at_least_the_papers(summary):
+    # paper: windowed Kalman / full-frame std = 0.041 / 0.102 = 0.40 (x), 0.037 / 0.098 = 0.38 (y).
+    # Ours: full run 0.40 / 0.42, quick 0.34 / 0.34; the quick runs' run-to-run spread of the ratio is
+    # ~0.03, so 0.5 is > 3 sigma above ours and the paper's factor would fail it only if we lost the gain.
+    ratio = summary["std_win"].mean(axis=0) / summary["std_full"].mean(axis=0)
+    assert np.all(ratio < 0.5), ratio
+
+
+@pytest.mark.xfail(strict=True, reason="absolute windowed-Kalman std: ours 0.064 / 0.069 px (full run; quick 0.050 / "
+                   "0.054) vs the paper's 0.041 / 0.037 px: our full-frame CoG baseline is noisier too (0.16 vs 0.10 px), "
+                   "the paper's noise model is not fully specified (see docs/reproductions/liu2013.md)")
+def test_windowed_kalman_std_within_papers_values(summary):
+    assert np.all(summary["std_win"].mean(axis=0) <= np.array([0.041, 0.037]))
+
+
+def test_batched_windows_same_spots_as_the_per_window_loop(summary):
+    # the one-pass window centroiding (after) against one cog call per window (before), same frames
+    assert summary["loop_max_diff_px"] < 1e-9

@@ -9,7 +9,7 @@ from sensors.camera import PinholeCamera
 from sensors.catalog import StarCatalog
 from sensors.centroid_sim import solve_star_rows
 from sensors.conventions import NS_PER_S, attitude_from_radec_roll
-from sensors.effects import build_effect
+from sensors.effects import EffectContext, build_effect
 from sensors.motion import constant_rate, inertial_hold
 from sensors.simulate import ImageModel, StarTrackerSimulator
 from sensors.timing import DetectorTiming
@@ -175,7 +175,7 @@ def test_effects_are_applied_to_truth():
     dist = build_effect("radial_distortion", {"k1": 0.05})
     f = StarTrackerSimulator(CAMERA, ROLLING, cat, inertial_hold(ATT0), effects=(dist,)).frame(0)
     x, y, _ = CAMERA.project(ATT0.inv().apply(f.truth.unit_icrs))
-    xd, yd = dist.apply(x, y, 0, CAMERA)
+    xd, yd = dist.apply(x, y, EffectContext(camera=CAMERA, x=x, y=y, t_ns=0))
     np.testing.assert_allclose(f.truth.x, xd, atol=1e-9)
     np.testing.assert_allclose(f.truth.y, yd, atol=1e-9)
 
@@ -233,7 +233,7 @@ def test_image_level_applies_effects():
     truth = sim.frame(0).truth
     x, y, _ = CAMERA.project(ATT0.inv().apply(truth.unit_icrs))
     for e in effects:
-        x, y = e.apply(x, y, 0, CAMERA)
+        x, y = e.apply(x, y, EffectContext(camera=CAMERA, x=x, y=y, t_ns=0))
     np.testing.assert_allclose(truth.x, x, atol=1e-9)
     assert np.max(np.hypot(truth.x - CAMERA.project(ATT0.inv().apply(truth.unit_icrs))[0], 0)) > 5  # visible
     for x0, y0 in zip(truth.x, truth.y):

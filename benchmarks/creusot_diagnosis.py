@@ -1,0 +1,105 @@
+"""``rollingstar diagnose`` on the real creusot recordings: per image and jointly per lens folder.
+
+    .venv/bin/python benchmarks/creusot_diagnosis.py [--json out.json] [--markdown out.md]
+
+Each astrometry.net corr folder is imported with ``rollingstar import corr`` (a pinhole from
+``log.json``'s field of view, nothing else; centroid sigma = the corr table's RMS residual) and
+diagnosed with ``--sim`` omitted (the importer's model). Single images hold out 25 % of their
+stars; the joint recordings (one frame per image of a folder) hold out whole images. The real
+data path is ``ROLLINGSTAR_REAL_DATA`` (default ``../shared/data/real``); never copied here.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+from pathlib import Path
+
+from logs.importers.corr import find_corr_folders, import_corr
+from pipelines.diagnose import DiagnoseOptions, diagnose
+
+ROOT = Path(__file__).resolve().parents[1]
+GROUPS = ("16mm_checker_2", "16mm_checker_calib/distorted", "16mm_checker_calib/undistorted",
+          "8mm_checker_calib/distorted", "8mm_checker_calib/undistorted")
+
+
+def creusot_dir() -> Path:
+    return Path(os.environ.get("ROLLINGSTAR_REAL_DATA", ROOT.parent / "shared" / "data" / "real")) / "creusot"
+
+
+def summarise(label: str, scope: str, res: dict) -> dict:
+    effects = [{"name": e["name"], "params": {k: (v["value"], v["sigma"], v["unit"]) for k, v in e["params"].items()},
+                "delta_bic": e["delta_bic"], "inclusion": e["inclusion_probability"]} for e in res["effects"]]
+    return {"recording": label, "scope": scope, "stars": res["split"]["train_observations"] + res["split"]["heldout_observations"],
+            "frames": res["split"]["frames"], "sigma_px": res["noise"]["sigma_px_median"],
+            "chi2_dof_before": res["located"]["chi2_dof"], "chi2_dof_after": res["train_chi2_dof_after"],
+            "strongest_covariate": res["located"]["strongest_covariate"], "mismatch": res["mismatch"],
+            "effects": effects, "weak": res.get("weak_candidates", []), "ambiguous": res["ambiguous"],
+            "unexplained": res["unexplained_systematic"]["present"],
+            "heldout_rms_before_px": res["heldout_rms_before_px"], "heldout_rms_after_px": res["heldout_rms_after_px"],
+            "verdict": res["verdict"]}
+
+
+def run(seed: int = 0) -> list[dict]:
+    base = creusot_dir()
+    rows = []
+    opts = DiagnoseOptions(seed=seed)
+    with tempfile.TemporaryDirectory() as tmp:
+        for group in GROUPS:
+            folder = base / group
+            for sub in find_corr_folders(folder):
+                rec = Path(tmp) / f"{group.replace('/', '_')}_{sub.name}.mcap"
+                import_corr(sub, rec)
+                res, _ = diagnose(rec, options=opts)
+                rows.append(summarise(f"{group}/{sub.relative_to(folder)}", "image", res))
+            rec = Path(tmp) / f"{group.replace('/', '_')}_joint.mcap"
+            import_corr(folder, rec)
+            res, _ = diagnose(rec, options=opts)
+            rows.append(summarise(group, "joint", res))
+    return rows
+
+
+def markdown(rows: list[dict]) -> str:
+    def f(v, fmt="{:.3g}"):
+        return "n/a" if v is None else fmt.format(v)
+
+    def eff(r):
+        if not r["effects"]:
+            weak = ", ".join(f"{w['name']} (incl. {f(w['inclusion_probability'], '{:.2f}')})" for w in r["weak"])
+            return "none" + (f"; weak: {weak}" if weak else "")
+        parts = []
+        for e in r["effects"]:
+            ps = ", ".join(f"{k} = {f(v[0])} ± {f(v[1])}" for k, v in e["params"].items())
+            parts.append(f"{e['name']} ({ps}; ΔBIC {f(e['delta_bic'], '{:.0f}')}, incl. {f(e['inclusion'], '{:.2f}')})")
+        return "; ".join(parts)
+
+    lines = ["| recording | scope | frames | stars | sigma (px) | chi2/dof before | after | named | ambiguous | unexplained | held-out RMS before → after (px) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        amb = "; ".join(" / ".join(a["candidates"]) for a in r["ambiguous"]) or "-"
+        lines.append(f"| {r['recording']} | {r['scope']} | {r['frames']} | {r['stars']} | {f(r['sigma_px'])} | "
+                     f"{f(r['chi2_dof_before'])} | {f(r['chi2_dof_after'])} | {eff(r)} | {amb} | {r['unexplained']} | "
+                     f"{f(r['heldout_rms_before_px'], '{:.3f}')} → {f(r['heldout_rms_after_px'], '{:.3f}')} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", type=Path)
+    ap.add_argument("--markdown", type=Path)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    if not creusot_dir().is_dir():
+        raise SystemExit(f"real data not found at {creusot_dir()} (set ROLLINGSTAR_REAL_DATA)")
+    rows = run(args.seed)
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=2))
+    md = markdown(rows)
+    if args.markdown:
+        args.markdown.write_text(md + "\n")
+    print(md)
+
+
+if __name__ == "__main__":
+    main()

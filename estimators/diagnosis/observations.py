@@ -1,0 +1,269 @@
+"""Identified star observations of a recording and the simulation model that predicts them.
+
+Every identified star ``i`` of frame ``k`` is one observation: measured pixel position
+``(x_i, y_i)`` with 1-sigma ``sigma_i`` per axis, catalogue direction ``u_i`` (ICRS), the time its
+position refers to ``t_i`` (mid-exposure of its own row, see :mod:`sensors.centroid_sim`).
+
+The *simulation model* predicts it from a per-frame attitude ``R_k`` at the frame reference time
+``t_ref,k`` (mid-exposure of the middle row) and a per-frame body rate ``omega_k``::
+
+    R(t_i) = R_k Exp(omega_k (t_i - t_ref,k))
+    w_i    = R(t_i)^T u_i                               (camera frame)
+    (x, y) = chain(project(w_i))                         (he2021b eq 2, then the effect chain)
+
+where the chain is :func:`sensors.effects.chain.predict` over the scenario's effects (and the
+candidate effects being fitted) with the per-star :class:`~sensors.effects.base.EffectContext`.
+
+The attitude is the always-refitted nuisance. Its image-plane Jacobian is a small body rotation
+``delta`` (``R -> R Exp(delta)`` gives ``w -> w + w x delta``)::
+
+    d(x, y)/d(delta) = P(w) [w]_x                        (P = camera.projection_jacobian)
+
+and the image velocity of a star is the same Jacobian applied to the rate, ``v = P(w) [w]_x omega``.
+
+The per-frame rate is not a free per-frame nuisance: within one frame a rate change is exactly
+collinear with a line-delay change (both move a star by ``omega * (row - row_c) * line_delay``),
+so the rate comes from the attitude sequence across frames (:func:`rates_from_attitudes`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from sensors.conventions import NS_PER_S
+from sensors.effects.base import EffectContext
+from sensors.effects.chain import predict as chain_predict
+
+
+POS_STEP_PX = 1e-3
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices ``[v]_x`` of vectors (..., 3) -> (..., 3, 3)."""
+    v = np.asarray(v, dtype=float)
+    z = np.zeros(v.shape[:-1])
+    return np.stack([
+        np.stack([z, -v[..., 2], v[..., 1]], axis=-1),
+        np.stack([v[..., 2], z, -v[..., 0]], axis=-1),
+        np.stack([-v[..., 1], v[..., 0], z], axis=-1),
+    ], axis=-2)
+
+
+@dataclass(frozen=True, eq=False)
+class Observations:
+    """All identified stars of a recording, flattened over frames (arrays of length ``n``).
+
+    ``frame`` indexes the per-frame arrays (length ``F``): ``frame_index`` (the recording's frame
+    numbers), ``t0_ns`` and ``t_ref_ns``. ``heldout`` marks observations split off before any fit.
+    """
+
+    frame: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    sigma: np.ndarray
+    t_ns: np.ndarray
+    u_icrs: np.ndarray
+    magnitude: np.ndarray
+    catalog_id: np.ndarray
+    flux: np.ndarray
+    frame_index: np.ndarray
+    t0_ns: np.ndarray
+    t_ref_ns: np.ndarray
+    heldout: np.ndarray = field(default=None)
+    sigma_source: str = "recording"
+    pm_rad_yr: np.ndarray | None = None  # (n, 3) catalogue proper motions (ICRS tangent, rad/yr) when known
+
+    def __post_init__(self):
+        if self.heldout is None:
+            object.__setattr__(self, "heldout", np.zeros(self.n, dtype=bool))
+
+    @property
+    def n(self) -> int:
+        return int(self.x.shape[0])
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.t0_ns.shape[0])
+
+    def take(self, mask) -> "Observations":
+        """The observations selected by ``mask`` (boolean over stars); frames are kept."""
+        m = np.asarray(mask)
+        per_star = ("frame", "x", "y", "sigma", "t_ns", "u_icrs", "magnitude", "catalog_id", "flux", "heldout", "pm_rad_yr")
+        return replace(self, **{k: getattr(self, k)[m] for k in per_star if getattr(self, k) is not None})
+
+    def dt_s(self) -> np.ndarray:
+        """Time of each star relative to its frame's reference time (s)."""
+        return (self.t_ns - self.t_ref_ns[self.frame]).astype(float) / NS_PER_S
+
+
+@dataclass(frozen=True, eq=False)
+class Nuisance:
+    """Per-frame attitude at ``t_ref`` (camera->ICRS) and body rate (rad/s), the refitted nuisance."""
+
+    attitude: Rotation
+    omega: np.ndarray
+
+    def with_attitude(self, attitude: Rotation) -> "Nuisance":
+        return Nuisance(attitude, self.omega)
+
+
+@dataclass(frozen=True, eq=False)
+class Prediction:
+    """Model positions of every observation, the ideal (pinhole) positions and the effect context."""
+
+    x: np.ndarray
+    y: np.ndarray
+    x_ideal: np.ndarray
+    y_ideal: np.ndarray
+    w_cam: np.ndarray
+    att_jac: np.ndarray  # (n, 2, 3): d(x, y)/d(body rotation)
+    vx: np.ndarray
+    vy: np.ndarray
+    omega: np.ndarray  # (n, 3) body rate of each star's frame
+    ctx: EffectContext
+
+
+def camera_rotations(obs: Observations, nuis: Nuisance) -> Rotation:
+    """Camera->ICRS attitude at every observation's time, ``R_k Exp(omega_k dt_i)``."""
+    return nuis.attitude[obs.frame] * Rotation.from_rotvec(nuis.omega[obs.frame] * obs.dt_s()[:, None])
+
+
+def effect_context(obs: Observations, camera, timing, rot: Rotation, x, y, vx, vy, omega) -> EffectContext:
+    """The per-observation :class:`sensors.effects.base.EffectContext` of the ideal positions."""
+    return EffectContext(camera=camera, x=x, y=y, t_ns=obs.t_ns, row=obs.y, t0_ns=obs.t0_ns[obs.frame],
+                         frame=obs.frame, magnitude=obs.magnitude, vx=vx, vy=vy, omega_rad_s=omega,
+                         attitude=rot, unit_icrs=obs.u_icrs, pm_rad_yr=obs.pm_rad_yr, timing=timing,
+                         t_start_ns=int(obs.t0_ns.min()) if obs.n_frames else 0)
+
+
+def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=()) -> Prediction:
+    """Predict every observation: ideal pinhole position, then the effect chain in stage order."""
+    rot = camera_rotations(obs, nuis)
+    w = rot.inv().apply(obs.u_icrs)
+    x0, y0, _ = camera.project(w)
+    jac = camera.projection_jacobian(w) @ skew(w)  # (n, 2, 3)
+    omega = nuis.omega[obs.frame]
+    v = np.einsum("nij,nj->ni", jac, omega)
+    ctx = effect_context(obs, camera, timing, rot, x0, y0, v[:, 0], v[:, 1], omega)
+    x, y = (x0, y0)
+    if len(effects):
+        effects = tuple(effects)
+        x, y = chain_predict(effects, ctx)
+        # the attitude moves the ideal position; the chain maps that motion through its position
+        # Jacobian d(x', y')/d(x, y), taken by central differences (the effects publish only
+        # parameter Jacobians). Needed where an effect is strongly nonlinear in position.
+        cols = []
+        for dx, dy in ((POS_STEP_PX, 0.0), (0.0, POS_STEP_PX)):
+            xp, yp = chain_predict(effects, ctx.evolve(x=x0 + dx, y=y0 + dy))
+            xm, ym = chain_predict(effects, ctx.evolve(x=x0 - dx, y=y0 - dy))
+            cols.append(np.stack([xp - xm, yp - ym], axis=-1) / (2 * POS_STEP_PX))
+        jac = np.stack(cols, axis=-1) @ jac  # (n, 2, 2) @ (n, 2, 3)
+    return Prediction(np.asarray(x, float), np.asarray(y, float), x0, y0, w, jac, v[:, 0], v[:, 1], omega, ctx)
+
+
+def frame_normal(obs_frame: np.ndarray, n_frames: int, jac: np.ndarray, wts: np.ndarray, rhs: np.ndarray):
+    """Per-frame normal matrices ``sum J^T W J`` (F, 3, 3) and ``sum J^T W r`` (F, 3, m).
+
+    ``jac`` (n, 2, 3), ``wts`` (n,) inverse variances, ``rhs`` (n, 2, m). Vectorised with
+    ``np.add.at`` over stars (no per-frame Python loop).
+    """
+    jw = jac * wts[:, None, None]
+    a = np.einsum("nki,nkj->nij", jw, jac)
+    b = np.einsum("nki,nkm->nim", jw, rhs)
+    big_a = np.zeros((n_frames, 3, 3))
+    big_b = np.zeros((n_frames, 3, rhs.shape[2]))
+    np.add.at(big_a, obs_frame, a)
+    np.add.at(big_b, obs_frame, b)
+    return big_a, big_b
+
+
+def solve_frames(big_a: np.ndarray, big_b: np.ndarray) -> np.ndarray:
+    """Solve every frame's 3x3 system; frames with fewer than 2 stars (singular) get zeros."""
+    out = np.zeros_like(big_b)
+    tr = np.trace(big_a, axis1=1, axis2=2)
+    ok = np.linalg.det(big_a) > 1e-12 * np.maximum(tr, 1e-300) ** 3  # well conditioned (det vs trace^3)
+    if ok.any():
+        out[ok] = np.linalg.solve(big_a[ok], big_b[ok])
+    return out
+
+
+def fit_attitudes(obs: Observations, nuis: Nuisance, camera, timing=None, effects=(), mask=None,
+                  iterations: int = 4) -> tuple[Nuisance, Prediction]:
+    """Gauss-Newton refit of every frame's attitude (weighted least squares over its stars).
+
+    Only observations in ``mask`` (default: all) contribute; the prediction returned covers all.
+    """
+    use = np.ones(obs.n, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+    wts = np.where(use, 1.0 / obs.sigma**2, 0.0)
+    pred = predict(obs, nuis, camera, timing, effects)
+    for _ in range(iterations):
+        r = np.stack([obs.x - pred.x, obs.y - pred.y], axis=-1)[:, :, None]
+        a, b = frame_normal(obs.frame, obs.n_frames, pred.att_jac, wts, np.nan_to_num(r))
+        delta = solve_frames(a, b)[:, :, 0]
+        nuis = nuis.with_attitude(nuis.attitude * Rotation.from_rotvec(delta))
+        pred = predict(obs, nuis, camera, timing, effects)
+        if np.max(np.abs(delta)) < 1e-12:
+            break
+    return nuis, pred
+
+
+def rates_from_attitudes(attitude: Rotation, t_ref_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Backward, forward and central finite-difference body rates of a per-frame attitude sequence.
+
+    ``omega_fwd,k = log(R_k^T R_{k+1}) / (t_{k+1} - t_k)`` (body frame); the backward rate of frame
+    ``k`` is the forward rate of ``k-1``. End frames reuse their only neighbour. With one frame
+    all rates are zero (a single image carries no rate information).
+    """
+    f = len(t_ref_ns)
+    if f < 2:
+        z = np.zeros((f, 3))
+        return z, z, z
+    dt = np.diff(t_ref_ns).astype(float) / NS_PER_S
+    step = (attitude[:-1].inv() * attitude[1:]).as_rotvec() / dt[:, None]
+    fwd = np.vstack([step, step[-1:]])
+    bwd = np.vstack([step[:1], step])
+    central = 0.5 * (fwd + bwd)
+    return bwd, fwd, central
+
+
+def frame_chi2(obs: Observations, pred: Prediction, mask=None) -> np.ndarray:
+    """Chi-square of every frame's observations (in ``mask``) against the prediction, (F,)."""
+    use = np.ones(obs.n, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+    c = ((obs.x - pred.x) ** 2 + (obs.y - pred.y) ** 2) / obs.sigma**2
+    return np.bincount(obs.frame[use], weights=c[use], minlength=obs.n_frames)
+
+
+def fit_nuisance(obs: Observations, start, camera, timing=None, effects=(), mask=None,
+                 moving: bool = True) -> tuple[Nuisance, Prediction]:
+    """Attitudes and rates for the model, from ``start`` (per-frame attitudes, or a :class:`Nuisance`).
+
+    From bare attitudes: attitudes at rate 0, rates from the attitude sequence, attitudes again;
+    from a Nuisance its rates are kept for the first attitude fit (an effect that is strongly
+    nonlinear in position needs a start near the solution). Then twice: rates from the attitude
+    sequence and attitudes again, keeping per frame the rate candidate (backward, forward, central
+    difference) that fits its stars best, so that a rate reversal between frames costs nothing.
+    """
+    if isinstance(start, Nuisance):
+        nuis = start
+    else:
+        nuis = Nuisance(start, np.zeros((obs.n_frames, 3)))
+    nuis, pred = fit_attitudes(obs, nuis, camera, timing, effects, mask)
+    if not moving or obs.n_frames < 2:
+        return nuis, pred
+    for _ in range(2):
+        options = rates_from_attitudes(nuis.attitude, obs.t_ref_ns)
+        best, best_chi = None, None
+        for j, omega in enumerate(options):
+            _, p_j = fit_attitudes(obs, Nuisance(nuis.attitude, omega), camera, timing, effects, mask)
+            chi = frame_chi2(obs, p_j, mask)
+            if best is None:
+                best, best_chi = np.zeros(obs.n_frames, dtype=int), chi
+            else:
+                better = chi < best_chi - 1e-9
+                best[better] = j
+                best_chi = np.where(better, chi, best_chi)
+        omega = np.stack(options)[best, np.arange(obs.n_frames)]
+        nuis, pred = fit_attitudes(obs, Nuisance(nuis.attitude, omega), camera, timing, effects, mask)
+    return nuis, pred

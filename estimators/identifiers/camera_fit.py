@@ -1,0 +1,184 @@
+"""Radial-distortion camera model and its least-squares fit to identified stars (one or many images).
+
+Model (the convention of :class:`sensors.effects.radial_distortion.RadialDistortion`, Brown-Conrady
+radial terms): a camera-frame direction ``w`` goes to the ideal pinhole position (he2021b eq 2)
+``xn = -w_x / w_z``, ``yn = -w_y / w_z`` (normalised coordinates), then
+
+    x = cx + f * xn * (1 + k1 r^2 + k2 r^4),   y = cy + f * yn * (1 + k1 r^2 + k2 r^4),   r^2 = xn^2 + yn^2.
+
+``k1 < 0`` is barrel distortion. (tetra3rs' ``RadialDistortion`` is the same model in pixel
+units, ``k1 / f^2``, ``k2 / f^4``.)
+
+:func:`fit_camera` estimates, by trust-region least squares (``scipy.optimize.least_squares``, sparse finite-difference Jacobian), one
+attitude per image (``R_i = R0_i Exp(delta_i)``) together with *shared* intrinsics: the focal
+length ``f`` and any of ``k1, k2, cx, cy`` chosen by the caller. Residuals are the pixel
+differences ``(x, y)_obs - proj(R_i^T r)``; 1-sigma uncertainties come from
+``cov = s^2 (J^T J)^-1`` with ``s^2 = sum r^2 / (2 n - p)`` (the observed scatter, not an assumed
+centroid noise), so they are only as good as the model: check that independent images agree
+within them (tests/realdata).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+INTRINSICS = ("focal_px", "k1", "k2", "cx", "cy")
+
+
+@dataclass(frozen=True)
+class RadialCamera:
+    """Pinhole + radial distortion (module docstring). Pixel units; ``(cx, cy)`` is the principal point."""
+
+    focal_px: float
+    cx: float
+    cy: float
+    k1: float = 0.0
+    k2: float = 0.0
+
+    @classmethod
+    def from_pinhole(cls, camera, k1: float = 0.0, k2: float = 0.0) -> "RadialCamera":
+        return cls(float(camera.focal_px), float(camera.cx), float(camera.cy), float(k1), float(k2))
+
+    def pinhole(self, camera):
+        """``camera`` (a :class:`sensors.camera.PinholeCamera`) with this focal length and principal point."""
+        return replace(camera, focal_length_m=self.focal_px * camera.pixel_size_m, cx=self.cx, cy=self.cy)
+
+    def distort(self, x, y) -> tuple[np.ndarray, np.ndarray]:
+        """Ideal pinhole pixels -> observed (distorted) pixels."""
+        dx, dy = np.asarray(x, dtype=float) - self.cx, np.asarray(y, dtype=float) - self.cy
+        r2 = (dx * dx + dy * dy) / self.focal_px**2
+        s = 1.0 + r2 * (self.k1 + self.k2 * r2)
+        return self.cx + dx * s, self.cy + dy * s
+
+    def undistort(self, x, y, iterations: int = 30) -> tuple[np.ndarray, np.ndarray]:
+        """Observed pixels -> ideal pinhole pixels: Newton on the radius ``rho (1 + k1 rho^2 + k2 rho^4) = r_d``.
+
+        Hand-written because it is one scalar equation per star, vectorised (tetra3rs'
+        ``RadialDistortion.undistort`` takes one point per call). Where the radial map stops being
+        monotonic (``d r_d / d rho <= 0``, far outside any real field) the result is NaN.
+        """
+        dx, dy = np.asarray(x, dtype=float) - self.cx, np.asarray(y, dtype=float) - self.cy
+        rd = np.hypot(dx, dy) / self.focal_px
+        rho = rd.copy()
+        for _ in range(iterations):
+            g = rho * (1.0 + self.k1 * rho**2 + self.k2 * rho**4) - rd
+            dg = 1.0 + 3.0 * self.k1 * rho**2 + 5.0 * self.k2 * rho**4
+            step = g / np.where(dg > 0, dg, np.nan)
+            rho = rho - step
+            if np.all(~np.isfinite(step) | (np.abs(step) < 1e-13)):
+                break
+        with np.errstate(invalid="ignore", divide="ignore"):
+            s = np.where(rd > 0, rho / rd, 1.0)
+        return self.cx + dx * s, self.cy + dy * s
+
+    def project(self, w_cam) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Camera-frame directions (n, 3) -> observed pixels ``(x, y, in_front)``."""
+        w = np.asarray(w_cam, dtype=float).reshape(-1, 3)
+        front = w[:, 2] > 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xn = np.where(front, -w[:, 0] / w[:, 2], np.nan)
+            yn = np.where(front, -w[:, 1] / w[:, 2], np.nan)
+        x, y = self.distort(self.cx + self.focal_px * xn, self.cy + self.focal_px * yn)
+        return x, y, front
+
+    def unproject(self, x, y) -> np.ndarray:
+        """Observed pixels -> unit camera-frame directions (he2021b eq 2 after undistortion)."""
+        xu, yu = self.undistort(x, y)
+        w = np.stack([-(xu - self.cx), -(yu - self.cy), np.full(np.shape(xu), self.focal_px)], axis=-1)
+        return w / np.linalg.norm(w, axis=-1, keepdims=True)
+
+
+@dataclass(frozen=True)
+class CameraFit:
+    """Result of :func:`fit_camera`.
+
+    ``values``/``sigma``: fitted shared intrinsics by name (``INTRINSICS`` order, only those fitted
+    in ``sigma``); ``camera``: the fitted :class:`RadialCamera`; ``attitudes``: per image;
+    ``residuals``: per image ``(n_i, 2)`` observed - predicted px; ``rms_px`` over all stars.
+    """
+
+    camera: RadialCamera
+    attitudes: tuple[Rotation, ...]
+    fitted: tuple[str, ...]
+    sigma: dict
+    residuals: tuple[np.ndarray, ...]
+    rms_px: float
+    n_stars: int
+    dof: int
+    success: bool
+
+    @property
+    def values(self) -> dict:
+        return {k: float(getattr(self.camera, k)) for k in INTRINSICS}
+
+    def rms_per_image(self) -> np.ndarray:
+        return np.array([np.sqrt(np.mean(np.sum(r**2, axis=1))) if r.size else np.nan for r in self.residuals])
+
+
+def fit_camera(observations, attitudes, camera: RadialCamera, fit=("focal_px", "k1", "k2"),
+               max_nfev: int | None = None) -> CameraFit:
+    """Joint least squares of per-image attitudes and shared intrinsics (module docstring).
+
+    ``observations``: sequence of ``(x, y, ref_icrs)`` per image (pixels, (n_i, 3) ICRS unit
+    vectors of the identified stars); ``attitudes``: per-image starting camera-to-ICRS rotations;
+    ``camera``: starting intrinsics (the ones not in ``fit`` stay fixed).
+    """
+    fit = tuple(fit)
+    unknown = [k for k in fit if k not in INTRINSICS]
+    if unknown:
+        raise ValueError(f"fit_camera: unknown intrinsic(s) {unknown}; choose from {INTRINSICS}")
+    m = len(observations)
+    if m == 0 or len(attitudes) != m:
+        raise ValueError(f"fit_camera: {m} observation sets and {len(attitudes)} attitudes")
+    obs = [np.column_stack([np.asarray(x, float), np.asarray(y, float)]) for x, y, _ in observations]
+    refs = [np.asarray(r, float).reshape(-1, 3) for _, _, r in observations]
+    n = sum(o.shape[0] for o in obs)
+    p = 3 * m + len(fit)
+    if 2 * n <= p:
+        raise ValueError(f"fit_camera: {n} stars give {2 * n} residuals for {p} parameters")
+    base = {k: float(getattr(camera, k)) for k in INTRINSICS}
+
+    def unpack(q):
+        vals = dict(base)
+        vals.update(zip(fit, q[3 * m:]))
+        return RadialCamera(**vals), [a * Rotation.from_rotvec(q[3 * i:3 * i + 3]) for i, a in enumerate(attitudes)]
+
+    def resid(q):
+        cam, rots = unpack(q)
+        out = []
+        for o, r, R in zip(obs, refs, rots):
+            x, y, _ = cam.project(R.inv().apply(r))
+            out.append((o - np.column_stack([x, y])).ravel())
+        return np.concatenate(out)
+
+    q0 = np.concatenate([np.zeros(3 * m), [base[k] for k in fit]])
+    scale = {"focal_px": base["focal_px"] * 1e-3, "k1": 1e-2, "k2": 1e-1, "cx": 1.0, "cy": 1.0}
+    x_scale = np.concatenate([np.full(3 * m, 1e-4), [scale[k] for k in fit]])
+    # each image's rotation moves only that image's residuals: with the sparsity pattern the
+    # finite-difference Jacobian costs ~3 + len(fit) evaluations instead of 3 m + len(fit)
+    sparsity = np.zeros((2 * n, p), dtype=bool)
+    rows = np.cumsum([0] + [2 * o.shape[0] for o in obs])
+    for i in range(m):
+        sparsity[rows[i]:rows[i + 1], 3 * i:3 * i + 3] = True
+    sparsity[:, 3 * m:] = True
+    sol = least_squares(resid, q0, method="trf", x_scale=x_scale, jac_sparsity=sparsity if m > 1 else None,
+                        max_nfev=max_nfev, xtol=1e-12, ftol=1e-12)
+    cam, rots = unpack(sol.x)
+    r = sol.fun
+    dof = r.size - p
+    s2 = float(r @ r) / dof
+    J = sol.jac.toarray() if hasattr(sol.jac, "toarray") else sol.jac
+    try:
+        cov = np.linalg.inv(J.T @ J) * s2
+        sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    except np.linalg.LinAlgError:
+        sig = np.full(p, np.inf)
+    sizes = np.cumsum([0] + [o.shape[0] for o in obs])
+    res2 = r.reshape(-1, 2)
+    residuals = tuple(res2[sizes[i]:sizes[i + 1]] for i in range(m))
+    return CameraFit(camera=cam, attitudes=tuple(rots), fitted=fit, sigma=dict(zip(fit, sig[3 * m:].tolist())),
+                     residuals=residuals, rms_px=float(np.sqrt(np.mean(np.sum(res2**2, axis=1)))), n_stars=n, dof=dof,
+                     success=bool(sol.success))

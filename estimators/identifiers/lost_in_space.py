@@ -1,0 +1,327 @@
+"""Lost-in-space identifier: identify stars with no prior attitude (tetra3rs), verify, then track."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial.transform import Rotation
+from scipy.stats import binom
+
+from estimators.data import FrameData
+from estimators.identifiers.base import Identifier
+from estimators.identifiers.camera_fit import RadialCamera, fit_camera
+from estimators.identifiers.tetra3_database import solver_database
+from estimators.identifiers.tracking import TrackingIdentifier, TrackingParams
+
+
+
+class LostInSpaceParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    fov_tolerance: float = Field(default=0.05, ge=0, lt=0.5,
+                                 description="Relative error of the camera's field of view the pattern search allows.")
+    magnitude_limit: float | None = Field(default=None, description="Only index catalogue stars at most this magnitude; None: all.")
+    pattern_catalog_magnitude: float | None = Field(
+        default=None, description="Build the pattern database from Hipparcos-2 to this Hp magnitude (at the context "
+        "catalogue's epoch) instead of the context catalogue; identifications still come from the context catalogue.")
+    pattern_checking_stars: int = Field(default=24, ge=4, description="Brightest detections the 4-star patterns are formed from.")
+    match_threshold: float = Field(default=1e-5, gt=0, lt=1,
+                                   description="tetra3rs' false-positive budget for accepting a pattern hypothesis.")
+    max_patterns_checked: int = Field(default=2_000_000, ge=1,
+                                      description="Work bound of the pattern search (deterministic, unlike a timeout).")
+    min_matches: int = Field(default=4, ge=3, description="Fewest identified stars an identification is accepted with.")
+    max_residual_px: float = Field(default=2.0, gt=0, description="Largest RMS residual (px) of the verified attitude fit.")
+    max_false_match_prob: float = Field(default=1e-9, gt=0, lt=1,
+                                        description="Largest chance probability of the match count (binomial test, see docstring).")
+    gate_px: float = Field(default=10.0, gt=0, description="Match gate (px) of the catalogue re-matching after the pattern solve.")
+    solved_scale: bool = Field(default=True, description="Re-match, verify and track with the focal length of the field of view "
+                                                         "tetra3rs solved (within fov_tolerance) instead of the camera's nominal one.")
+    track: bool = Field(default=True, description="After an accepted identification, identify the next frames by tracking; "
+                                                  "fall back to lost-in-space when tracking keeps fewer than min_matches.")
+    tracking: TrackingParams = Field(default_factory=TrackingParams, description="Parameters of the tracking identifier used after.")
+    pattern_match_max_error: float | None = Field(
+        default=None, gt=0, lt=0.5, description="tetra3rs' largest edge-ratio error of a 4-star pattern match; None: the "
+        "database's (0.001 + quantisation). Raise it (e.g. 0.01) for lenses whose distortion is not known.")
+    k1: float = Field(default=0.0, ge=-1.0, le=1.0, description="Known radial distortion k1 of the camera (normalised "
+                      "coordinates, sensors/effects/radial_distortion.py convention); centroids are undistorted with it before "
+                      "the pattern search, and it starts the fit with fit_distortion='radial'.")
+    k2: float = Field(default=0.0, ge=-10.0, le=10.0, description="Known radial distortion k2 (as k1).")
+    fit_distortion: Literal["none", "radial"] = Field(
+        default="none", description="'radial': after the pattern match fit focal length and radial distortion (k1, and k2 "
+        "with distortion_terms=2) jointly with the attitude to the matched stars, re-match with the fitted model and "
+        "verify with it (see the class docstring). 'none': pinhole with the known k1, k2.")
+    distortion_terms: Literal[1, 2] = Field(default=2, description="Radial terms fitted: 1 (k1) or 2 (k1, k2).")
+    fit_principal_point: bool = Field(default=False, description="With fit_distortion='radial', also fit the principal point.")
+    distortion_min_matches: int = Field(default=8, ge=4, description="Fewest matches the distortion is fitted with; below, "
+                                                                     "the known k1, k2 are kept and only the attitude is fitted.")
+
+
+@dataclass(frozen=True)
+class LostInSpaceSolution:
+    """Diagnostics of the last lost-in-space attempt (also for the real-data figures).
+
+    ``attitude`` is the camera-to-ICRS fit to the verified matches (None when rejected).
+    """
+
+    accepted: bool
+    reason: str
+    attitude: Rotation | None
+    n_detections: int
+    n_matched: int
+    residual_rms_px: float
+    false_match_prob: float
+    solver_matches: int
+    solver_probability: float
+    solver_fov_deg: float
+    solve_seconds: float
+    focal_px: float = float("nan")
+    camera: RadialCamera | None = None
+    camera_sigma: dict = field(default_factory=dict)
+
+
+class LostInSpaceIdentifier(Identifier):
+    """Lost-in-space star identification by 4-star pattern hashing (tetra3 / tetra3rs), verified.
+
+    1. Pattern solve: the detections (brightest first, ``x - cx, y - cy`` so the principal point
+       is the origin; tetra3rs' +x right, +y down convention) go to
+       ``tetra3rs.SolverDatabase.solve_from_centroids`` with a pinhole ``CameraModel`` of the
+       context's focal length. The database is built once from the context's own catalogue
+       (:mod:`estimators.identifiers.tetra3_database`) for horizontal fields within
+       ``fov_tolerance`` of the camera's, so the ids it returns are our catalogue ids (with
+       ``pattern_catalog_magnitude``, from a deeper Hipparcos-2 list: a recording's catalogue cut
+       at Hp 6 leaves too few pattern stars in a 10 deg field).
+       tetra3rs hashes the edge ratios of 4-star patterns of the brightest
+       ``pattern_checking_stars`` detections, looks them up, and accepts a hypothesis when its
+       verification p-value passes ``match_threshold`` (Brown & Stubis 2017; tetra3, ESA).
+    2. Re-match on our camera model: the attitude is refitted to tetra3rs' matches (Wahba's
+       problem, SVD, ``Rotation.align_vectors`` with he2021b eq 2 directions), then every
+       detection is matched to the catalogue predicted from that attitude exactly as the
+       ``tracking`` identifier does (mutual nearest neighbours within ``gate_px``, refit, rematch
+       with a residual-scaled gate). With ``solved_scale`` (default) the camera's focal length is
+       replaced by the one of tetra3rs' solved horizontal field, ``f = (W / 2) / tan(fov / 2)``,
+       here and in the verification and tracking that follow: a nominal focal length 1 % off
+       (a lens' tolerance) moves corner stars by several pixels, which is calibration, not
+       misidentification.
+    3. Verification, all three required, else the frame is flagged
+       ``lost_in_space_rejected:<reason>`` and no star is identified (never a guess):
+       - ``k >= min_matches`` identified stars;
+       - RMS residual of the refitted attitude ``sqrt(mean |x_i - proj(R^T r_i)|^2) <= max_residual_px``;
+       - false-match probability ``P = sum_{i>=k} C(n,i) p^i (1-p)^(n-i)`` (binomial tail,
+         ``scipy.stats.binom.sf(k-1, n, p)``) ``<= max_false_match_prob``, where ``n`` is the
+         number of detections and ``p = min(1, N pi g^2 / (W H))`` the chance that one random
+         detection falls within ``g`` of one of the ``N`` catalogue stars predicted on the
+         ``W x H`` detector, ``g`` the largest residual of the ``k`` matches (at least the
+         tracking ``refine_gate_px``): the probability that ``k`` or more of ``n`` random spots
+         match as well by chance (the verification test of tetra3). Overlapping discs make the
+         true ``p`` smaller, so ``P`` is conservative. It is the probability of one hypothesis; the
+         default bound 1e-9 leaves room for the ~1e4 hypotheses a search may test.
+    4. With ``track`` the next frames are identified by an internal ``tracking`` identifier whose
+       prior is the verified attitude, then (via :meth:`update_prior`, called by the runner) the
+       pipeline's attitude estimates; a frame where tracking keeps fewer than ``min_matches``
+       stars is flagged ``track_lost`` and identified lost-in-space again.
+
+    Output: as every identifier, ``frame.stars`` = identified detections with ``catalog_id`` and
+    ``ref_icrs``, ``frame.unmatched`` = the rest. :attr:`last_solution` holds the diagnostics of
+    the last lost-in-space attempt.
+    """
+
+    name = "lost-in-space"
+    Params = LostInSpaceParams
+
+    def setup(self, context) -> None:
+        super().setup(context)
+        if context.catalog is None:
+            raise ValueError("the 'lost-in-space' identifier needs a star catalogue in the sensor context")
+        cam = context.camera
+        self._fov_deg = float(cam.fov_deg[0])
+        tol = self.params.fov_tolerance
+        cat = context.catalog
+        if self.params.pattern_catalog_magnitude is not None:
+            from sensors.catalog import StarCatalog
+
+            cat = StarCatalog.from_hipparcos(cat.epoch_year, self.params.pattern_catalog_magnitude)
+        if self.params.magnitude_limit is not None:
+            cat = cat.subset(cat.magnitude <= self.params.magnitude_limit)
+        self._catalog = cat
+        self._db = solver_database(cat, self._fov_deg * (1 - tol), self._fov_deg * (1 + tol), self.params.magnitude_limit)
+        import tetra3rs
+
+        self._camera_model = tetra3rs.CameraModel(float(cam.focal_px), int(cam.width), int(cam.height))
+        # the re-matcher and the tracker: tracking identifiers whose prior we set ourselves
+        self._matcher_params = self.params.tracking.model_copy(update={
+            "initial_attitude": None, "gate_px": self.params.gate_px, "extrapolate": False, "refine": True,
+            "magnitude_limit": self.params.magnitude_limit})
+        self._tracker: TrackingIdentifier | None = None
+        self.last_solution: LostInSpaceSolution | None = None
+        self.last_mode = ""
+
+    # ------------------------------------------------------------------ helpers
+    def _tracking_identifier(self, attitude: Rotation, params: TrackingParams, camera) -> TrackingIdentifier:
+        t = TrackingIdentifier(**params.model_dump())
+        t.setup(replace(self.context, initial_attitude=attitude, camera=camera))
+        return t
+
+    def update_prior(self, frame: FrameData) -> bool:
+        """Pass the frame's estimates to the tracker (called by the runner after every frame)."""
+        return self._tracker.update_prior(frame) if self._tracker is not None else False
+
+    # ------------------------------------------------------------------ processing
+    def process(self, frame: FrameData) -> FrameData:
+        det = frame.stars
+        if det is None:
+            raise ValueError(f"frame {frame.index}: no detections (frame.stars is None); "
+                             "the 'lost-in-space' identifier needs a centroider or centroid-level recording before it")
+        flags = frame.flags
+        if self._tracker is not None:
+            out = self._track(frame)
+            if out.stars.n >= self.params.min_matches:
+                self.last_mode = "tracking"
+                return out
+            self._tracker = None
+            flags = flags + ("track_lost",)
+        self.last_mode = "lost-in-space"
+        out, sol = self._lost_in_space(frame.evolve(flags=flags))
+        self.last_solution = sol
+        if sol.accepted and self.params.track:
+            self._track_model = sol.camera
+            self._tracker = self._tracking_identifier(sol.attitude, self.params.tracking, sol.camera.pinhole(self.context.camera))
+        return out
+
+    def _track(self, frame: FrameData) -> FrameData:
+        """The tracker on the detections undistorted with the accepted camera model; the output keeps
+        the observed positions (rows found back by their undistorted coordinates, copied unchanged)."""
+        model = self._track_model
+        if model.k1 == 0.0 and model.k2 == 0.0:
+            return self._tracker.process(frame)
+        det = frame.stars
+        xu, yu = model.undistort(det.x, det.y)
+        out = self._tracker.process(frame.evolve(stars=det.with_columns(x=xu, y=yu)))
+        key = xu + 1j * yu  # complex keys sort by x then y: find each output row's input row
+        order = np.argsort(key, kind="stable")
+        rows = order[np.searchsorted(key[order], out.stars.x + 1j * out.stars.y)]
+        rest = np.ones(det.n, dtype=bool)
+        rest[rows] = False
+        stars = det.take(rows).with_columns(catalog_id=out.stars.catalog_id, ref_icrs=out.stars.ref_icrs)
+        return out.evolve(stars=stars, unmatched=det.take(rest))
+
+    def _reject(self, frame: FrameData, reason: str, **diag) -> tuple[FrameData, LostInSpaceSolution]:
+        det = frame.stars
+        sol = LostInSpaceSolution(
+            accepted=False, reason=reason, attitude=None, n_detections=det.n,
+            n_matched=diag.get("n_matched", 0), residual_rms_px=diag.get("residual_rms_px", np.nan),
+            false_match_prob=diag.get("false_match_prob", np.nan), solver_matches=diag.get("solver_matches", 0),
+            solver_probability=diag.get("solver_probability", np.nan), solver_fov_deg=diag.get("solver_fov_deg", np.nan),
+            solve_seconds=diag.get("solve_seconds", 0.0))
+        out = frame.evolve(stars=det.take(np.zeros(det.n, dtype=bool)), unmatched=det.take(np.ones(det.n, dtype=bool)),
+                           flags=frame.flags + (f"lost_in_space_rejected:{reason}",))
+        return out, sol
+
+    def _predict(self, R: Rotation, model: RadialCamera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Catalogue indices and predicted (distorted) pixels of the stars on the detector for ``R``."""
+        cam = self.context.camera
+        cat = self.context.catalog
+        radius = cam.half_diagonal_rad + np.radians(self._matcher_params.margin_deg)
+        idx = np.asarray(cat.cone(R.apply([0.0, 0.0, 1.0]), radius), dtype=np.intp)
+        if self.params.magnitude_limit is not None:
+            idx = idx[cat.magnitude[idx] <= self.params.magnitude_limit]
+        x, y, front = model.project(R.inv().apply(cat.unit_icrs[idx]) if idx.size else np.zeros((0, 3)))
+        ok = front & cam.contains(x, y, margin_px=-self.params.gate_px)
+        return idx[ok], x[ok], y[ok]
+
+    def _rematch(self, det, R: Rotation, model: RadialCamera):
+        """Match every detection to the catalogue predicted with ``R`` and ``model``, exactly as the
+        ``tracking`` identifier does (mutual nearest neighbours within ``gate_px``, attitude refit,
+        second pass with the gate ``max(refine_gate_px, 5 * 1.4826 * median residual)``).
+        Returns (detection indices, catalogue indices, attitude fitted to the first pass, n predicted)."""
+        match = TrackingIdentifier._match
+        cat = self.context.catalog
+        gate = self.params.gate_px
+        idx, px, py = self._predict(R, model)
+        d, j = match(det, px, py, gate)
+        if d.size >= 3:
+            R, _ = Rotation.align_vectors(cat.unit_icrs[idx[j]], model.unproject(det.x[d], det.y[d]))
+            idx, px, py = self._predict(R, model)
+            d, j = match(det, px, py, gate)
+            resid = np.hypot(det.x[d] - px[j], det.y[d] - py[j])
+            g2 = max(self._matcher_params.refine_gate_px, 5.0 * 1.4826 * float(np.median(resid))) if resid.size else gate
+            d, j = match(det, px, py, min(g2, gate))
+        return d, idx[j], R, idx.size
+
+    def _lost_in_space(self, frame: FrameData) -> tuple[FrameData, LostInSpaceSolution]:
+        det = frame.stars
+        cam = self.context.camera
+        finite = np.flatnonzero(np.isfinite(det.x) & np.isfinite(det.y))
+        if finite.size < self.params.min_matches:
+            return self._reject(frame, f"too_few_detections({finite.size}<{self.params.min_matches})")
+        flux = np.where(np.isfinite(det.flux[finite]), det.flux[finite], 0.0)
+        order = finite[np.argsort(-flux, kind="stable")]
+        model = RadialCamera.from_pinhole(cam, self.params.k1, self.params.k2)
+        xu, yu = model.undistort(det.x[order], det.y[order])  # the pattern search sees a pinhole image
+        cents = np.nan_to_num(np.column_stack([xu - cam.cx, yu - cam.cy, np.maximum(det.flux[order], 0.0)]))
+        start = time.perf_counter()
+        res = self._db.solve_from_centroids(
+            cents, camera_model=self._camera_model, fov_max_error_deg=self._fov_deg * self.params.fov_tolerance,
+            match_threshold=self.params.match_threshold, solve_timeout_ms=None,
+            max_patterns_checked=self.params.max_patterns_checked,
+            pattern_checking_stars=self.params.pattern_checking_stars, match_max_error=self.params.pattern_match_max_error)
+        seconds = time.perf_counter() - start
+        if not res:
+            return self._reject(frame, f"solver_{res.status}", solve_seconds=seconds)
+        diag = dict(solver_matches=int(res.num_matches), solver_probability=float(res.probability),
+                    solver_fov_deg=float(res.fov_deg), solve_seconds=seconds)
+        if res.parity_flip:
+            return self._reject(frame, "mirrored_image", **diag)
+        if self.params.solved_scale and np.isfinite(res.fov_deg) and res.fov_deg > 0:
+            model = replace(model, focal_px=(cam.width / 2.0) / np.tan(np.radians(res.fov_deg) / 2.0))
+        det_idx = order[np.asarray(res.matched_centroids, dtype=np.intp)]
+        cat_idx = self._catalog.index_of(np.asarray(res.matched_catalog_ids, dtype=np.int64))
+        ok = cat_idx >= 0
+        if ok.sum() < 3:
+            return self._reject(frame, "solver_ids_not_in_catalogue", **diag)
+        R, _ = Rotation.align_vectors(self._catalog.unit_icrs[cat_idx[ok]], model.unproject(det.x[det_idx[ok]], det.y[det_idx[ok]]))
+        # re-match every detection against our catalogue and camera model; with fit_distortion the
+        # intrinsics are refitted to the matches and the matching repeated until the set is stable
+        fitting = self.params.fit_distortion == "radial"
+        names = ("focal_px", "k1", "k2")[:1 + self.params.distortion_terms] + (("cx", "cy") if self.params.fit_principal_point else ())
+        sigma: dict = {}
+        previous = None
+        for _ in range(6 if fitting else 1):
+            d, c, R, n_pred = self._rematch(det, R, model)
+            key = (tuple(d), tuple(c))
+            if d.size < 3 or key == previous:
+                break
+            previous = key
+            obs = [(det.x[d], det.y[d], self.context.catalog.unit_icrs[c])]
+            if fitting and d.size >= self.params.distortion_min_matches:
+                cf = fit_camera(obs, [R], model, fit=names)
+                model, R, sigma = cf.camera, cf.attitudes[0], cf.sigma
+            else:
+                R, _ = Rotation.align_vectors(obs[0][2], model.unproject(obs[0][0], obs[0][1]))
+        k, n = d.size, det.n
+        if k < 3:
+            return self._reject(frame, f"too_few_matches({k}<{self.params.min_matches})", n_matched=k, **diag)
+        ref = self.context.catalog.unit_icrs[c]
+        R, _ = Rotation.align_vectors(ref, model.unproject(det.x[d], det.y[d]))
+        n_pred = self._predict(R, model)[0].size
+        px, py, _ = model.project(R.inv().apply(ref))
+        r = np.hypot(px - det.x[d], py - det.y[d])
+        rms = float(np.sqrt(np.mean(r**2)))
+        gate = max(float(r.max()), self._matcher_params.refine_gate_px)
+        p = min(1.0, n_pred * np.pi * gate**2 / (cam.width * cam.height))
+        p_false = float(binom.sf(k - 1, n, p))
+        diag.update(n_matched=k, residual_rms_px=rms, false_match_prob=p_false)
+        if k < self.params.min_matches:
+            return self._reject(frame, f"too_few_matches({k}<{self.params.min_matches})", **diag)
+        if not rms <= self.params.max_residual_px:
+            return self._reject(frame, f"residual({rms:.2f}px>{self.params.max_residual_px}px)", **diag)
+        if not p_false <= self.params.max_false_match_prob:
+            return self._reject(frame, f"false_match_probability({p_false:.1e}>{self.params.max_false_match_prob:.0e})", **diag)
+        sol = LostInSpaceSolution(accepted=True, reason="", attitude=R, n_detections=n, focal_px=model.focal_px,
+                                  camera=model, camera_sigma=sigma, **diag)
+        stars = det.take(d).with_columns(catalog_id=self.context.catalog.ids[c], ref_icrs=ref)
+        rest = np.ones(n, dtype=bool)
+        rest[d] = False
+        return frame.evolve(stars=stars, unmatched=det.take(rest)), sol

@@ -1,0 +1,157 @@
+"""Import a centroid table (CSV: frame, time, x, y, flux, ...) as a centroid-level recording.
+
+One row per star detection. Required columns: ``frame`` (integer, non-decreasing, the rows of one
+frame contiguous), ``t_ns`` (integer ns) or ``time_s`` (seconds), the frame's time ``t0`` (exposure
+start of row 0: the same on every row of a frame and strictly increasing from frame to frame),
+``x``, ``y`` (px, column and row, pixel centres at integers with (0, 0) the first pixel), ``flux``
+(ADU above background; an empty cell means unknown). Optional: ``sigma_px``, ``snr``, ``peak``
+(floats, empty = unknown), ``npix`` (integer), ``saturated`` (1/0, true/false), ``catalog_id``
+(integer, -1 or empty = unidentified) with ``ra_deg``, ``dec_deg`` (ICRS direction of the
+identified star) and ``magnitude``. Other columns are ignored with a warning.
+
+Each star's ``t_ns`` is the mid-exposure of its own row and ``row_time_ns`` its row's exposure
+start (:class:`~sensors.timing.DetectorTiming` of the camera's shutter), as for simulated
+centroids. Frames whose stars all carry a catalogue id are treated as already identified by
+``rollingstar run``.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from logs.importers.common import (
+    ImportDataError,
+    WarningLog,
+    bool_column,
+    check_non_decreasing,
+    float_column,
+    import_metadata,
+    int_column,
+    output_path,
+    read_csv,
+    time_column,
+)
+from logs.importers.sidecar import CameraSpec, load_camera, scenario_for
+from logs.records import arrays_to_stars
+from logs.writer import LogWriter
+from pipelines.config import to_yaml
+from sensors.conventions import radec_to_unit
+
+TOPIC_CENTROIDS = "/camera/centroids"
+REQUIRED = ("frame", "x", "y", "flux")
+OPTIONAL = ("sigma_px", "snr", "peak", "npix", "saturated", "catalog_id", "ra_deg", "dec_deg", "magnitude")
+
+
+def read_centroid_table(path: str | Path, camera: CameraSpec, log: WarningLog | None = None) -> dict[str, np.ndarray]:
+    """Validated columns of a centroid CSV (see module docstring); errors name file, line and column."""
+    log = log or WarningLog()
+    table = read_csv(path, required=REQUIRED, optional=OPTIONAL, one_of=[("t_ns", "time_s")], log=log)
+    if table.n == 0:
+        raise ImportDataError(f"{table.path}: no data rows after the header")
+    frame = int_column(table, "frame")
+    bad = np.flatnonzero(frame < 0)
+    if bad.size:
+        raise ImportDataError(f"{table.where(int(bad[0]), 'frame')}: {frame[bad[0]]} is negative; frames are 0-based")
+    check_non_decreasing(table, frame, "frame")
+    t, tname = time_column(table)
+    new = np.r_[True, frame[1:] != frame[:-1]]
+    # the time is the frame's t0: equal within a frame, strictly increasing between frames
+    same = np.flatnonzero(~new & np.r_[False, t[1:] != t[:-1]])
+    if same.size:
+        i = int(same[0])
+        raise ImportDataError(f"{table.where(i, tname)}: {t[i]} differs from {t[i - 1]} on line "
+                              f"{int(table.lines[i - 1])} of the same frame {frame[i]}; the time column is the "
+                              "frame time t0 (exposure start of row 0), one value per frame")
+    starts = np.flatnonzero(new)
+    for a, b in zip(starts[:-1], starts[1:]):
+        if t[b] <= t[a]:
+            raise ImportDataError(f"{table.where(int(b), tname)}: frame {frame[b]} at {t[b]} ns is not after frame "
+                                  f"{frame[a]} at {t[a]} ns (line {int(table.lines[a])}); frame times must increase "
+                                  "strictly")
+    cols: dict[str, np.ndarray] = {"frame": frame, "t0_ns": t,
+                                   "x": float_column(table, "x"), "y": float_column(table, "y"),
+                                   "flux": float_column(table, "flux", required=False)}
+    w, h = camera.width_px, camera.height_px
+    for name, size in (("x", w), ("y", h)):
+        out = np.flatnonzero((cols[name] < -0.5) | (cols[name] > size - 0.5))
+        if out.size:
+            i = int(out[0])
+            raise ImportDataError(f"{table.where(i, name)}: {cols[name][i]} is outside the detector "
+                                  f"[-0.5, {size - 0.5}] of the {w}x{h} camera")
+    for name in ("sigma_px", "snr", "peak", "magnitude"):
+        if name in table.columns:
+            cols[name] = float_column(table, name, required=False)
+    if "npix" in table.columns:
+        cols["npix"] = int_column(table, "npix", default=0)
+    if "saturated" in table.columns:
+        cols["saturated"] = bool_column(table, "saturated")
+    has_id = "catalog_id" in table.columns
+    has_dir = ("ra_deg" in table.columns, "dec_deg" in table.columns)
+    if any(has_dir) and not (all(has_dir) and has_id):
+        raise ImportDataError(f"{table.path}: ra_deg and dec_deg go together, with catalog_id")
+    if has_id:
+        ids = int_column(table, "catalog_id", default=-1)
+        if (ids < -1).any():
+            i = int(np.flatnonzero(ids < -1)[0])
+            raise ImportDataError(f"{table.where(i, 'catalog_id')}: {ids[i]}; ids are >= 0, or -1 for unidentified")
+        cols["catalog_id"] = ids
+        ref = np.full((table.n, 3), np.nan)
+        if all(has_dir):
+            ra = float_column(table, "ra_deg", required=False)
+            dec = float_column(table, "dec_deg", required=False)
+            known = np.isfinite(ra) & np.isfinite(dec)
+            need = np.flatnonzero((ids >= 0) & ~known)
+            if need.size:
+                i = int(need[0])
+                raise ImportDataError(f"{table.where(i, 'ra_deg')}: identified star (catalog_id {ids[i]}) without "
+                                      "ra_deg/dec_deg")
+            badd = np.flatnonzero(known & (np.abs(dec) > 90))
+            if badd.size:
+                i = int(badd[0])
+                raise ImportDataError(f"{table.where(i, 'dec_deg')}: {dec[i]} is not in [-90, 90]")
+            sel = (ids >= 0) & known
+            ref[sel] = radec_to_unit(np.radians(ra[sel]), np.radians(dec[sel]))
+        elif (ids >= 0).any():
+            raise ImportDataError(f"{table.path}: catalog_id given without ra_deg, dec_deg: the catalogue "
+                                  "direction of an identified star is needed")
+        cols["ref_icrs"] = ref
+    return cols
+
+
+def import_centroids(csv: str | Path, out: str | Path, camera: CameraSpec | str | Path) -> Path:
+    """Import the centroid table ``csv`` into the recording ``out`` with ``camera``; returns ``out``."""
+    from pipelines.build import build_timing
+
+    csv = Path(csv)
+    out = output_path(out)
+    if camera is None:
+        raise ImportDataError(f"{csv}: a camera is needed (--camera camera.yaml)")
+    cam = camera if isinstance(camera, CameraSpec) else load_camera(camera)
+    log = WarningLog()
+    cols = read_centroid_table(csv, cam, log)
+    frame = cols["frame"]
+    starts = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]])
+    ends = np.r_[starts[1:], frame.size]
+    t0s = cols["t0_ns"][starts]
+    period = float(np.median(np.diff(t0s))) * 1e-6 if t0s.size > 1 else None
+    scenario = scenario_for(cam, name=f"import:{csv.stem}", description=f"centroids imported from {csv}",
+                            level="centroid", frames=starts.size, frame_period_ms=period)
+    timing = build_timing(scenario)
+    details = {"frames": int(starts.size), "stars": int(frame.size), "camera": cam.model_dump(mode="json"),
+               "focal_px": cam.focal_px,
+               "columns": sorted(k for k in cols if k not in ("t0_ns",))}
+    metadata = {"scenario": {"yaml": to_yaml(scenario)},
+                "sensor": {"yaml": yaml.safe_dump(cam.model_dump(mode="json"), sort_keys=False)},
+                "import": import_metadata("centroids", csv, details, log)}
+    star_cols = [k for k in ("flux", "sigma_px", "snr", "peak", "npix", "saturated", "catalog_id", "ref_icrs",
+                             "magnitude") if k in cols]
+    with LogWriter(out, kind="import", metadata=metadata) as writer:
+        for a, b in zip(starts, ends):
+            t0 = int(cols["t0_ns"][a])
+            y = cols["y"][a:b]
+            writer.write_json(TOPIC_CENTROIDS, arrays_to_stars(
+                int(frame[a]), t0, x=cols["x"][a:b], y=y, t_ns=timing.row_mid_exposure_ns(t0, y),
+                row_time_ns=timing.row_start_ns(t0, y), **{k: cols[k][a:b] for k in star_cols}), t0)
+    return out

@@ -1,0 +1,410 @@
+"""Import astrometry.net ``corr`` tables (+ ``log.json``) as a centroid-level, already-identified recording.
+
+Input: a folder holding one astrometry.net ``*.fits`` corr table and a ``log.json`` (field of
+view, image size, pointing centre), or a folder of such folders (searched recursively). Output:
+one recording with one frame per corr table, in sorted folder order, ``t0_k = k * 1 s`` (the
+log.json times are local wall-clock strings with no zone, kept in the metadata only).
+Each frame's ``/camera/centroids`` message holds the matched stars: ``x = field_x - 1``,
+``y = field_y - 1`` (astrometry.net uses FITS pixel coordinates, first pixel centre at 1; checked
+on the creusot images, where intensity centroids sit 1.0 px below ``field_x, field_y``),
+``catalog_id = index_id`` (the star's id in the astrometry.net index, not a HIP number),
+``ref_icrs`` the unit vector of ``(index_ra, index_dec)`` (fu2022 eq 1), ``flux = FLUX``.
+Since every star is identified, ``rollingstar run`` skips identifier stages on these frames and
+an attitude solver (``quest``) solves each image directly.
+
+Camera: a pinhole with its principal point at the image centre and the focal length in pixels
+``f = hypot(W, H) / fov`` (``fov`` in radians): log.json's ``fov_deg`` is astrometry.net's
+diagonal field at its central pixel scale (``fov = diagonal_px * scale``), not ``2 atan``. On
+the eleven 16 mm creusot scenes (``16mm_checker_2``) the focal length fitted to the star pairs'
+angles differs from this rule by 0.001-0.24 %, and from the ``2 atan`` reading by 0.58-0.82 %
+(``pytest tests/logs/test_importers.py -k linear_diagonal``).
+All frames of one recording share the camera: image sizes must be equal and the fields of view
+within 1 % of each other (the median is used); otherwise import the sub-folders separately.
+"""
+from __future__ import annotations
+
+import json
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from logs.importers.common import ImportDataError, WarningLog, import_metadata, output_path
+from logs.importers.sidecar import NOMINAL_PIXEL_SIZE_UM, CameraSpec, scenario_for
+from logs.records import arrays_to_stars
+from logs.writer import LogWriter
+from pipelines.config import AttitudeConfig, format_validation_error, to_yaml
+from sensors.conventions import radec_to_unit
+
+TOPIC_CENTROIDS = "/camera/centroids"
+FRAME_SPACING_NS = 1_000_000_000
+FOV_TOLERANCE = 0.01
+"""Largest relative spread of log.json fields of view within one recording (one camera)."""
+REQUIRED_COLUMNS = ("field_x", "field_y", "index_ra", "index_dec")
+
+
+class _Size(BaseModel):
+    model_config = ConfigDict(extra="allow")
+    x: int = Field(gt=0, description="image width, px")
+    y: int = Field(gt=0, description="image height, px")
+
+
+class _Centre(BaseModel):
+    model_config = ConfigDict(extra="allow")
+    ra_degrees: float = Field(ge=-360, le=360)
+    dec_degrees: float = Field(ge=-90, le=90)
+
+
+class LogJson(BaseModel):
+    """The fields of a creusot/astrometry.net ``log.json`` that the importer uses (others are kept)."""
+
+    model_config = ConfigDict(extra="allow", allow_inf_nan=False)
+    fov_deg: float = Field(gt=0, lt=180, description="diagonal field of view at the central pixel scale, deg")
+    image_size: _Size
+    center: _Centre
+    timestamp: dict | None = None
+
+
+# field path -> regex for the salvage of a malformed file: each must match exactly once.
+_SALVAGE = {
+    "fov_deg": r'"fov_deg"\s*:\s*(-?[0-9.eE+-]+)',
+    "image_size.x": r'"image_size"\s*:\s*\{[^{}]*?"x"\s*:\s*(-?[0-9.eE+-]+)',
+    "image_size.y": r'"image_size"\s*:\s*\{[^{}]*?"y"\s*:\s*(-?[0-9.eE+-]+)',
+    "center.ra_degrees": r'"ra_degrees"\s*:\s*(-?[0-9.eE+-]+)',
+    "center.dec_degrees": r'"dec_degrees"\s*:\s*(-?[0-9.eE+-]+)',
+    "timestamp.date": r'"date"\s*:\s*"([^"]*)"',
+    "timestamp.time": r'"time"\s*:\s*"([^"]*)"',
+}
+
+
+def _set(d: dict, path: str, value) -> None:
+    head, _, tail = path.partition(".")
+    if tail:
+        _set(d.setdefault(head, {}), tail, value)
+    else:
+        d[head] = value
+
+
+def _repair_commas(text: str) -> tuple[dict | None, list[str]]:
+    """Insert the ',' the JSON decoder asks for, as long as that is the only problem (at most 20)."""
+    notes = []
+    for _ in range(20):
+        try:
+            return json.loads(text), notes
+        except json.JSONDecodeError as exc:
+            if exc.msg != "Expecting ',' delimiter":
+                return None, notes
+            notes.append(f"line {exc.lineno}, column {exc.colno}: missing ',' inserted")
+            text = text[:exc.pos] + "," + text[exc.pos:]
+    return None, notes
+
+
+def read_log_json(path: str | Path, log: WarningLog | None = None) -> LogJson:
+    """Parse a log.json; recover a malformed file where that is unambiguous, else fail naming the field.
+
+    Recovery, in order: (1) valid JSON; (2) only missing commas between members (each inserted
+    where the decoder expects one, reported with its line and column); (3) field by field: a
+    field is recovered when its ``"key": value`` pattern occurs exactly once. A required field
+    that cannot be recovered raises ImportDataError naming the file and the field.
+    """
+    path = Path(path)
+    log = log or WarningLog()
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise ImportDataError(f"{path}: log.json not found") from None
+    data = None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        first_error = f"line {exc.lineno}, column {exc.colno}: {exc.msg}"
+        data, notes = _repair_commas(text)
+        if data is not None:
+            log(f"{path}: not valid JSON ({first_error}); recovered: {'; '.join(notes)}")
+        else:
+            data, recovered, problems = {}, [], []
+            for field, pattern in _SALVAGE.items():
+                found = re.findall(pattern, text)
+                if len(found) == 1:
+                    value = found[0]
+                    if not field.startswith("timestamp"):
+                        try:
+                            value = float(value)
+                        except ValueError:
+                            problems.append(f"{field}: {value!r} is not a number")
+                            continue
+                        if field.startswith("image_size"):
+                            if value != int(value):
+                                problems.append(f"{field}: {value!r} is not an integer")
+                                continue
+                            value = int(value)
+                    _set(data, field, value)
+                    recovered.append(field)
+                elif not field.startswith("timestamp"):
+                    problems.append(f"{field}: {'not found' if not found else f'found {len(found)} times'}")
+            if problems:
+                raise ImportDataError(f"{path}: not valid JSON ({first_error}) and cannot be recovered: "
+                                      + "; ".join(problems))
+            log(f"{path}: not valid JSON ({first_error}); recovered field by field: {', '.join(recovered)}")
+    if not isinstance(data, dict):
+        raise ImportDataError(f"{path}: expected a JSON object at the top level, got {type(data).__name__}")
+    try:
+        return LogJson.model_validate(data)
+    except ValidationError as err:
+        raise ImportDataError(format_validation_error(str(path), err)) from None
+
+
+@dataclass(frozen=True)
+class CorrFrame:
+    """One corr table, ready to write."""
+
+    folder: Path
+    fits: Path
+    log_json: Path
+    meta: LogJson
+    x: np.ndarray
+    y: np.ndarray
+    ref_icrs: np.ndarray
+    catalog_id: np.ndarray
+    flux: np.ndarray
+    residual_px: np.ndarray  # (n, 2) field - index position, NaN when index_x/y are absent
+
+
+def find_corr_folders(root: str | Path) -> list[Path]:
+    """``root`` if it holds a ``*.fits``, else every folder below it that does, in sorted order."""
+    root = Path(root)
+    if not root.is_dir():
+        raise ImportDataError(f"{root}: not a directory (expected a folder with an astrometry.net corr "
+                              "*.fits table and a log.json, or a folder of such folders)")
+    if _fits_in(root):
+        return [root]
+    folders = sorted({p.parent for p in root.rglob("*") if p.is_file() and p.suffix.lower() == ".fits"},
+                     key=lambda p: p.relative_to(root).as_posix())
+    if not folders:
+        raise ImportDataError(f"{root}: no astrometry.net corr table (*.fits) in it or below it")
+    return folders
+
+
+def _fits_in(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() == ".fits")
+
+
+def _json_in(folder: Path) -> Path:
+    if (folder / "log.json").is_file():
+        return folder / "log.json"
+    found = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() == ".json")
+    if len(found) != 1:
+        what = "none" if not found else ", ".join(p.name for p in found)
+        raise ImportDataError(f"{folder}: needs a log.json (field of view, image size, pointing centre); "
+                              f"found {what}")
+    return found[0]
+
+
+def read_corr_table(path: str | Path, log: WarningLog | None = None) -> dict[str, np.ndarray]:
+    """The columns of an astrometry.net corr table (first binary-table HDU), as float/int arrays.
+
+    Required: ``field_x, field_y, index_ra, index_dec``; optional: ``index_id, FLUX, index_x,
+    index_y, match_weight``. Rows with a non-finite required value are dropped with a warning.
+    """
+    from astropy.io import fits
+
+    path = Path(path)
+    log = log or WarningLog()
+    try:
+        with fits.open(path, memmap=False) as hdul:
+            table = next((h for h in hdul if isinstance(h, fits.BinTableHDU)), None)
+            if table is None:
+                raise ImportDataError(f"{path}: no binary table HDU (expected an astrometry.net corr table)")
+            names = {n.lower(): n for n in table.columns.names}
+            missing = [c for c in REQUIRED_COLUMNS if c not in names]
+            if missing:
+                raise ImportDataError(f"{path}: missing column(s) {', '.join(missing)} (found "
+                                      f"{', '.join(table.columns.names)}; an astrometry.net corr table has "
+                                      f"{', '.join(REQUIRED_COLUMNS)})")
+            data = table.data
+            cols = {c: np.asarray(data[names[c]], dtype=float) for c in REQUIRED_COLUMNS}
+            for c in ("index_x", "index_y", "flux", "match_weight"):
+                if c in names:
+                    cols[c] = np.asarray(data[names[c]], dtype=float)
+            if "index_id" in names:
+                cols["index_id"] = np.asarray(data[names["index_id"]], dtype=np.int64)
+    except ImportDataError:
+        raise
+    except FileNotFoundError:
+        raise ImportDataError(f"{path}: corr table not found") from None
+    except Exception as exc:  # astropy raises OSError/ValueError/TypeError for damaged files
+        raise ImportDataError(f"{path}: cannot read FITS table ({type(exc).__name__}: {exc})") from None
+    finite = np.all([np.isfinite(cols[c]) for c in REQUIRED_COLUMNS], axis=0)
+    if not finite.all():
+        rows = np.flatnonzero(~finite)
+        log(f"{path}: {rows.size} row(s) with a non-finite {'/'.join(REQUIRED_COLUMNS)} dropped "
+            f"(rows {', '.join(map(str, rows[:10]))})")
+        cols = {k: v[finite] for k, v in cols.items()}
+    return cols
+
+
+def _read_frame(folder: Path, log: WarningLog) -> CorrFrame:
+    fits_files = _fits_in(folder)
+    if len(fits_files) != 1:
+        raise ImportDataError(f"{folder}: holds {len(fits_files)} .fits files ({', '.join(p.name for p in fits_files)}); "
+                              "expected one corr table per folder")
+    json_path = _json_in(folder)
+    meta = read_log_json(json_path, log)
+    cols = read_corr_table(fits_files[0], log)
+    n = cols["field_x"].size
+    if n == 0:
+        log(f"{fits_files[0]}: no matched stars; the frame will have no stars")
+    x, y = cols["field_x"] - 1.0, cols["field_y"] - 1.0  # FITS 1-based pixel centres -> ours (0-based)
+    w, h = meta.image_size.x, meta.image_size.y
+    outside = (x < -0.5) | (y < -0.5) | (x > w - 0.5) | (y > h - 0.5)
+    if outside.any():
+        log(f"{fits_files[0]}: {int(outside.sum())} star(s) outside the {w}x{h} image of {json_path.name}")
+    ids = cols.get("index_id", np.arange(n, dtype=np.int64))
+    if (ids < 0).any():
+        raise ImportDataError(f"{fits_files[0]}: index_id has negative values; catalogue ids must be >= 0")
+    if "index_x" in cols and "index_y" in cols:
+        resid = np.column_stack([cols["field_x"] - cols["index_x"], cols["field_y"] - cols["index_y"]])
+    else:
+        resid = np.full((n, 2), np.nan)
+    ref = radec_to_unit(np.radians(cols["index_ra"]), np.radians(cols["index_dec"]))
+    return CorrFrame(folder, fits_files[0], json_path, meta, x, y, np.asarray(ref).reshape(n, 3), ids,
+                     cols.get("flux", np.full(n, np.nan)), resid)
+
+
+def focal_px_from_fov(fov_deg: float, width: int, height: int) -> float:
+    """Focal length (px) from astrometry.net's diagonal field: ``hypot(W, H) / radians(fov)``."""
+    return math.hypot(width, height) / math.radians(fov_deg)
+
+
+def camera_for(frames: list[CorrFrame], root: Path) -> tuple[CameraSpec, float]:
+    """The one pinhole camera of a recording (median field of view); (camera, fov_deg)."""
+    sizes = {(f.meta.image_size.x, f.meta.image_size.y) for f in frames}
+    if len(sizes) > 1:
+        by = {}
+        for f in frames:
+            by.setdefault((f.meta.image_size.x, f.meta.image_size.y), f.log_json)
+        listing = "; ".join(f"{w}x{h} in {p}" for (w, h), p in by.items())
+        raise ImportDataError(f"{root}: the folders have different image sizes ({listing}); one recording has one "
+                              "camera: import the sub-folders separately")
+    fovs = np.array([f.meta.fov_deg for f in frames])
+    if fovs.max() / fovs.min() - 1.0 > FOV_TOLERANCE:
+        lo, hi = frames[int(fovs.argmin())], frames[int(fovs.argmax())]
+        raise ImportDataError(f"{root}: fields of view differ by more than {FOV_TOLERANCE:.0%} "
+                              f"({lo.meta.fov_deg} deg in {lo.log_json}, {hi.meta.fov_deg} deg in {hi.log_json}); "
+                              "one recording has one camera: import the sub-folders separately")
+    fov = float(np.median(fovs))
+    (w, h), = sizes
+    f_px = focal_px_from_fov(fov, w, h)
+    cam = CameraSpec(name=f"astrometry.net {root.name}",
+                     description=f"pinhole from log.json: fov {fov} deg (diagonal, linear scale), {w}x{h} px",
+                     width_px=w, height_px=h, focal_length_mm=f_px * NOMINAL_PIXEL_SIZE_UM * 1e-3,
+                     pixel_size_um=NOMINAL_PIXEL_SIZE_UM)
+    return cam, fov
+
+
+def _image_for(folder: Path) -> str | None:
+    """The PNG the corr table was made from, when the folder makes it unambiguous."""
+    pngs = sorted(p.name for p in folder.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".tif", ".tiff"))
+    if len(pngs) == 1:
+        return pngs[0]
+    exposed = [p for p in pngs if re.search(r"_\d+e_", p)]  # creusot naming: <scene>_<exposure>e_<gain>g.png
+    return exposed[0] if len(exposed) == 1 else None
+
+
+def import_corr(folder: str | Path, out: str | Path) -> Path:
+    """Import the corr table(s) under ``folder`` into the recording ``out``; returns ``out``.
+
+    Recoverable problems emit :class:`~logs.importers.common.ImportDataWarning` and are kept in
+    the log's ``import.warnings`` metadata; the per-frame sources and log.json pointing centres
+    are in ``import.details`` (see :func:`pointing_centres`).
+    """
+    root = Path(folder)
+    out = output_path(out)
+    log = WarningLog()
+    frames = [_read_frame(f, log) for f in find_corr_folders(root)]
+    cam, fov = camera_for(frames, root)
+    resid = np.concatenate([f.residual_px for f in frames])
+    resid = resid[np.isfinite(resid).all(axis=1)]
+    sigma = float(np.sqrt(np.mean(resid**2))) if resid.size else None
+    first = frames[0].meta.center
+    prior = AttitudeConfig(ra_deg=first.ra_degrees, dec_deg=first.dec_degrees, roll_deg=0.0)
+    scenario = scenario_for(cam, name=f"import:{root.name}", level="centroid", frames=len(frames),
+                            description=f"astrometry.net corr tables imported from {root}",
+                            centroid_sigma_px=sigma, initial_attitude=prior, frame_period_ms=FRAME_SPACING_NS * 1e-6)
+    from pipelines.build import build_timing
+
+    timing = build_timing(scenario)
+    details = {
+        "focal_px": cam.focal_px, "fov_deg": fov, "fov_rule": "focal_px = hypot(W, H) / radians(fov_deg)",
+        "centroid_sigma_px": sigma, "centroid_sigma_rule": "RMS per axis of field_xy - index_xy over all stars",
+        "frame_spacing_ns": FRAME_SPACING_NS,
+        "frames": [{
+            "frame": k, "t0_ns": k * FRAME_SPACING_NS,
+            "folder": f.folder.relative_to(root).as_posix() if f.folder != root else ".",
+            "fits": f.fits.name, "log_json": f.log_json.name, "image": _image_for(f.folder),
+            "fov_deg": f.meta.fov_deg, "ra_deg": f.meta.center.ra_degrees, "dec_deg": f.meta.center.dec_degrees,
+            "timestamp": f.meta.timestamp, "n_stars": int(f.x.size)} for k, f in enumerate(frames)],
+    }
+    metadata = {"scenario": {"yaml": to_yaml(scenario)},
+                "sensor": {"yaml": yaml.safe_dump(cam.model_dump(mode="json"), sort_keys=False)},
+                "import": import_metadata("corr", root, details, log)}
+    with LogWriter(out, kind="import", metadata=metadata) as writer:
+        for k, f in enumerate(frames):
+            t0 = k * FRAME_SPACING_NS
+            writer.write_json(TOPIC_CENTROIDS, arrays_to_stars(
+                k, t0, x=f.x, y=f.y, t_ns=timing.row_mid_exposure_ns(t0, f.y), row_time_ns=timing.row_start_ns(t0, f.y),
+                flux=f.flux, catalog_id=f.catalog_id, ref_icrs=f.ref_icrs), t0)
+    return out
+
+
+def pointing_centre(folder: str | Path) -> tuple[float, float]:
+    """(ra_deg, dec_deg) of the pointing centre astrometry.net found, from the folder's log.json."""
+    meta = read_log_json(_json_in(Path(folder)))
+    return meta.center.ra_degrees, meta.center.dec_degrees
+
+
+def pointing_centres(recording: str | Path) -> dict[int, dict]:
+    """Frame index -> that frame's ``import.details.frames`` entry (folder, ra_deg, dec_deg, ...)."""
+    from logs.reader import LogReader
+
+    meta = LogReader(recording).metadata().get("import", {})
+    if meta.get("format") != "corr":
+        raise ImportDataError(f"{recording}: not a recording made by `rollingstar import corr`")
+    return {int(f["frame"]): f for f in json.loads(meta["details"])["frames"]}
+
+
+def boresight_offsets(recording: str | Path, run_output: str | Path) -> list[dict]:
+    """Per frame: the estimated boresight vs log.json's pointing centre (angle in degrees).
+
+    ``run_output`` is the log ``rollingstar run`` wrote from ``recording``; the first valid
+    ``/estimate/attitude`` of each frame is used. Frames without a valid estimate get
+    ``offset_deg = None`` and the estimate's reason.
+    """
+    from logs.reader import LogReader
+    from sensors.conventions import quat_from_fields, radec_roll_from_attitude
+    from scipy.spatial.transform import Rotation
+
+    centres = pointing_centres(recording)
+    estimates: dict[int, dict] = {}
+    for msg in LogReader(run_output).messages("/estimate/attitude"):
+        d = msg.data
+        if d["frame"] not in estimates or (d["valid"] and not estimates[d["frame"]]["valid"]):
+            estimates[d["frame"]] = d
+    rows = []
+    for k, c in sorted(centres.items()):
+        est = estimates.get(k)
+        row = {"frame": k, "folder": c["folder"], "ra_deg": c["ra_deg"], "dec_deg": c["dec_deg"],
+               "n_stars": c["n_stars"], "offset_deg": None, "reason": "no estimate" if est is None else est["reason"]}
+        if est is not None and est["valid"]:
+            R = Rotation.from_quat(quat_from_fields(est["q"]))
+            ra, dec, roll = radec_roll_from_attitude(R)
+            boresight = R.apply([0.0, 0.0, 1.0])
+            centre = radec_to_unit(np.radians(c["ra_deg"]), np.radians(c["dec_deg"]))
+            angle = math.degrees(math.atan2(np.linalg.norm(np.cross(boresight, centre)), float(boresight @ centre)))
+            row.update(est_ra_deg=ra, est_dec_deg=dec, est_roll_deg=roll, offset_deg=angle, reason="")
+        rows.append(row)
+    return rows

@@ -1,0 +1,305 @@
+"""Import a folder of TIFF/PNG/JPEG frames (8 or 16 bit) as an image-level recording.
+
+``import_images(folder, out, camera=None)`` reads the folder's ``recording.yaml`` sidecar (see
+:mod:`logs.importers.sidecar`; optional when ``camera`` is given), writes every image as a
+``foxglove.RawImage`` on ``/camera/image`` at its frame time ``t0``, the sidecar's gyro CSV on
+``/gyro`` and its truth CSV on ``/truth/attitude``, and declares the sensor model (metadata
+``scenario``) so that ``rollingstar run`` works on the result like on a simulated recording.
+Images are read with Pillow (8-bit ``L``, 16-bit ``I;16``; colour images are converted to
+luminance with a warning). Pixel values are stored unchanged (raw ADU).
+"""
+from __future__ import annotations
+
+import fnmatch
+from pathlib import Path
+
+import numpy as np
+import yaml
+from PIL import Image
+
+from logs.importers.common import (
+    ImportDataError,
+    WarningLog,
+    check_non_decreasing,
+    float_column,
+    import_metadata,
+    output_path,
+    read_csv,
+    time_column,
+)
+from logs.importers.sidecar import (
+    DEFAULT_FRAME_RATE_HZ,
+    IMAGE_SUFFIXES,
+    CameraSpec,
+    RecordingSidecar,
+    load_camera,
+    load_sidecar,
+    scenario_for,
+)
+from logs.records import AttitudeSamplesRecord, GyroSamplesRecord
+from logs.writer import LogWriter
+from pipelines.config import to_yaml
+from pipelines.progress import progress_bar
+
+SIDECAR_NAMES = ("recording.yaml", "recording.yml")
+TOPIC_IMAGE = "/camera/image"
+TOPIC_GYRO = "/gyro"
+TOPIC_TRUTH_ATTITUDE = "/truth/attitude"
+
+_MODES_16 = ("I;16", "I;16L", "I;16B", "I;16N")
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """One image file as a (H, W) uint8 or uint16 array of raw values.
+
+    8-bit greyscale stays uint8, 16-bit greyscale (``I;16*``, or ``I`` within 0..65535) becomes
+    uint16; RGB(A) and palette images are converted to 8-bit luminance (ITU-R 601-2, Pillow's
+    ``convert("L")``) with a warning. Multi-page files and float images raise ImportDataError.
+    """
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            if getattr(im, "n_frames", 1) > 1:
+                raise ImportDataError(f"{path}: has {im.n_frames} pages/frames; one image per file is expected")
+            mode = im.mode
+            if mode in ("L", "1") or mode in _MODES_16:
+                arr = np.asarray(im.convert("L") if mode == "1" else im)
+            elif mode == "I":
+                arr = np.asarray(im)
+            elif mode in ("RGB", "RGBA", "P", "LA", "CMYK", "YCbCr", "PA", "La"):
+                from logs.importers.common import warn
+
+                warn(f"{path}: colour image (mode {mode}) converted to 8-bit luminance; "
+                     "star trackers normally record raw greyscale")
+                arr = np.asarray(im.convert("L"))
+            else:
+                raise ImportDataError(f"{path}: image mode {mode!r} not supported (expected 8- or 16-bit greyscale)")
+    except ImportDataError:
+        raise
+    except FileNotFoundError:
+        raise ImportDataError(f"{path}: image file not found") from None
+    except Exception as exc:  # Pillow raises many types for unreadable files
+        raise ImportDataError(f"{path}: cannot read image ({type(exc).__name__}: {exc})") from None
+    if arr.dtype == np.uint8:
+        return np.ascontiguousarray(arr)
+    if arr.dtype.kind in "ui" and arr.size and (arr.min() < 0 or arr.max() > 65535):
+        raise ImportDataError(f"{path}: pixel values {arr.min()}..{arr.max()} do not fit 16 bits")
+    if arr.dtype.kind not in "ui":
+        raise ImportDataError(f"{path}: pixel type {arr.dtype} not supported (expected 8- or 16-bit integers)")
+    return np.ascontiguousarray(arr, dtype=np.uint16)
+
+
+def _image_header(path: Path) -> tuple[int, int, int]:
+    """(width, height, bits) without decoding the pixels."""
+    try:
+        with Image.open(path) as im:
+            bits = 16 if (im.mode in _MODES_16 or im.mode == "I") else 8
+            return im.size[0], im.size[1], bits
+    except FileNotFoundError:
+        raise ImportDataError(f"{path}: image file not found") from None
+    except Exception as exc:
+        raise ImportDataError(f"{path}: cannot read image ({type(exc).__name__}: {exc})") from None
+
+
+def find_sidecar(folder: Path) -> Path | None:
+    for name in SIDECAR_NAMES:
+        if (folder / name).is_file():
+            return folder / name
+    return None
+
+
+def _list_files(folder: Path, spec: str | list[str] | None, source: str) -> list[Path]:
+    if isinstance(spec, list):
+        files = [folder / f for f in spec]
+        missing = [str(f) for f in files if not f.is_file()]
+        if missing:
+            raise ImportDataError(f"{source}: files: {', '.join(missing)} not found")
+        return files
+    names = sorted(p.name for p in folder.iterdir() if p.is_file())
+    if spec is None:
+        chosen = [n for n in names if n.lower().endswith(IMAGE_SUFFIXES)]
+        what = f"no image files ({', '.join('*' + s for s in IMAGE_SUFFIXES)})"
+    else:
+        chosen = [n for n in names if fnmatch.fnmatch(n, spec)]
+        what = f"no files match files: {spec!r}"
+    if not chosen:
+        raise ImportDataError(f"{folder}: {what}")
+    return [folder / n for n in chosen]
+
+
+def _frame_times(sidecar: RecordingSidecar, files: list[Path], base: Path, source: str,
+                 log: WarningLog) -> tuple[np.ndarray, dict]:
+    ts = sidecar.timestamps
+    n = len(files)
+    if ts.t0_ns is not None:
+        if len(ts.t0_ns) != n:
+            raise ImportDataError(f"{source}: timestamps.t0_ns has {len(ts.t0_ns)} entries for {n} image files")
+        t0 = np.asarray(ts.t0_ns, dtype=np.int64)
+        how = {"source": "t0_ns"}
+    elif ts.csv is not None:
+        table = read_csv(base / ts.csv, required=["file"], one_of=[("t_ns", "time_s")], log=log)
+        times, _ = time_column(table)
+        by_name = {}
+        for i, name in enumerate(table.columns["file"]):
+            if name in by_name:
+                raise ImportDataError(f"{table.where(i, 'file')}: {name!r} listed twice")
+            by_name[name] = times[i]
+        missing = [f.name for f in files if f.name not in by_name]
+        if missing:
+            raise ImportDataError(f"{table.path}: no time for image(s) {', '.join(missing[:5])}"
+                                  f"{' ...' if len(missing) > 5 else ''}")
+        t0 = np.array([by_name[f.name] for f in files], dtype=np.int64)
+        how = {"source": "csv", "csv": str(table.path)}
+    else:
+        rate = ts.frame_rate_hz
+        if rate is None:
+            rate = DEFAULT_FRAME_RATE_HZ
+            if n > 1:
+                    log(f"{source}: no frame times given (timestamps.frame_rate_hz, t0_ns or csv); assuming "
+                    f"{rate:g} Hz from t = {ts.start_ns} ns, in file-name order")
+        t0 = ts.start_ns + np.rint(np.arange(n) * 1e9 / rate).astype(np.int64)
+        how = {"source": "frame_rate_hz", "frame_rate_hz": rate, "start_ns": ts.start_ns}
+    step = np.diff(t0)
+    if step.size and (step <= 0).any():
+        i = int(np.flatnonzero(step <= 0)[0]) + 1
+        raise ImportDataError(f"{source}: frame times must increase strictly in file order: "
+                              f"{files[i].name} has t0 = {t0[i]} ns after {files[i - 1].name} at {t0[i - 1]} ns")
+    return t0, how
+
+
+def _read_gyro(path: Path, log: WarningLog) -> tuple[np.ndarray, np.ndarray]:
+    table = read_csv(path, required=["wx", "wy", "wz"], one_of=[("t_ns", "time_s")], log=log)
+    t, name = time_column(table)
+    check_non_decreasing(table, t, name)
+    w = np.column_stack([float_column(table, c) for c in ("wx", "wy", "wz")])
+    return t, w
+
+
+def _read_truth(path: Path, log: WarningLog) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    table = read_csv(path, required=["qx", "qy", "qz", "qw"], optional=["wx", "wy", "wz"],
+                     one_of=[("t_ns", "time_s")], log=log)
+    t, name = time_column(table)
+    check_non_decreasing(table, t, name)
+    q = np.column_stack([float_column(table, c) for c in ("qx", "qy", "qz", "qw")])
+    norm = np.linalg.norm(q, axis=1)
+    bad = np.flatnonzero(np.abs(norm - 1.0) > 1e-6)
+    if bad.size:
+        raise ImportDataError(f"{table.path}: line {int(table.lines[bad[0]])}: quaternion (qx, qy, qz, qw) has "
+                              f"norm {norm[bad[0]]:.9g}; a unit camera-to-ICRS quaternion is expected (within 1e-6)")
+    rates = [c in table.columns for c in ("wx", "wy", "wz")]
+    if any(rates) and not all(rates):
+        raise ImportDataError(f"{table.path}: give all of wx, wy, wz or none of them")
+    w = np.column_stack([float_column(table, c) for c in ("wx", "wy", "wz")]) if all(rates) else None
+    return t, q, w
+
+
+def batches_by_frame(t: np.ndarray, t0: np.ndarray, join_tail: bool = True) -> list[np.ndarray]:
+    """Split sample indices so that batch k holds the samples in ``(t0[k-1], t0[k]]``.
+
+    Batch 0 holds every sample up to ``t0[0]``. With ``join_tail`` the samples after the last
+    frame time join the last batch, so that a batch logged at its *first* sample (truth) still
+    belongs to a frame; without it they form a batch of their own (gyro, logged at its *last*
+    sample: samples after the last frame belong to no frame).
+    """
+    edges = np.searchsorted(t, t0, side="right")
+    bounds = [0, *edges[:-1].tolist(), t.size] if join_tail else [0, *edges.tolist(), t.size]
+    return [np.arange(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
+
+def resolve_camera(camera: CameraSpec | str | Path | None, sidecar: RecordingSidecar | None,
+                   sidecar_path: Path | None, log: WarningLog, folder: Path) -> CameraSpec:
+    """The camera: ``camera`` (a CameraSpec or camera.yaml path) over the sidecar's; one is required."""
+    side_cam = None
+    if sidecar is not None:
+        side_cam = sidecar.camera
+        if sidecar.camera_file is not None:
+            side_cam = load_camera(sidecar_path.parent / sidecar.camera_file)
+    if camera is not None:
+        cam = camera if isinstance(camera, CameraSpec) else load_camera(camera)
+        if side_cam is not None:
+            log(f"{sidecar_path}: camera overridden by the camera given on the command line")
+        return cam
+    if side_cam is None:
+        where = f"{sidecar_path} has no camera" if sidecar_path else f"{folder} has no recording.yaml"
+        raise ImportDataError(f"{where}: give the camera with --camera camera.yaml (or 'camera' or "
+                              "'camera_file' in recording.yaml); see docs/log-format.md")
+    return side_cam
+
+
+def import_images(folder: str | Path, out: str | Path, camera: CameraSpec | str | Path | None = None,
+                  sidecar: str | Path | None = None, show_progress: bool = False) -> Path:
+    """Import the images of ``folder`` into the recording ``out``; returns ``out``.
+
+    ``camera``: a :class:`CameraSpec` or the path of a camera.yaml; overrides the sidecar's camera.
+    ``sidecar``: a recording.yaml kept elsewhere (e.g. for a read-only folder); default
+    ``folder/recording.yaml`` when present. Paths inside a sidecar are relative to its own folder,
+    except ``files``, which are relative to ``folder``.
+    Imperfect but recoverable input emits :class:`~logs.importers.common.ImportDataWarning` (also
+    kept in the log's ``import.warnings`` metadata); unusable input raises ImportDataError.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ImportDataError(f"{folder}: not a directory (expected a folder of images)")
+    out = output_path(out)
+    log = WarningLog()
+    sidecar_path = Path(sidecar) if sidecar is not None else find_sidecar(folder)
+    if sidecar_path is not None and not sidecar_path.is_file():
+        raise ImportDataError(f"{sidecar_path}: sidecar file not found")
+    side = load_sidecar(sidecar_path) if sidecar_path else RecordingSidecar()
+    base = sidecar_path.parent if sidecar_path else folder
+    source = str(sidecar_path or folder)
+    cam = resolve_camera(camera, side if sidecar_path else None, sidecar_path, log, folder)
+    files = _list_files(folder, side.files, source)
+    headers = [_image_header(f) for f in files]
+    for f, (w, h, _) in zip(files, headers):
+        if (w, h) != (cam.width_px, cam.height_px):
+            raise ImportDataError(f"{f}: image is {w}x{h} px but the camera says width_px {cam.width_px}, "
+                                  f"height_px {cam.height_px}")
+    bits = {b for _, _, b in headers}
+    if len(bits) > 1:
+        first8 = next(f for f, hd in zip(files, headers) if hd[2] == 8)
+        first16 = next(f for f, hd in zip(files, headers) if hd[2] == 16)
+        raise ImportDataError(f"{folder}: mixes 8-bit ({first8.name}) and 16-bit ({first16.name}) images; "
+                              "one recording has one bit depth")
+    container_bits = bits.pop()
+    bit_depth = cam.bit_depth if cam.bit_depth is not None else container_bits
+    if bit_depth > container_bits:
+        raise ImportDataError(f"camera bit_depth {bit_depth} exceeds the {container_bits}-bit images in {folder}")
+    t0, timing = _frame_times(side, files, base, source, log)
+    gyro = _read_gyro(base / side.gyro_csv, log) if side.gyro_csv else None
+    truth = _read_truth(base / side.truth_csv, log) if side.truth_csv else None
+    period = float(np.median(np.diff(t0))) * 1e-6 if len(t0) > 1 else None
+    scenario = scenario_for(cam, name=f"import:{folder.name}", description=f"images imported from {folder}",
+                            level="image", frames=len(files), bit_depth=bit_depth,
+                            initial_attitude=side.initial_attitude, frame_period_ms=period)
+    details = {
+        "files": [f.name for f in files], "t0_ns": t0.tolist(), "timestamps": timing,
+        "container_bits": container_bits, "bit_depth": bit_depth,
+        "camera": cam.model_dump(mode="json"), "focal_px": cam.focal_px,
+        "sidecar": str(sidecar_path) if sidecar_path else None,
+        "gyro_csv": side.gyro_csv, "truth_csv": side.truth_csv,
+    }
+    metadata = {"scenario": {"yaml": to_yaml(scenario)},
+                "sensor": {"yaml": yaml.safe_dump(cam.model_dump(mode="json"), sort_keys=False)},
+                "import": import_metadata("images", folder, details, log)}
+    with LogWriter(out, kind="import", metadata=metadata) as writer, \
+            progress_bar(f"import {folder.name}", len(files), show_progress) as advance:
+        if truth is not None:
+            tt, q, w = truth
+            for idx in batches_by_frame(tt, t0):
+                writer.write_json(TOPIC_TRUTH_ATTITUDE, AttitudeSamplesRecord(
+                    t_ns=tt[idx].tolist(), qx=q[idx, 0].tolist(), qy=q[idx, 1].tolist(), qz=q[idx, 2].tolist(),
+                    qw=q[idx, 3].tolist(), **({} if w is None else dict(
+                        wx=w[idx, 0].tolist(), wy=w[idx, 1].tolist(), wz=w[idx, 2].tolist()))))
+        if gyro is not None:
+            tg, wg = gyro
+            for idx in batches_by_frame(tg, t0, join_tail=False):
+                writer.write_json(TOPIC_GYRO, GyroSamplesRecord(
+                    t_ns=tg[idx].tolist(), x=wg[idx, 0].tolist(), y=wg[idx, 1].tolist(), z=wg[idx, 2].tolist()))
+        for f, t in zip(files, t0.tolist()):
+            image = read_image(f)
+            if image.itemsize * 8 != container_bits:  # header and pixels disagree (e.g. mode "I")
+                raise ImportDataError(f"{f}: decoded as {image.dtype}, expected {container_bits}-bit like the other images")
+            writer.write_image(TOPIC_IMAGE, image, t)
+            advance()
+    return out

@@ -1,0 +1,188 @@
+"""The documented input formats of ``rollingstar import``: ``camera.yaml`` and ``recording.yaml``.
+
+Both are strict pydantic models (unknown keys rejected, units in key names, see
+docs/log-format.md "Importing recordings"). A camera file describes the sensor (pinhole optics,
+detector size, shutter); a recording sidecar describes one folder of images (which files, their
+times, optional gyro and truth CSVs) and either holds the camera inline or names a camera file.
+
+:func:`scenario_for` turns a camera into the :class:`~pipelines.config.ScenarioConfig` a log must
+declare (metadata ``scenario``) so that ``rollingstar run`` builds the sensor context from it.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt, model_validator
+
+from pipelines.config import (
+    AttitudeConfig,
+    ImageConfig,
+    MotionConfig,
+    NoiseConfig,
+    ScenarioConfig,
+    SensorConfig,
+    ShutterConfig,
+    format_validation_error,
+    read_yaml,
+)
+from pipelines.errors import ConfigError
+
+DEFAULT_EXPOSURE_MS = 100.0
+"""Exposure assumed when a camera file does not state one (it only sets the stars' times)."""
+DEFAULT_FRAME_RATE_HZ = 1.0
+"""Frame rate assumed when a sidecar gives neither timestamps nor a frame rate."""
+NOMINAL_PIXEL_SIZE_UM = 1.0
+"""Pixel pitch written when only the field of view is known: only focal / pixel matters."""
+
+IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+
+class ShutterSpec(_Strict):
+    """Exposure timing. Defaults: global shutter, 100 ms exposure, no line delay."""
+
+    mode: Literal["rolling", "global"] = "global"
+    exposure_ms: PositiveFloat = DEFAULT_EXPOSURE_MS
+    line_delay_us: NonNegativeFloat = 0.0
+
+    @model_validator(mode="after")
+    def _rolling_has_delay(self) -> "ShutterSpec":
+        if self.mode == "rolling" and self.line_delay_us <= 0:
+            raise ValueError("a rolling shutter needs line_delay_us > 0 (the delay between the exposure "
+                             "starts of adjacent rows)")
+        return self
+
+
+class CameraSpec(_Strict):
+    """A camera: pinhole optics, detector size and shutter (``camera.yaml``).
+
+    Optics are given either as ``focal_length_mm`` with ``pixel_size_um``, or as ``fov_deg`` (the
+    full angle across ``fov_axis``: ``f_px = (N / 2) / tan(fov / 2)`` with ``N`` the width,
+    height or diagonal in pixels; ``pixel_size_um`` then defaults to a nominal 1 um).
+    """
+
+    name: str = "camera"
+    description: str = ""
+    width_px: PositiveInt
+    height_px: PositiveInt
+    focal_length_mm: PositiveFloat | None = None
+    pixel_size_um: PositiveFloat | None = None
+    fov_deg: float | None = Field(None, gt=0, lt=180)
+    fov_axis: Literal["horizontal", "vertical", "diagonal"] = "horizontal"
+    principal_point_px: tuple[float, float] | None = Field(
+        None, description="(cx, cy); default the detector centre ((W-1)/2, (H-1)/2)")
+    shutter: ShutterSpec = ShutterSpec()
+    bit_depth: int | None = Field(None, ge=8, le=16, description="ADC bits; default from the image dtype (8 or 16)")
+
+    @model_validator(mode="after")
+    def _optics(self) -> "CameraSpec":
+        if (self.focal_length_mm is None) == (self.fov_deg is None):
+            raise ValueError("give the optics as focal_length_mm with pixel_size_um, or as fov_deg "
+                             "(with fov_axis), not both and not neither")
+        if self.focal_length_mm is not None and self.pixel_size_um is None:
+            raise ValueError("focal_length_mm needs pixel_size_um")
+        return self
+
+    @property
+    def focal_px(self) -> float:
+        """Focal length in pixels."""
+        if self.focal_length_mm is not None:
+            return self.focal_length_mm * 1e3 / self.pixel_size_um
+        n = {"horizontal": self.width_px, "vertical": self.height_px,
+             "diagonal": math.hypot(self.width_px, self.height_px)}[self.fov_axis]
+        return (n / 2.0) / math.tan(math.radians(self.fov_deg) / 2.0)
+
+    def sensor_config(self) -> SensorConfig:
+        """The scenario sensor block (focal length and pixel size whose ratio is ``focal_px``)."""
+        pixel_um = self.pixel_size_um if self.pixel_size_um is not None else NOMINAL_PIXEL_SIZE_UM
+        return SensorConfig(focal_length_mm=self.focal_px * pixel_um * 1e-3, pixel_size_um=pixel_um,
+                            width_px=self.width_px, height_px=self.height_px,
+                            principal_point_px=self.principal_point_px)
+
+
+class TimestampsSpec(_Strict):
+    """Frame times (``t0``, exposure start of row 0): a frame rate, a list, or a CSV.
+
+    - ``frame_rate_hz``: ``t0_k = start_ns + round(k * 1e9 / frame_rate_hz)``;
+    - ``t0_ns``: one integer per image, in file order, strictly increasing;
+    - ``csv``: a file with columns ``file`` and ``t_ns`` (or ``time_s``), one row per image.
+    Default: ``frame_rate_hz: 1.0`` from ``start_ns: 0``.
+    """
+
+    frame_rate_hz: PositiveFloat | None = None
+    start_ns: NonNegativeInt = 0
+    t0_ns: list[NonNegativeInt] | None = None
+    csv: str | None = None
+
+    @model_validator(mode="after")
+    def _one_source(self) -> "TimestampsSpec":
+        given = [k for k in ("frame_rate_hz", "t0_ns", "csv") if getattr(self, k) is not None]
+        if len(given) > 1:
+            raise ValueError(f"give one of frame_rate_hz, t0_ns, csv (got {', '.join(given)})")
+        return self
+
+
+class RecordingSidecar(_Strict):
+    """``recording.yaml`` beside a folder of images (paths relative to the sidecar's folder, ``files`` to the images')."""
+
+    camera: CameraSpec | None = Field(None, description="the camera, inline; None: camera_file or --camera")
+    camera_file: str | None = Field(None, description="path of a camera.yaml instead of an inline camera")
+    files: str | list[str] | None = Field(
+        None, description="a glob pattern or an explicit list of image files; default every "
+                          "*.tif, *.tiff, *.png, *.jpg, *.jpeg in the folder, sorted by name")
+    timestamps: TimestampsSpec = TimestampsSpec()
+    gyro_csv: str | None = Field(None, description="CSV: t_ns (or time_s), wx, wy, wz (rad/s, camera frame)")
+    truth_csv: str | None = Field(
+        None, description="CSV: t_ns (or time_s), qx, qy, qz, qw (camera-to-ICRS) and optionally wx, wy, wz")
+    initial_attitude: AttitudeConfig | None = Field(
+        None, description="a prior attitude (boresight ra/dec, roll) for the tracking identifier; default none")
+
+    @model_validator(mode="after")
+    def _one_camera(self) -> "RecordingSidecar":
+        if self.camera is not None and self.camera_file is not None:
+            raise ValueError("give camera (inline) or camera_file, not both")
+        return self
+
+
+def load_model(model: type[_Strict], path: str | Path):
+    """Read and validate a YAML file; errors name the file and the key path."""
+    from pydantic import ValidationError
+
+    data = read_yaml(path)
+    try:
+        return model.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(format_validation_error(str(path), err)) from None
+
+
+def load_camera(path: str | Path) -> CameraSpec:
+    """A :class:`CameraSpec` from a ``camera.yaml``."""
+    return load_model(CameraSpec, path)
+
+
+def load_sidecar(path: str | Path) -> RecordingSidecar:
+    """A :class:`RecordingSidecar` from a ``recording.yaml``."""
+    return load_model(RecordingSidecar, path)
+
+
+def scenario_for(camera: CameraSpec, *, name: str, description: str, level: Literal["image", "centroid"],
+                 frames: int, bit_depth: int = 16, centroid_sigma_px: float | None = None,
+                 initial_attitude: AttitudeConfig | None = None, frame_period_ms: float | None = None) -> ScenarioConfig:
+    """The scenario (sensor model) an imported log declares in its ``scenario`` metadata.
+
+    Only the sensor, shutter, bit depth, centroid noise and an optional prior attitude carry
+    information; the motion has no rates (the truth, if any, is in the log's truth topics).
+    """
+    sh = camera.shutter
+    shutter = ShutterConfig(mode=sh.mode, exposure_ms=sh.exposure_ms, line_delay_us=sh.line_delay_us,
+                            frame_period_ms=frame_period_ms)
+    noise = NoiseConfig() if centroid_sigma_px is None else NoiseConfig(centroid_sigma_px=centroid_sigma_px)
+    return ScenarioConfig(
+        name=name, description=description, level=level, sensor=camera.sensor_config(), shutter=shutter,
+        motion=MotionConfig(initial_attitude=initial_attitude), noise=noise,
+        image=ImageConfig(bit_depth=bit_depth), frames=max(1, int(frames)))

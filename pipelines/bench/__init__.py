@@ -1,0 +1,1 @@
+"""Benchmarks run by ``rollingstar bench ...`` that score an analysis against known truth."""

@@ -1,0 +1,206 @@
+"""results.md (tables), report.html (the same tables and the figures) and img/*.png from results.json.
+
+Figures (matplotlib, Agg):
+
+- ``img/error_vs_rate_<scenario>.png`` for every scenario with more than one variant: attitude error
+  RMSE per axis, star-pair distance error RMSE and (when estimated) rate error RMSE per axis against
+  the variant's |rate| or |(w_x, w_y)| (config ``plot_x``), one line per pipeline (mean over seeds, bars = std), the single-frame
+  Cramér-Rao bounds dashed;
+- ``img/update_rate_vs_accuracy.png``: attitude updates per second against the attitude error
+  (RMS over the three axes' RMSE), one marker per (variant, pipeline);
+- ``img/cpu_time.png``: CPU time per frame of the run stage, per pipeline and scenario.
+"""
+from __future__ import annotations
+
+import html
+import re
+from pathlib import Path
+
+import numpy as np
+
+AXES = ("x", "y", "z")
+
+
+def _m(row: dict, key: str) -> tuple[float | None, float | None]:
+    s = row["metrics"].get(key)
+    return (None, None) if not s or s["mean"] is None else (s["mean"], s["std"])
+
+
+def _fmt(mean, std=None, digits=3) -> str:
+    if mean is None:
+        return "n/a"
+    text = f"{mean:.{digits}g}"
+    return text + (f" ± {std:.2g}" if std and std > 1e-9 * abs(mean) else "")  # not float round-off
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("_")
+
+
+def tables(results: dict) -> list[tuple[str, list[str], list[list[str]]]]:
+    """(title, header, rows) per scenario."""
+    out = []
+    scenarios = list(dict.fromkeys(r["scenario"] for r in results["results"]))
+    for sc in scenarios:
+        rows = [r for r in results["results"] if r["scenario"] == sc]
+        header = ["variant", "pipeline", "seeds", "att. RMSE x / y / z (arcsec)", "CRB x / y / z (arcsec)",
+                  "efficiency x / y / z", "rate RMSE x / y / z (deg/s)", "rate CRB x / y / z (deg/s)",
+                  "pair dist. RMSE (px)", "updates (Hz)", "CPU ms/frame"]
+        body = []
+        for r in rows:
+            def trio(prefix, suffix=""):
+                return " / ".join(_fmt(*_m(r, f"{prefix}{a}{suffix}")) for a in AXES)
+            cpu = r["timing"]["cpu_s_per_frame"]["mean"]
+            body.append([
+                r["variant"], r["pipeline"], str(len(r["seeds"])) + (f" ({len(r['errors'])} failed)" if r["errors"] else ""),
+                trio("attitude_error_arcsec.", "_rmse"), trio("attitude_crb_arcsec."), trio("efficiency.attitude_"),
+                trio("rate_error_deg_s.", "_rmse"), trio("rate_crb_deg_s."),
+                _fmt(*_m(r, "star_pair_distance_error_px.rmse")), _fmt(*_m(r, "update_rate_hz")),
+                "n/a" if cpu is None else f"{1e3 * cpu:.3g}",
+            ])
+        out.append((sc, header, body))
+    return out
+
+
+_X_KEY = {"rate_norm": ("rate_norm_deg_s", "|rate| (deg/s)"), "rate_xy_norm": ("rate_xy_norm_deg_s", "|(w_x, w_y)| (deg/s)")}
+
+
+def figures(results: dict, img_dir: Path) -> list[tuple[str, str]]:
+    """Write the PNGs; returns (file name relative to the output dir, caption)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    img_dir.mkdir(parents=True, exist_ok=True)
+    made = []
+    rows = results["results"]
+    x_key, x_label = _X_KEY[results["comparison"].get("plot_x", "rate_norm")]
+
+    def _x_of(row: dict) -> float:
+        return row[x_key]
+
+    pipelines = list(dict.fromkeys(r["pipeline"] for r in rows))
+    colours = {p: f"C{k % 10}" for k, p in enumerate(pipelines)}
+    for sc in dict.fromkeys(r["scenario"] for r in rows):
+        sub = [r for r in rows if r["scenario"] == sc]
+        if len({r["variant"] for r in sub}) < 2:
+            continue
+        has_rate = any(_m(r, "rate_error_deg_s.x_rmse")[0] is not None for r in sub)
+        nrows = 2 if has_rate else 1
+        fig, axs = plt.subplots(nrows, 4, figsize=(16, 3.6 * nrows), squeeze=False)
+        panels = [(axs[0][k], f"attitude_error_arcsec.{a}_rmse", f"attitude_crb_arcsec.{a}", f"attitude error {a} RMSE (arcsec)")
+                  for k, a in enumerate(AXES)]
+        panels.append((axs[0][3], "star_pair_distance_error_px.rmse", None, "star-pair distance error RMSE (px)"))
+        if has_rate:
+            panels += [(axs[1][k], f"rate_error_deg_s.{a}_rmse", f"rate_crb_deg_s.{a}", f"rate error {a} RMSE (deg/s)")
+                       for k, a in enumerate(AXES)]
+            panels.append((axs[1][3], "rate_error_deg_s.rmse", None, "rate error |.| RMSE (deg/s)"))
+        for ax, key, bound, title in panels:
+            for p in pipelines:
+                pr = sorted((r for r in sub if r["pipeline"] == p), key=_x_of)
+                pts = [(_x_of(r), *_m(r, key)) for r in pr if _m(r, key)[0] is not None]
+                if pts:
+                    x, m, s = map(np.array, zip(*pts))
+                    ax.errorbar(x, m, yerr=s, marker="o", ms=3, capsize=2, color=colours[p], label=p)
+                if bound:
+                    bpts = [(_x_of(r), _m(r, bound)[0]) for r in pr if _m(r, bound)[0] is not None and _m(r, key)[0] is not None]
+                    if bpts:
+                        bx, bm = zip(*bpts)
+                        ax.plot(bx, bm, ls="--", lw=1, color=colours[p], alpha=0.7)
+            ax.set_title(title, fontsize=9)
+            ax.set_xlabel(x_label)
+            if ax.has_data():
+                ax.set_yscale("log")  # pipelines differ by orders of magnitude
+            ax.grid(alpha=0.3)
+        for ax in axs.flat:
+            if not ax.has_data():
+                ax.set_visible(False)
+        axs[0][0].legend(fontsize=7)
+        fig.suptitle(f"{sc}: error vs rate (mean ± std over seeds; dashed: single-frame Cramér–Rao bound)", fontsize=10)
+        fig.tight_layout()
+        name = f"img/error_vs_rate_{_slug(sc)}.png"
+        fig.savefig(img_dir.parent / name, dpi=110)
+        plt.close(fig)
+        made.append((name, f"{sc}: error vs rate per axis"))
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    for p in pipelines:
+        pts = []
+        for r in rows:
+            if r["pipeline"] != p:
+                continue
+            e = [_m(r, f"attitude_error_arcsec.{a}_rmse")[0] for a in AXES]
+            u = _m(r, "update_rate_hz")[0]
+            if u is not None and all(v is not None for v in e):
+                pts.append((u, float(np.sqrt(np.mean(np.square(e))))))
+        if pts:
+            ax.scatter(*zip(*pts), color=colours[p], label=p, s=18)
+    ax.set_xlabel("attitude updates per second")
+    ax.set_ylabel("attitude error, RMS of x/y/z RMSE (arcsec)")
+    ax.set_yscale("log")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    ax.set_title("update rate vs accuracy (one point per scenario variant)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(img_dir / "update_rate_vs_accuracy.png", dpi=110)
+    plt.close(fig)
+    made.append(("img/update_rate_vs_accuracy.png", "update rate vs accuracy"))
+
+    scen = list(dict.fromkeys(r["scenario"] for r in rows))
+    fig, ax = plt.subplots(figsize=(max(6.5, 1.2 * len(scen) * max(1, len(pipelines)) * 0.4), 4.5))
+    width = 0.8 / max(1, len(pipelines))
+    for k, p in enumerate(pipelines):
+        vals = []
+        for sc in scen:
+            cpu = [r["timing"]["cpu_s_per_frame"]["mean"] for r in rows
+                   if r["scenario"] == sc and r["pipeline"] == p and r["timing"]["cpu_s_per_frame"]["mean"] is not None]
+            vals.append(1e3 * float(np.mean(cpu)) if cpu else np.nan)
+        ax.bar(np.arange(len(scen)) + k * width, vals, width, color=colours[p], label=p)
+    ax.set_xticks(np.arange(len(scen)) + 0.4 - width / 2, scen, fontsize=8)
+    ax.set_ylabel("CPU ms per frame (run stage, mean over variants)")
+    ax.set_yscale("log")
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3, axis="y")
+    fig.tight_layout()
+    fig.savefig(img_dir / "cpu_time.png", dpi=110)
+    plt.close(fig)
+    made.append(("img/cpu_time.png", "CPU time per frame"))
+    return made
+
+
+def markdown(results: dict, images: list[tuple[str, str]], command: str) -> str:
+    c = results["comparison"]
+    lines = [f"# Comparison `{c['name']}`", "", c["description"], "", f"Command: `{command}`", "",
+             f"Seeds: {c['seeds']}; mean ± std over seeds; CRB = single-frame Cramér–Rao bound; "
+             "efficiency = RMSE / CRB.", ""]
+    for title, header, body in tables(results):
+        lines += [f"## {title}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+        lines += ["| " + " | ".join(row) + " |" for row in body]
+        lines.append("")
+    errors = [(r["pipeline"], r["variant"], e) for r in results["results"] for e in r["errors"]]
+    if errors:
+        lines += ["## Failed tasks", ""] + [f"- {p} on {v}: {e}" for p, v, e in errors] + [""]
+    lines += ["## Figures", ""] + [f"![{cap}]({name})" for name, cap in images]
+    return "\n".join(lines) + "\n"
+
+
+def html_report(results: dict, images: list[tuple[str, str]], command: str) -> str:
+    c = results["comparison"]
+    parts = ["<!doctype html><html><head><meta charset='utf-8'>",
+             f"<title>rollingstar compare {html.escape(c['name'])}</title>",
+             "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;font-size:12px}"
+             "td,th{border:1px solid #ccc;padding:3px 6px;text-align:right}td:first-child,td:nth-child(2){text-align:left}"
+             "img{max-width:100%}</style></head><body>",
+             f"<h1>Comparison {html.escape(c['name'])}</h1><p>{html.escape(c['description'])}</p>",
+             f"<p>Command: <code>{html.escape(command)}</code>; seeds {c['seeds']}; mean ± std over seeds; "
+             "CRB = single-frame Cramér–Rao bound; efficiency = RMSE / CRB.</p>"]
+    for title, header, body in tables(results):
+        parts.append(f"<h2>{html.escape(title)}</h2><table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>")
+        parts += ["<tr>" + "".join(f"<td>{html.escape(v)}</td>" for v in row) + "</tr>" for row in body]
+        parts.append("</table>")
+    parts.append("<h2>Figures</h2>")
+    parts += [f"<figure><img src='{html.escape(name)}' alt='{html.escape(cap)}'><figcaption>{html.escape(cap)}</figcaption></figure>"
+              for name, cap in images]
+    parts.append("</body></html>")
+    return "\n".join(parts)

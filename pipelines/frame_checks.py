@@ -1,0 +1,82 @@
+"""Checks on every frame of a recording before the stages see it (docs/reliability.md).
+
+- an image whose size differs from the declared sensor (``sensor.width_px`` x ``height_px``,
+  zero-size included), or an 8-bit image where the sensor model declares more bits
+  (``image.bit_depth``): :class:`~logs.errors.LogFormatError` naming the file, topic, frame,
+  what was found and what was expected;
+- a frame whose time ``t0`` does not increase: an exact repeat of the previous frame (same time,
+  same content) is skipped with a warning; otherwise the recording is out of time order:
+  :class:`~logs.errors.LogFormatError`;
+- a gap between frames longer than 1.5 declared frame periods (frames lost or a clock jump): the
+  frame is processed and flagged ``time_gap:<ms>`` with a warning, so stages and readers of the
+  output know its predecessor is not the previous frame.
+"""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from estimators.data import FrameData
+from logs.errors import LogFormatError
+
+GAP_FACTOR = 1.5
+
+
+class FrameChecker:
+    """Stateful per-recording checker; :meth:`check` returns the frame (maybe flagged) or None to skip it."""
+
+    def __init__(self, recording, frame_topic: str, context) -> None:
+        self.recording = recording
+        self.topic = frame_topic
+        self.width = int(context.camera.width)
+        self.height = int(context.camera.height)
+        self.bit_depth = getattr(context, "bit_depth", None)
+        self.period_ns = getattr(context.timing, "frame_period_ns", None)
+        self._prev: FrameData | None = None
+        self._prev_payload = None
+        self.skipped = 0
+
+    def _where(self, frame: FrameData) -> str:
+        return f"{self.recording}: {self.topic} frame {frame.index} (t0 = {frame.t0_ns} ns)"
+
+    def check(self, frame: FrameData, payload) -> FrameData | None:
+        if frame.image is not None:
+            self._check_image(frame)
+        prev = self._prev
+        if prev is not None and frame.t0_ns <= prev.t0_ns:
+            if frame.t0_ns == prev.t0_ns and _same(payload, self._prev_payload):
+                self.skipped += 1
+                warnings.warn(f"{self._where(frame)}: duplicate of the previous frame (same time and content) skipped")
+                return None
+            raise LogFormatError(
+                f"{self._where(frame)}: frame time does not increase (previous frame {prev.index} at t0 = "
+                f"{prev.t0_ns} ns); frames must be in time order with distinct times")
+        if prev is not None and self.period_ns:
+            gap = frame.t0_ns - prev.t0_ns
+            if gap > GAP_FACTOR * self.period_ns:
+                ms = gap * 1e-6
+                warnings.warn(f"{self._where(frame)}: {ms:.1f} ms after the previous frame, expected "
+                              f"{self.period_ns * 1e-6:.1f} ms (the declared frame period): frames lost or a clock "
+                              "jump; frame flagged time_gap")
+                frame = frame.flagged(f"time_gap:{ms:.0f}ms")
+        self._prev, self._prev_payload = frame, payload
+        return frame
+
+    def _check_image(self, frame: FrameData) -> None:
+        img = frame.image
+        h, w = img.shape
+        if (w, h) != (self.width, self.height):
+            raise LogFormatError(
+                f"{self._where(frame)}: image is {w}x{h} px, the recording's sensor model declares "
+                f"{self.width}x{self.height} (sensor.width_px x sensor.height_px in metadata 'scenario')")
+        if img.dtype == np.uint8 and self.bit_depth is not None and self.bit_depth > 8:
+            raise LogFormatError(
+                f"{self._where(frame)}: 8-bit image (mono8), the sensor model declares {self.bit_depth}-bit pixels "
+                "(image.bit_depth); expected mono16")
+
+
+def _same(a, b) -> bool:
+    if hasattr(a, "SerializeToString") and hasattr(b, "SerializeToString"):
+        return a.SerializeToString(deterministic=True) == b.SerializeToString(deterministic=True)
+    return a == b

@@ -1,0 +1,141 @@
+"""``rollingstar diagnose`` end to end on small simulated recordings: JSON keys, naming, report, errors."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from pipelines.cli import app
+from pipelines.config import load_scenario
+from pipelines.simulate import simulate_to_log
+
+BASE = """
+name: diag-test
+level: centroid
+sensor: {focal_length_mm: 24.09, pixel_size_um: 5.5, width_px: 1024, height_px: 1024}
+shutter: {mode: rolling, exposure_ms: 50.0, line_delay_us: 49.0}
+catalog: {source: hipparcos, magnitude_limit: 6.0, epoch_year: 2025.0}
+motion:
+  initial_attitude: {ra_deg: 83.8, dec_deg: -5.4, roll_deg: 0.0}
+  rate_deg_s: [0.5, 0.0, 0.0]
+noise: {centroid_sigma_px: 0.05}
+frames: 12
+seed: 3
+"""
+K1 = 0.01
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory):
+    d = tmp_path_factory.mktemp("diag")
+    base = d / "base.yaml"
+    base.write_text(BASE)
+    truth = d / "truth.yaml"
+    truth.write_text(BASE + f"effects: [{{kind: radial_distortion, params: {{k1: {K1}}}}}]\n")
+    null_rec, rad_rec = d / "null.mcap", d / "radial.mcap"
+    simulate_to_log(load_scenario(base), null_rec, show_progress=False)
+    simulate_to_log(load_scenario(truth), rad_rec, show_progress=False)
+    return {"dir": d, "base": base, "null": null_rec, "radial": rad_rec}
+
+
+def _run(*args):
+    res = runner.invoke(app, [str(a) for a in args])
+    return res
+
+
+@pytest.fixture(scope="module")
+def radial_result(recordings):
+    out = recordings["dir"] / "report_radial"
+    res = _run("diagnose", "--sim", recordings["base"], "--recording", recordings["radial"], "-o", out, "--json", "-q")
+    assert res.exit_code == 0, res.output
+    return json.loads(res.output), out
+
+
+REQUIRED = {"mismatch": bool, "located": dict, "effects": list, "ambiguous": list, "heldout_rms_before_px": float,
+            "heldout_rms_after_px": float, "train_rms_before_px": float, "train_rms_after_px": float}
+
+
+def test_json_has_the_required_keys_and_types(radial_result):
+    res, _ = radial_result
+    for key, typ in REQUIRED.items():
+        assert isinstance(res[key], typ), key
+    assert {"chi2_dof", "strongest_covariate"} <= set(res["located"])
+    for e in res["effects"]:
+        assert {"name", "params", "delta_bic", "inclusion_probability", "aliases_checked", "explanation"} <= set(e)
+        for p in e["params"].values():
+            assert set(p) >= {"value", "sigma", "unit"}
+    for a in res["ambiguous"]:
+        assert {"candidates", "separating_experiment"} <= set(a)
+
+
+def test_radial_distortion_is_named_and_fitted(radial_result):
+    res, _ = radial_result
+    assert res["mismatch"] is True
+    names = [e["name"] for e in res["effects"]]
+    assert names == ["radial_distortion"], res["verdict"]
+    k1 = res["effects"][0]["params"]["k1"]
+    assert abs(k1["value"] - K1) < 4 * k1["sigma"], k1
+    assert res["effects"][0]["inclusion_probability"] >= 0.9
+    # held-out data the fit never saw improve, and the training chi2/dof returns to 1 within 5 sigma
+    assert res["heldout_rms_after_px"] < res["heldout_rms_before_px"]
+    dof = 2 * res["split"]["train_observations"] - 3 * res["split"]["train_frames"]
+    assert abs(res["train_chi2_dof_after"] - 1.0) < 5 * np.sqrt(2.0 / dof)
+    assert res["located"]["chi2_dof"] > 1.0 + 5 * np.sqrt(2.0 / dof)
+    assert res["located"]["strongest_covariate"] is not None
+
+
+def test_report_and_updated_scenario(radial_result):
+    res, out = radial_result
+    for name in ("index.html", "result.json", "residual_quiver.png", "heldout_improvement.png", "scenario_updated.yaml"):
+        assert (out / name).is_file(), name
+    upd = load_scenario(out / "scenario_updated.yaml")
+    eff = [e for e in upd.effects if e.kind == "radial_distortion"]
+    assert len(eff) == 1
+    assert eff[0].params["k1"] == pytest.approx(res["effects"][0]["params"]["k1"]["value"])
+    assert "radial_distortion" in (out / "index.html").read_text()
+
+
+def test_null_recording_is_explained_within_noise(recordings):
+    # --sim omitted: the model the recording declares (its own scenario, no effect)
+    res = _run("diagnose", "--recording", recordings["null"], "--json", "-q")
+    assert res.exit_code == 0, res.output
+    r = json.loads(res.output)
+    assert r["mismatch"] is False and r["effects"] == [] and not r["unexplained_systematic"]["present"]
+    assert "within its noise" in r["verdict"]
+
+
+def test_heldout_frames_are_split_before_fitting(recordings):
+    from pipelines.diagnose import DiagnoseOptions, diagnose
+
+    res, internals = diagnose(recordings["radial"], load_scenario(recordings["base"]), options=DiagnoseOptions(n_boot=0, stability=False))
+    obs = internals["obs"]
+    held_frames = set(obs.frame[obs.heldout])
+    assert held_frames and not held_frames & set(obs.frame[~obs.heldout])  # whole frames held out
+    assert res["split"]["heldout_frames"] == len(held_frames) == round(0.25 * obs.n_frames)
+
+
+@pytest.mark.parametrize("case", ["missing_recording", "bad_sim", "no_metadata"])
+def test_cli_errors_exit_2(recordings, tmp_path, case):
+    if case == "missing_recording":
+        res = _run("diagnose", "--recording", tmp_path / "nope.mcap", "--json")
+        needle = "nope.mcap"
+    elif case == "bad_sim":
+        bad = tmp_path / "bad.yaml"
+        bad.write_text(BASE + "framez: 3\n")
+        res = _run("diagnose", "--sim", bad, "--recording", recordings["null"])
+        needle = "framez"
+    else:
+        from logs.writer import LogWriter
+
+        rec = tmp_path / "bare.mcap"
+        with LogWriter(rec, kind="simulation"):
+            pass
+        res = _run("diagnose", "--recording", rec)
+        needle = "declares no sensor model"
+    assert res.exit_code == 2, res.output
+    assert needle in res.output
+    assert "Traceback" not in res.output

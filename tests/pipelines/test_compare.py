@@ -1,0 +1,172 @@
+"""rollingstar compare: config expansion and errors, serial == dask, the numbers are evaluate's, the gate."""
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipelines.compare import run_compare
+from pipelines.compare.aggregate import deterministic_view
+from pipelines.compare.config import Tolerance, load_compare
+from pipelines.compare.regression import compare_to_baseline
+from pipelines.config import load_pipeline, load_scenario
+from pipelines.errors import ConfigError
+from pipelines.evaluate import evaluate_log
+from pipelines.runner import run_pipeline
+from pipelines.simulate import simulate_to_log
+
+ROOT = Path(__file__).resolve().parents[2]
+CONFIGS = ROOT / "configs"
+
+TINY = f"""
+name: tiny
+monte_carlo: 2
+seed: 3
+frames: 3
+pipelines:
+  - {CONFIGS}/pipelines/baseline.yaml
+  - {{path: {CONFIGS}/pipelines/ls_rate.yaml, name: ls}}
+scenarios:
+  - path: {CONFIGS}/scenarios/fu2022.yaml
+    sweep: {{motion.rate_deg_s: [[0.5, 0.5, 0.0], [1.0, 0.0, 2.0]]}}
+  - path: {CONFIGS}/scenarios/he2021b.yaml
+    pipelines: [ls]
+tolerances:
+  "attitude_error_arcsec.*": {{rel: 0.10}}
+  "attitude_error_arcsec.x_rmse": {{rel: 0.01}}
+"""
+
+
+def cli(*args):
+    """The command in-process (typer's runner): exit code, stdout, stderr."""
+    from typer.testing import CliRunner
+
+    from pipelines.cli import app
+
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("compare")
+    (d / "tiny.yaml").write_text(TINY)
+    return d / "tiny.yaml"
+
+
+@pytest.fixture(scope="module")
+def serial(tiny, tmp_path_factory):
+    return run_compare(tiny, tmp_path_factory.mktemp("serial"), executor="serial", show_progress=False)
+
+
+def test_expansion_product_of_sweeps_and_subsets(tmp_path):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(TINY.replace("sweep: {motion.rate_deg_s:", "sweep: {noise.centroid_sigma_px: [0.01, 0.03], motion.rate_deg_s:"))
+    comp = load_compare(cfg)
+    labels = [v.label for v in comp.variants]
+    assert len(labels) == 2 * 2 + 1 and len(set(labels)) == 5
+    v = comp.variants[3]
+    assert v.params == {"noise.centroid_sigma_px": 0.03, "motion.rate_deg_s": [1.0, 0.0, 2.0]}
+    assert v.config.noise.centroid_sigma_px == 0.03 and v.config.motion.rate_deg_s == (1.0, 0.0, 2.0)
+    assert v.config.frames == 3 and v.config.sensor.focal_length_mm == 42.0  # the rest is the file's
+    tasks = comp.tasks()
+    assert len(tasks) == (4 * 2 + 1) * 2 and [t.index for t in tasks] == list(range(len(tasks)))
+    assert {(t.variant, t.pipeline) for t in tasks if t.variant.startswith("he2021b")} == {("he2021b", "ls")}
+    assert sorted({t.seed for t in tasks}) == [3, 4]
+
+
+@pytest.mark.parametrize("edit, needles", [
+    (("monte_carlo: 2", "monte_carlo: 2\nmonte_carlos: 3"), ["monte_carlos", "unknown key"]),
+    (("scenarios/he2021b.yaml", "scenarios/nope.yaml"), ["scenarios[1].path", "file not found", "nope.yaml"]),
+    (("pipelines: [ls]", "pipelines: [lss]"), ["scenarios[1].pipelines[0]", "lss", "ls"]),
+    (("[1.0, 0.0, 2.0]", "[1.0, fast, 2.0]"), ["scenarios[0].sweep", "motion.rate_deg_s[1]"]),
+    (("motion.rate_deg_s:", "motion.rate_dps:"), ["scenarios[0].sweep", "motion.rate_dps", "unknown key"]),
+])
+def test_config_errors_name_file_and_key(tmp_path, edit, needles):
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text(TINY.replace(*edit))
+    with pytest.raises(ConfigError) as exc:
+        load_compare(cfg)
+    for needle in [str(cfg), *needles]:
+        assert needle in str(exc.value), (needle, str(exc.value))
+
+
+def test_numbers_are_evaluate_log_of_the_same_simulation(serial, tmp_path):
+    """One row's per-seed metric equals an independent simulate -> run -> evaluate with that seed."""
+    row = next(r for r in serial.results["results"] if r["pipeline"] == "ls" and r["variant"].startswith("fu2022[") and "(1, 0, 2)" in r["variant"])
+    base = load_scenario(CONFIGS / "scenarios" / "fu2022.yaml")
+    cfg = base.model_copy(update={"motion": base.motion.model_copy(update={"rate_deg_s": (1.0, 0.0, 2.0)})})
+    simulate_to_log(cfg, tmp_path / "r.mcap", frames=3, seed=4, show_progress=False)
+    run_pipeline(tmp_path / "r.mcap", load_pipeline(CONFIGS / "pipelines" / "ls_rate.yaml"), tmp_path / "o.mcap", show_progress=False)
+    m = evaluate_log(tmp_path / "o.mcap")
+    seed4 = next(s for s in row["per_seed"] if s["seed"] == 4)["metrics"]
+    assert seed4["rate_error_deg_s.z_rmse"] == m["rate_error_deg_s"]["z_rmse"]
+    assert seed4["attitude_error_arcsec.x_rmse"] == m["attitude_error_arcsec"]["x_rmse"]
+    vals = [s["metrics"]["attitude_error_arcsec.x_rmse"] for s in row["per_seed"]]
+    stats = row["metrics"]["attitude_error_arcsec.x_rmse"]
+    assert stats["mean"] == pytest.approx(np.mean(vals)) and stats["std"] == pytest.approx(np.std(vals, ddof=1))
+    assert row["timing"]["cpu_s_per_frame"]["n"] == 2 and row["timing"]["cpu_s_per_frame"]["mean"] > 0
+    out = serial.output
+    assert (out / "results.md").is_file() and (out / "report.html").is_file()
+    assert (out / "img" / "error_vs_rate_fu2022.png").stat().st_size > 10_000
+    assert "error_vs_rate_fu2022.png" in (out / "report.html").read_text()
+
+
+def test_dask_gives_identical_results(serial, tiny, tmp_path):
+    dask = run_compare(tiny, tmp_path, executor="dask", workers=2, show_progress=False)
+    assert dask.results["run"]["executor"] == "dask"
+    assert deterministic_view(dask.results) == deterministic_view(serial.results)
+    assert json.loads((tmp_path / "results.json").read_text())["results"][0]["metrics"] == serial.results["results"][0]["metrics"]
+
+
+def test_gate_names_every_worse_metric(serial):
+    res = serial.results
+    tol = load_compare_tolerances()
+    assert compare_to_baseline(res, res, tol) == []
+    doctored = copy.deepcopy(res)
+    rows = {(r["variant"], r["pipeline"]): r for r in doctored["results"]}
+    ls = rows[("he2021b", "ls")]
+    x = ls["metrics"]["attitude_error_arcsec.x_rmse"]["mean"]
+    ls["metrics"]["attitude_error_arcsec.x_rmse"]["mean"] = x / 1.02  # now 2 % worse: beyond rel 0.01
+    y = ls["metrics"]["attitude_error_arcsec.y_rmse"]["mean"]
+    ls["metrics"]["attitude_error_arcsec.y_rmse"]["mean"] = y / 1.02  # 2 % worse: within rel 0.10
+    ls["metrics"]["rate_error_deg_s.z_rmse"]["mean"] *= 0.5  # 100 % worse (default rel 0.02)
+    ls["metrics"]["attitude_updates"]["mean"] += 1  # fewer updates now
+    ls["metrics"]["efficiency.attitude_x"]["mean"] *= 0.5  # not gated
+    better = rows[next(k for k in rows if k[1] == "baseline")]
+    better["metrics"]["attitude_error_arcsec.z_rmse"]["mean"] *= 2.0  # we are better now: not a regression
+    doctored["results"].append({**ls, "variant": "gone", "metrics": {}})
+    worse = compare_to_baseline(res, doctored, tol)
+    text = "\n".join(worse)
+    assert len(worse) == 4, text
+    for needle in ("attitude_error_arcsec.x_rmse", "rate_error_deg_s.z_rmse", "attitude_updates", "gone: missing"):
+        assert needle in text, (needle, text)
+    assert not any("y_rmse" in w or "efficiency" in w or w.startswith("baseline on") for w in worse), text
+
+
+def load_compare_tolerances():
+    return {"attitude_error_arcsec.*": Tolerance(rel=0.10), "attitude_error_arcsec.x_rmse": Tolerance(rel=0.01)}
+
+
+def test_cli_gate_exit_codes(tmp_path):
+    """The command: exit 0 against its own numbers, 1 naming the metric against a doctored baseline, 2 on misuse."""
+    micro = tmp_path / "micro.yaml"
+    micro.write_text(f"name: micro\nframes: 3\npipelines: [{CONFIGS}/pipelines/ls_rate.yaml]\n"
+                     f"scenarios: [{{path: {CONFIGS}/scenarios/fu2022.yaml}}]\n")
+    proc = cli("compare", micro, "-o", tmp_path / "out", "-q")
+    assert proc.exit_code == 0, (proc.stdout, proc.stderr)
+    good = json.loads((tmp_path / "out" / "results.json").read_text())
+    good["results"][0]["metrics"]["attitude_error_arcsec.z_rmse"]["mean"] /= 1.5
+    bad = tmp_path / "baseline.json"
+    bad.write_text(json.dumps(good))
+    proc = cli("compare", micro, "-o", tmp_path / "out2", "-q", "--baseline", bad, "--fail-on-regression")
+    assert proc.exit_code == 1, (proc.stdout, proc.stderr)
+    assert "ls_rate on fu2022: attitude_error_arcsec.z_rmse" in proc.stderr, proc.stderr
+    # the same run against the first run's own results: deterministic, so no regression
+    proc = cli("compare", micro, "-o", tmp_path / "out3", "-q", "--baseline", tmp_path / "out" / "results.json",
+               "--fail-on-regression")
+    assert proc.exit_code == 0 and "no gated metric worse" in proc.stdout, (proc.stdout, proc.stderr)
+    proc = cli("compare", micro, "-o", tmp_path / "out4", "--fail-on-regression")
+    assert proc.exit_code == 2 and "--baseline" in proc.stderr and "Traceback" not in proc.stderr
