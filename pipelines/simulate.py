@@ -90,7 +90,8 @@ def simulate_to_log(cfg: ScenarioConfig, output: str | Path, frames: int | None 
                 if sel.any():
                     w = gyro.omega_rad_s[sel]
                     writer.write_json(TOPIC_GYRO, GyroSamples(t_ns=gyro.t_ns[sel].tolist(), x=w[:, 0].tolist(),
-                                                              y=w[:, 1].tolist(), z=w[:, 2].tolist()), int(gyro.t_ns[sel][-1]))
+                                                              y=w[:, 1].tolist(), z=w[:, 2].tolist()), t0)  # published at the frame boundary (>= 0 even when the
+                    # gyro period does not divide the frame period and the last sample precedes t0)
             times = truth_sample_times(t0, period, cfg.truth_rate_hz)
             q = motion.attitude(times).as_quat()
             w = motion.angular_velocity(times)
