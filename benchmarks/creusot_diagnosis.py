@@ -30,7 +30,8 @@ def creusot_dir() -> Path:
 
 def summarise(label: str, scope: str, res: dict) -> dict:
     effects = [{"name": e["name"], "params": {k: (v["value"], v["sigma"], v["unit"]) for k, v in e["params"].items()},
-                "delta_bic": e["delta_bic"], "inclusion": e["inclusion_probability"]} for e in res["effects"]]
+                "delta_bic": e["delta_bic"], "inclusion": e["inclusion_probability"], "confidence": e["confidence"],
+                "at_bound": e.get("at_bound", [])} for e in res["effects"]]
     return {"recording": label, "scope": scope, "stars": res["split"]["train_observations"] + res["split"]["heldout_observations"],
             "frames": res["split"]["frames"], "sigma_px": res["noise"]["sigma_px_median"],
             "chi2_dof_before": res["located"]["chi2_dof"], "chi2_dof_after": res["train_chi2_dof_after"],
@@ -70,8 +71,10 @@ def markdown(rows: list[dict]) -> str:
             return "none" + (f"; weak: {weak}" if weak else "")
         parts = []
         for e in r["effects"]:
-            ps = ", ".join(f"{k} = {f(v[0])} ± {f(v[1])}" for k, v in e["params"].items())
-            parts.append(f"{e['name']} ({ps}; ΔBIC {f(e['delta_bic'], '{:.0f}')}, incl. {f(e['inclusion'], '{:.2f}')})")
+            ps = ", ".join(f"{k} = {f(v[0])} ± {f(v[1])}{' (at bound)' if k in e['at_bound'] else ''}"
+                           for k, v in e["params"].items())
+            tag = "" if e["confidence"] == "confident" else ", tentative"
+            parts.append(f"{e['name']} ({ps}; ΔBIC {f(e['delta_bic'], '{:.0f}')}, incl. {f(e['inclusion'], '{:.2f}')}{tag})")
         return "; ".join(parts)
 
     lines = ["| recording | scope | frames | stars | sigma (px) | chi2/dof before | after | named | ambiguous | unexplained | held-out RMS before → after (px) |",

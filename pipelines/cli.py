@@ -243,16 +243,22 @@ def reproduce(paper: str = typer.Argument(..., help="he2021a | he2021b | fu2022 
 
 @app.command()
 @handle_errors
-def figures(name: str = typer.Argument("foundation", help="foundation"),
+def figures(name: str = typer.Argument("foundation", help="foundation | real-data"),
             quick: bool = typer.Option(False, "--quick"),
             as_json: bool = typer.Option(False, "--json"),
-            out_dir: Path = typer.Option(None, "--out", help="write <out>/foundation.md, .json and img/*.png"),
+            out_dir: Path = typer.Option(None, "--out", help="write <out>/foundation.md (real-data.md), .json and img/*.png"),
             seed: int = typer.Option(1, "--seed")):
-    """Measure the foundation figures (static vs Cramér–Rao bound, rolling shutter, image level)."""
+    """Measure the foundation figures (static vs Cramér–Rao bound, rolling shutter, image level) or the
+    real-sky figures (real-data: identification, per-lens calibration; same as benchmarks/real_data.py)."""
     from pipelines.figures import foundation_markdown, run_foundation, write_foundation_docs
 
+    if name == "real-data":
+        from pipelines.figures import real_data_figures
+
+        real_data_figures(out_dir, as_json)
+        return
     if name != "foundation":
-        raise UserError(f"unknown figure set {name!r}; available: foundation")
+        raise UserError(f"unknown figure set {name!r}; available: foundation, real-data")
     result = run_foundation(quick=quick, seed=seed)
     command = f"rollingstar figures foundation{' --quick' if quick else ''} --out {out_dir or 'docs'} --seed {seed}"
     if out_dir is not None:
@@ -303,6 +309,23 @@ def bench_discrepancy(quick: bool = typer.Option(False, "--quick", help="the red
         print(json.dumps(result, indent=2))
     else:
         out.print(format_markdown(result), highlight=False)
+
+
+@bench_app.command("perf")
+@handle_errors
+def bench_perf(quick: bool = typer.Option(False, "--quick", help="tiny sizes (the test suite's run; ratios not meaningful)"),
+               as_json: bool = typer.Option(False, "--json", help="print one JSON object"),
+               only: list[str] = typer.Option(None, "--only", help="run only these lines: quest kf rate centroid replay compare")):
+    """Hot paths side by side with a peer or the frame.sum() floor, as ratios (issue 7); docs/performance.md."""
+    from pipelines.bench.perf import render_table, run_perf
+
+    result = run_perf(quick=quick, show_progress=not as_json, only=only)
+    if as_json:
+        print(json.dumps(result, indent=2))
+    else:
+        out.print(render_table(result))
+    if not result["checks_ok"]:
+        raise typer.Exit(1)
 
 
 @app.command()

@@ -357,7 +357,8 @@ def _diagnose(recording, scenario, pipeline, options, pipeline_source, sim_sourc
     drop_one = _drop_one_delta_bic(obs, nuis0, camera, timing, base_effects, chosen, fit, train, n_res)
     # an effect is named only when it also wins the majority of bootstrap resamples of the problem
     # linearised at the fitted model; otherwise it is a weak candidate, reported but not named
-    weak = [n for n in names if options.n_boot > 0 and sel["inclusion"].get(n, 0.0) < MIN_INCLUSION]
+    weak = [n for n in names if (options.n_boot > 0 and sel["inclusion"].get(n, 0.0) < MIN_INCLUSION)
+            or drop_one.get(n, 0.0) < options.min_delta_bic]  # or no longer earning its place nonlinearly
     if weak:
         names = [n for n in names if n not in weak]
         chosen = [cands[n] for n in names]
@@ -438,12 +439,14 @@ def _diagnose(recording, scenario, pipeline, options, pipeline_source, sim_sourc
         params = {p.name: {"value": float(v), "sigma": float(s), "unit": p.unit} for p, v, s in zip(c.parameters, th, sg)}
         checked = [{"name": h, "corr": float(v)} for h, v in sorted(sel["correlations"].get(c.name, {}).items(), key=lambda kv: -kv[1])]
         unstable = [s for s in stab if s["effect"] == c.name and s["stable"] is False]
+        at_bound = [p.name for p, v in zip(c.parameters, th) if v <= p.bounds[0] + 1e-9 * (p.bounds[1] - p.bounds[0])
+                    or v >= p.bounds[1] - 1e-9 * (p.bounds[1] - p.bounds[0])]
         result["effects"].append({
             "name": c.name, "params": params, "delta_bic": step_bic.get(c.name),
             "inclusion_probability": sel["inclusion"].get(c.name), "aliases_checked": checked,
             "declared_aliases": [getattr(a, "other", str(a)) for a in c.aliases],
-            "explanation": c.explanation, "stable": not unstable,
-            "confidence": "tentative" if (unexplained or unstable) else "confident",
+            "explanation": c.explanation, "stable": not unstable, "at_bound": at_bound,
+            "confidence": "tentative" if (unexplained or unstable or at_bound) else "confident",
         })
         k += len(c.parameters)
     seen = set()

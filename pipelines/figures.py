@@ -295,3 +295,19 @@ def write_foundation_docs(result: dict, docs_dir: Path, command: str) -> Path:
     path.write_text(foundation_markdown(result, command))
     (docs_dir / "foundation.json").write_text(json.dumps(result, indent=2))
     return path
+
+
+def real_data_figures(out_dir: Path | None, as_json: bool = False, repeats: int = 3) -> dict:
+    """``rollingstar figures real-data [--out docs]``: the same measurement as ``benchmarks/real_data.py``
+    (:func:`pipelines.real_data.run_real_data`), written to ``<out>/real-data.md``, ``.json`` and PNGs."""
+    from pipelines.real_data import real_data_markdown, run_real_data, write_real_data_docs
+
+    command = "rollingstar figures real-data" + (f" --out {out_dir}" if out_dir is not None else "")
+    result = run_real_data(repeats=repeats, show_progress=not as_json)
+    if out_dir is not None:
+        write_real_data_docs(result, Path(out_dir), command)
+    if as_json:
+        print(json.dumps(result, indent=1, default=str))
+    elif out_dir is None:
+        print(real_data_markdown(result, command))
+    return result

@@ -52,15 +52,11 @@ def calibrate_lens(images: list[ImageMatches], camera: RadialCamera, fit=INTRINS
     return fit_camera(obs, list(first.attitudes), first.camera, fit=fit), keep
 
 
-def leave_one_out(images: list[ImageMatches], camera: RadialCamera, fit=INTRINSICS) -> list[RadialCamera]:
-    """For each image the lens model calibrated on the others (needs at least three images)."""
+def leave_one_out(images: list[ImageMatches], camera: RadialCamera, fit=INTRINSICS) -> list[CameraFit]:
+    """For each image the lens calibration fitted to the others (needs at least three images)."""
     if len(images) < 3:
         raise ValueError(f"leave-one-out calibration needs at least 3 images, got {len(images)}")
-    out = []
-    for i in range(len(images)):
-        fitted, _ = calibrate_lens(images[:i] + images[i + 1:], camera, fit=fit)
-        out.append(fitted.camera)
-    return out
+    return [calibrate_lens(images[:i] + images[i + 1:], camera, fit=fit)[0] for i in range(len(images))]
 
 
 def calibration_summary(fitted: CameraFit, keep: list[np.ndarray], images: list[ImageMatches], width: int) -> dict:

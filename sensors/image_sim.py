@@ -28,7 +28,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import ndtr
+from scipy.special import ndtr, pdtr
 
 from sensors.conventions import NS_PER_S
 
@@ -213,11 +213,9 @@ def mean_electrons(star_e: np.ndarray, model: ImageModel, exposure_ns: int, hot_
 @functools.lru_cache(maxsize=16)
 def _poisson_guide_table(lam: float):
     """Support ``k``, CDF ``F(k)``, per-bucket answer (float32) and crossed-bucket mask of Poisson(lam)."""
-    from scipy.stats import poisson
-
     half = 12.0 * np.sqrt(lam) + 40.0
     k = np.arange(max(0, int(np.floor(lam - half))), int(np.ceil(lam + half)) + 1)
-    cdf = poisson.cdf(k, lam)
+    cdf = pdtr(k, lam)  # Poisson CDF P(X <= k)
     keep = cdf >= 2.0**-60  # drop the left tail (mass < 2^-60)
     k, cdf = k[keep], cdf[keep]
     n = int(np.searchsorted(cdf, 1.0)) + 1  # up to the first entry that rounds to 1

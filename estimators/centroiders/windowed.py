@@ -2,15 +2,17 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from estimators.centroiders.base import Centroider
 from estimators.centroiders.cog import CogCentroider, CogParams
-from estimators.centroiders.window_cog import centroid_windows, cut_windows
+from estimators.centroiders.window_cog import centroid_windows, cut_windows, median_rows, robust_sigma_rows
+from estimators.centroiders.window_kernel import any_coincident, centroid_windows_kernel, predict_windows
 from estimators.data import FrameData, SensorContext, StarTable
-from estimators.filters.gyro_kf import GyroIntegrator, star_motion_jacobian
+from estimators.filters.gyro_kf import GyroIntegrator
 
 NS = 1e-9
 
@@ -28,8 +30,20 @@ class WindowedParams(BaseModel):
         default=True, description="Predict the move of the exposure-mean position (the CoG of a smeared spot) instead of the instant one.")
     cog: CogParams = Field(default_factory=CogParams, description="Centre-of-gravity parameters, used in windows and full frames alike.")
     batch: bool = Field(
-        default=True, description="Centroid all windows in one vectorised pass (window_cog); False: one cog call per "
+        default=True, description="Centroid all windows in one pass (see kernel); False: one cog call per "
         "window (the original implementation, kept as the reference for tests and the side-by-side timing).")
+    kernel: Literal["compiled", "numpy"] = Field(
+        default="compiled", description="With batch: 'compiled' reads the windows in place with the numba kernel "
+        "(window_kernel); 'numpy': the vectorised numpy pass over the stacked windows (window_cog, the previous default, "
+        "kept as the 'before' of the side-by-side timing; needs background='window').")
+    background: Literal["tracked", "window"] = Field(
+        default="tracked", description="'tracked': each window's background and noise are measured once (its median and "
+        "robust sigma, at the first windowed frame after an acquisition) and then followed by a running mean over "
+        "background_frames frames of its background pixels (outside the spots, within 3 sigma); 'window': each "
+        "window's own median and robust sigma every frame (the cog definition per window).")
+    background_frames: float = Field(
+        default=100.0, ge=1.0, description="Time constant (frames) of the tracked background and noise (an "
+        "exponential running mean; 100 frames = 1 s at 100 Hz).")
 
 
 class WindowedCentroider(Centroider):
@@ -51,11 +65,25 @@ class WindowedCentroider(Centroider):
        the gyro angle random walk ``F N sqrt(dt)`` and the second-order term ``F |dtheta|^2``
        (neglected by eq 8), added in quadrature.
     3. a ``window_px`` square centred on the rounded prediction, shifted to lie on the detector,
-       is centroided with the ``cog`` definition (background = the window's median, noise = its
-       robust sigma), all windows stacked and centroided in one vectorised pass
-       (:func:`~estimators.centroiders.window_cog.centroid_windows`); the spot nearest the
-       prediction is kept. A window without a spot, or two stars claiming one spot, means the star
-       is lost: the frame falls back to full-frame detection.
+       is centroided with the ``cog`` definition, all windows in one compiled pass that reads them
+       in place (:func:`~estimators.centroiders.window_kernel.centroid_windows_at`; ``kernel:
+       numpy``: the vectorised numpy pass :func:`~estimators.centroiders.window_cog.centroid_windows`,
+       same spots); the spot nearest the prediction is kept. A window without a spot, or two stars
+       claiming one spot, means the star is lost: the frame falls back to full-frame detection.
+    4. background ``b_k`` and noise ``s_k`` of window ``k`` (``background``): ``window`` takes the
+       window's median and robust sigma every frame (``cog`` per window). ``tracked`` (default)
+       takes them once, at the first windowed frame after an acquisition, and then follows them
+       with an exponential running mean over ``background_frames`` frames of the window's
+       background pixels (outside the grown spots, ``|I - b_k| < 3 s_k``):
+       ``b_k += a mean(d)``, ``s_k^2 = (1 - a) s_k^2 + a var(d) / 0.98658^2`` (``a`` = 1 /
+       ``background_frames``; 0.98658: the std of a unit normal truncated to +-3). Physics: the
+       background (sky, dark current, bias) and the pixel noise drift over seconds to minutes
+       (temperature, the slow sweep of the boresight across sky gradients), not from one 10 ms
+       frame to the next; re-estimating them per frame from 4096 pixels only adds noise (the
+       median of one window has a standard error of ~0.02 s and is biased upwards by the star's
+       own pixels, ~0.02 s for a 5 x 5 px spot in 64 x 64 px), while the running mean averages
+       ~100 frames and excludes the spot. It also removes two sorts per window and frame, most
+       of the cost (``benchmarks/windowed_speed.py``).
 
     Output spots are catalogue-agnostic (``catalog_id = -1``: identification stays with the
     identifier stage; the centroider role contract), in guide-star order; ``x, y``, ``flux``,
@@ -74,6 +102,11 @@ class WindowedCentroider(Centroider):
         self._full.setup(context)
         self._wh = min(p.window_px, int(cam.height))
         self._ww = min(p.window_px, int(cam.width))
+        if p.batch and p.kernel == "numpy" and p.background == "tracked":
+            raise ValueError("windowed: kernel='numpy' implements background='window' only; set background: window")
+        if not p.batch and p.background == "tracked":
+            raise ValueError("windowed: batch=False runs the cog core per window (background='window'); "
+                             "set background: window")
         if p.batch and p.cog.background != "median":
             raise ValueError("windowed: with batch=True cog.background must be 'median' (each window uses its own "
                              "median background); set batch=False to run the cog core per window")
@@ -87,31 +120,47 @@ class WindowedCentroider(Centroider):
                             else float(2 ** int(bit_depth) - 1) if bit_depth else None)  # None: the image dtype's max
         self._gyro = GyroIntegrator(p.gyro_bias_rad_s, default_period_s=float(context.timing.frame_period_ns) * NS)
         self._tracks: StarTable | None = None
+        self._bg: np.ndarray | None = None  # tracked background / noise per guide star (ADU)
+        self._noise: np.ndarray | None = None
+        self._n_frames = 0
+        self._exposure_ns = int(context.timing.exposure_ns)
+        self._geometry = (float(cam.cx), float(cam.cy), float(cam.focal_px), int(cam.height), int(cam.width),
+                          self._wh, self._ww)
+        c = p.cog
+        self._kernel_args = (float(c.threshold_sigma), int(c.min_pixels), -1 if c.max_pixels is None else int(c.max_pixels),
+                             c.connectivity == 8, int(c.grow_px))
+        self._kernel_args2 = (bool(c.reject_border), 0.0 if c.gain_e_per_adu is None else float(c.gain_e_per_adu),
+                              1.0 / p.background_frames if p.background == "tracked" else 0.0, float(c.noise_floor_adu))
         self.last_mode = ""
 
     # ------------------------------------------------------------------ prediction
     def predict(self, t0_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Predicted ``(x, y, sigma_px)`` of the guide stars in the frame starting at ``t0_ns``
         (uses the gyro samples added so far)."""
+        x, y, _, _, dtheta, dt = self._predict_windows(t0_ns)
+        f = self.context.camera.focal_px
+        prev = np.where(np.isfinite(self._tracks.sigma_px), self._tracks.sigma_px, 0.0)
+        sigma = np.sqrt(prev**2 + (f * self.params.gyro_arw_rad_sqrt_s) ** 2 * dt
+                        + (f * np.sum(dtheta**2, axis=1)) ** 2)
+        return x, y, sigma
+
+    def _predict_windows(self, t0_ns: int):
+        """Eq (10) (compiled, :func:`~estimators.centroiders.window_kernel.predict_windows`):
+        predicted ``px, py``, the window origins ``r0, c0``, the gyro increments ``dtheta`` (n, 3)
+        and their time spans (s)."""
         tr = self._tracks
         timing = self.context.timing
-        cam = self.context.camera
-        J = star_motion_jacobian(tr.x, tr.y, cam)
         y_guess = tr.y
         for _ in range(2 if timing.effective_line_delay_ns else 1):  # rolling: the row time depends on the predicted row
             row_new = timing.row_start_ns(t0_ns, y_guess)
             if self.params.exposure_mean:
-                dtheta = self._gyro.increment(tr.row_time_ns, row_new, int(timing.exposure_ns))
+                dtheta = self._gyro.increment(tr.row_time_ns, row_new, self._exposure_ns)
             else:
                 dtheta = self._gyro.increment(tr.t_ns, timing.row_mid_exposure_ns(t0_ns, y_guess))
-            d = np.einsum("nij,nj->ni", J, dtheta)  # eq (9)
-            y_guess = tr.y + d[:, 1]
+            px, py, r0, c0 = predict_windows(tr.x, tr.y, dtheta, *self._geometry)  # eqs (8)-(10)
+            y_guess = py
         dt = np.abs(row_new - tr.row_time_ns) * NS
-        f = cam.focal_px
-        prev = np.where(np.isfinite(tr.sigma_px), tr.sigma_px, 0.0)
-        sigma = np.sqrt(prev**2 + (f * self.params.gyro_arw_rad_sqrt_s) ** 2 * dt
-                        + (f * np.sum(dtheta**2, axis=1)) ** 2)
-        return tr.x + d[:, 0], tr.y + d[:, 1], sigma  # eq (10)
+        return px, py, r0, c0, dtheta, dt
 
     def _saturation_of(self, image: np.ndarray) -> float:
         if self._saturation is not None:
@@ -125,6 +174,7 @@ class WindowedCentroider(Centroider):
         if self.params.n_guide_stars is not None:
             stars = stars.take(np.arange(min(self.params.n_guide_stars, stars.n)))
         self._tracks = stars if stars.n else None
+        self._bg = self._noise = None
         self.last_mode = "full"
         return frame.evolve(stars=stars)
 
@@ -137,37 +187,57 @@ class WindowedCentroider(Centroider):
         image = np.asarray(frame.image)
         if image.shape != self._full._shape:
             raise ValueError(f"frame {frame.index}: image shape {image.shape} differs from the camera's {self._full._shape}")
-        px, py, _ = self.predict(frame.t0_ns)
-        H, W = image.shape
-        finite = np.isfinite(px) & np.isfinite(py)
-        if not finite.all():
+        self._n_frames += 1
+        if self._n_frames % 256 == 0:
+            self._gyro.trim(frame.t0_ns)  # bounded gyro history (keep_s); the increments span one frame
+        px, py, r0, c0, _, _ = self._predict_windows(frame.t0_ns)
+        if not (np.isfinite(px).all() and np.isfinite(py).all()):
             return self._full_frame(frame)
-        c0 = np.clip(np.rint(px).astype(np.int64) - self._ww // 2, 0, W - self._ww)
-        r0 = np.clip(np.rint(py).astype(np.int64) - self._wh // 2, 0, H - self._wh)
-        # all windows in one vectorised pass (window_cog; was one cog call per window: 8x -> see
-        # docs/reproductions/liu2013.md for the before/after timing)
-        c = self.params.cog
-        if not self.params.batch:
+        p = self.params
+        c = p.cog
+        if not p.batch:
             return self._windows_loop(frame, image, px, py, r0, c0)
-        spots = centroid_windows(cut_windows(image, r0, c0, self._wh, self._ww), px - c0, py - r0,
-                                 threshold_sigma=c.threshold_sigma, min_pixels=c.min_pixels, max_pixels=c.max_pixels,
-                                 connectivity=c.connectivity, grow_px=c.grow_px, noise_floor_adu=c.noise_floor_adu,
-                                 saturation_adu=self._saturation_of(image), reject_border=c.reject_border,
-                                 gain_e_per_adu=getattr(c, "gain_e_per_adu", None))
-        if not spots.found.all():
+        if p.kernel == "numpy":  # the previous path: stacked windows, vectorised numpy
+            spots = centroid_windows(cut_windows(image, r0, c0, self._wh, self._ww), px - c0, py - r0,
+                                     threshold_sigma=c.threshold_sigma, min_pixels=c.min_pixels, max_pixels=c.max_pixels,
+                                     connectivity=c.connectivity, grow_px=c.grow_px, noise_floor_adu=c.noise_floor_adu,
+                                     saturation_adu=self._saturation_of(image), reject_border=c.reject_border,
+                                     gain_e_per_adu=c.gain_e_per_adu)
+            found, x, y = spots.found, spots.x + c0, spots.y + r0
+            flux, peak, npix, saturated, snr, sigma = (spots.flux, spots.peak, spots.npix.astype(np.int64),
+                                                       spots.saturated, spots.snr, spots.sigma_px)
+        else:
+            if p.background == "window" or self._bg is None:
+                self._bg, self._noise = self._window_background(image, r0, c0)
+            if image.dtype == bool:
+                image = image.astype(np.uint8)
+            # one compiled pass over the windows, in place in the frame; with the tracked background
+            # it also updates self._bg / self._noise (discarded below if the frame falls back)
+            found, vals, npix, saturated, _ = centroid_windows_kernel(
+                image, image.dtype.kind in "iu", r0, c0, self._wh, self._ww, px - c0, py - r0, self._bg, self._noise,
+                *self._kernel_args, self._saturation_of(image), *self._kernel_args2)
+            x, y, flux, peak, snr, sigma = vals[:, 0] + c0, vals[:, 1] + r0, vals[:, 2], vals[:, 3], vals[:, 4], vals[:, 5]
+        if not found.all():
             return self._full_frame(frame)
-        x = spots.x + c0
-        y = spots.y + r0
         timing = self.context.timing
-        cat = StarTable.build(x, y, t_ns=timing.row_mid_exposure_ns(frame.t0_ns, y),
-                              row_time_ns=timing.row_start_ns(frame.t0_ns, y), flux=spots.flux, peak=spots.peak,
-                              npix=spots.npix, saturated=spots.saturated, snr=spots.snr, sigma_px=spots.sigma_px)
-        return self._accept(frame, cat)
+        n = x.size
+        # the table directly (StarTable.build's checks and broadcasts cost more than the kernel here)
+        stars = StarTable(x=x, y=y, t_ns=timing.row_mid_exposure_ns(frame.t0_ns, y),
+                          row_time_ns=timing.row_start_ns(frame.t0_ns, y), flux=flux, peak=peak, npix=npix,
+                          saturated=saturated, snr=snr, sigma_px=sigma, vx=np.full(n, np.nan), vy=np.full(n, np.nan),
+                          catalog_id=np.full(n, -1, dtype=np.int64), ref_icrs=np.full((n, 3), np.nan))
+        return self._accept(frame, stars)
+
+    def _window_background(self, image: np.ndarray, r0: np.ndarray, c0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each window's median and robust sigma (floored): the ``cog`` definition per window."""
+        stack = cut_windows(image, r0, c0, self._wh, self._ww).astype(float).reshape(r0.size, -1)
+        bg = median_rows(stack)
+        noise = np.maximum(robust_sigma_rows(stack - bg[:, None], np.zeros(r0.size)), self.params.cog.noise_floor_adu)
+        return bg, noise
+
 
     def _accept(self, frame: FrameData, stars: StarTable) -> FrameData:
-        n = stars.n
-        x, y = stars.x, stars.y
-        if n > 1 and np.min(np.hypot(x[:, None] - x[None, :], y[:, None] - y[None, :]) + np.eye(n) * 1e9) < 1e-6:
+        if stars.n > 1 and any_coincident(stars.x, stars.y, 1e-6):
             return self._full_frame(frame)  # two guide stars took the same spot: re-acquire
         self._tracks = stars
         self.last_mode = "window"

@@ -82,25 +82,56 @@ def kf_cv_init(z_prev: np.ndarray, z: np.ndarray, dt, r: float) -> tuple[np.ndar
 
 
 def kf_cv_predict(X: np.ndarray, P: np.ndarray, dt, q: float) -> tuple[np.ndarray, np.ndarray]:
-    """Eq (11) prediction for all stars at once: ``X = F X``, ``P = F P F^T + Q``."""
-    F, _ = cv_transition(dt)
-    Q = cv_process_noise(dt, q)
-    Xp = np.einsum("nij,nj->ni", F, X)
-    Pp = np.einsum("nij,njk,nlk->nil", F, P, F) + Q
+    """Eq (11) prediction for all stars at once: ``X = F X``, ``P = F P F^T + Q``.
+
+    ``F = I + dt (e_0 e_1^T + e_2 e_3^T)`` is applied as row/column updates instead of 4 x 4
+    products (same arithmetic, ~5x less overhead for the few tracks of a frame; issue 7 bench).
+    """
+    X = np.asarray(X, dtype=float)
+    dt = np.broadcast_to(np.asarray(dt, dtype=float).reshape(-1), (X.shape[0],))
+    Xp = X.copy()
+    Xp[:, 0] += dt * X[:, 1]
+    Xp[:, 2] += dt * X[:, 3]
+    FP = np.array(P, dtype=float)  # F P: row 0 += dt row 1, row 2 += dt row 3
+    FP[:, 0, :] += dt[:, None] * FP[:, 1, :]
+    FP[:, 2, :] += dt[:, None] * FP[:, 3, :]
+    Pp = FP  # (F P) F^T: column 0 += dt column 1, column 2 += dt column 3
+    Pp[:, :, 0] += dt[:, None] * Pp[:, :, 1]
+    Pp[:, :, 2] += dt[:, None] * Pp[:, :, 3]
+    # Q = q G G^T (eq 8, corrected): per axis [[dt^4/4, dt^3/2], [dt^3/2, dt^2]] q
+    q11, q12, q22 = q * dt**4 / 4.0, q * dt**3 / 2.0, q * dt**2
+    for a in (0, 2):  # x block then y block
+        Pp[:, a, a] += q11
+        Pp[:, a, a + 1] += q12
+        Pp[:, a + 1, a] += q12
+        Pp[:, a + 1, a + 1] += q22
     return Xp, Pp
 
 
 def kf_cv_update(X: np.ndarray, P: np.ndarray, z: np.ndarray, r: float) -> tuple[np.ndarray, np.ndarray]:
-    """Eq (11) update for all stars at once (Joseph-form covariance, see the module docstring)."""
+    """Eq (11) update for all stars at once (Joseph-form covariance, see the module docstring).
+
+    ``H`` selects state components 0 and 2, so ``P H^T``, ``H P`` and ``H P H^T`` are slices, and
+    the Joseph form ``(I - K H) P (I - K H)^T + r K K^T`` is evaluated as ``A = P - K (H P)``,
+    ``A - (A H^T) K^T + r K K^T`` (the same expression multiplied out; no 4 x 4 ``I - K H``).
+    The 2 x 2 innovation covariance is inverted in closed form (``np.linalg.inv``'s per-call
+    overhead is most of an update for the few tracks of a frame; issue 7 bench).
+    """
+    X = np.asarray(X, dtype=float)
+    P = np.asarray(P, dtype=float)
     n = X.shape[0]
-    R = r * np.eye(2)
-    PHt = np.einsum("nij,kj->nik", P, H)  # (n, 4, 2)
-    S = np.einsum("ij,njk->nik", H, PHt) + R  # (n, 2, 2)
-    K = PHt @ np.linalg.inv(S)  # (n, 4, 2)
-    y = np.asarray(z, dtype=float).reshape(n, 2) - np.einsum("ij,nj->ni", H, X)
-    Xu = X + np.einsum("nij,nj->ni", K, y)
-    IKH = _EYE4 - np.einsum("nik,kj->nij", K, H)
-    Pu = np.einsum("nij,njk,nlk->nil", IKH, P, IKH) + r * np.einsum("nik,njk->nij", K, K)
+    PHt = P[:, :, ::2]  # P H^T (n, 4, 2)
+    HP = P[:, ::2, :]  # H P (n, 2, 4)
+    a, b, c, d = HP[:, 0, 0] + r, HP[:, 0, 2], HP[:, 1, 0], HP[:, 1, 2] + r  # S = H P H^T + r I
+    det = a * d - b * c
+    S_inv = np.empty((n, 2, 2))
+    S_inv[:, 0, 0], S_inv[:, 0, 1], S_inv[:, 1, 0], S_inv[:, 1, 1] = d / det, -b / det, -c / det, a / det
+    K = PHt @ S_inv  # (n, 4, 2)
+    y = np.asarray(z, dtype=float).reshape(n, 2) - X[:, ::2]
+    Xu = X + (K @ y[:, :, None])[:, :, 0]
+    A = P - K @ HP  # (I - K H) P
+    Kt = np.swapaxes(K, 1, 2)
+    Pu = A - A[:, :, ::2] @ Kt + r * (K @ Kt)  # (I - K H) P (I - K H)^T + K r K^T
     return Xu, Pu
 
 
@@ -122,8 +153,13 @@ def kf_cv_batch(z: np.ndarray, dt, q: float = 1e-4, r: float = 0.05) -> tuple[np
         return states, covs
     X, P = kf_cv_init(z[0], z[1], dts[1], r)
     states[1], covs[1] = X, P
+    # F and Q of every step in one vectorised call; the loop is then a few batched products
+    F = cv_transition(dts[2:].reshape(-1))[0].reshape(T - 2, n, 4, 4)
+    Q = cv_process_noise(dts[2:].reshape(-1), q).reshape(T - 2, n, 4, 4)
+    Ft = np.swapaxes(F, -1, -2)
     for t in range(2, T):  # the recursion over time is sequential; stars are batched
-        X, P = kf_cv_predict(X, P, dts[t], q)
+        X = (F[t - 2] @ X[:, :, None])[:, :, 0]  # eq (11) prediction, as kf_cv_predict
+        P = F[t - 2] @ P @ Ft[t - 2] + Q[t - 2]
         X, P = kf_cv_update(X, P, z[t], r)
         states[t], covs[t] = X, P
     return states, covs

@@ -9,7 +9,7 @@ radial terms): a camera-frame direction ``w`` goes to the ideal pinhole position
 ``k1 < 0`` is barrel distortion. (tetra3rs' ``RadialDistortion`` is the same model in pixel
 units, ``k1 / f^2``, ``k2 / f^4``.)
 
-:func:`fit_camera` estimates, by trust-region least squares (``scipy.optimize.least_squares``, sparse finite-difference Jacobian), one
+:func:`fit_camera` estimates, by Levenberg-Marquardt (``scipy.optimize.least_squares``, analytic Jacobian), one
 attitude per image (``R_i = R0_i Exp(delta_i)``) together with *shared* intrinsics: the focal
 length ``f`` and any of ``k1, k2, cx, cy`` chosen by the caller. Residuals are the pixel
 differences ``(x, y)_obs - proj(R_i^T r)``; 1-sigma uncertainties come from
@@ -154,23 +154,53 @@ def fit_camera(observations, attitudes, camera: RadialCamera, fit=("focal_px", "
             out.append((o - np.column_stack([x, y])).ravel())
         return np.concatenate(out)
 
+    def jac(q):
+        """Analytic d(residual)/dq: ``w = Exp(delta)^T R0^T r`` so ``dw/d delta = [w]_x`` (to first order
+        in delta, which is what the iteration re-linearises about), then the chain rule through
+        ``xn = -w_x / w_z``, the radial factor and the pixel map (module docstring)."""
+        cam, rots = unpack(q)
+        J = np.zeros((2 * n, p))
+        row = 0
+        for i, (r, R) in enumerate(zip(refs, rots)):
+            w = R.inv().apply(r)
+            k = w.shape[0]
+            iz = 1.0 / w[:, 2]
+            xn, yn = -w[:, 0] * iz, -w[:, 1] * iz
+            r2 = xn * xn + yn * yn
+            s_ = 1.0 + cam.k1 * r2 + cam.k2 * r2 * r2
+            ds = cam.k1 + 2.0 * cam.k2 * r2  # d s / d r2
+            f = cam.focal_px
+            # d(x, y)/d(xn, yn)
+            a11 = f * (s_ + 2.0 * xn * xn * ds)
+            a12 = f * 2.0 * xn * yn * ds
+            a22 = f * (s_ + 2.0 * yn * yn * ds)
+            # d(xn, yn)/dw
+            dxn = np.column_stack([-iz, np.zeros(k), w[:, 0] * iz * iz])
+            dyn = np.column_stack([np.zeros(k), -iz, w[:, 1] * iz * iz])
+            dxdw = a11[:, None] * dxn + a12[:, None] * dyn
+            dydw = a12[:, None] * dxn + a22[:, None] * dyn
+            # dw/d delta = [w]_x : column j is w x e_j
+            skew = np.stack([np.cross(w, e) for e in np.eye(3)], axis=-1)  # (k, 3, 3)
+            J[row:row + 2 * k:2, 3 * i:3 * i + 3] = -np.einsum("kj,kjl->kl", dxdw, skew)
+            J[row + 1:row + 2 * k:2, 3 * i:3 * i + 3] = -np.einsum("kj,kjl->kl", dydw, skew)
+            d_int = {"focal_px": (xn * s_, yn * s_), "k1": (f * xn * r2, f * yn * r2),
+                     "k2": (f * xn * r2 * r2, f * yn * r2 * r2), "cx": (np.ones(k), np.zeros(k)),
+                     "cy": (np.zeros(k), np.ones(k))}
+            for c, name in enumerate(fit):
+                J[row:row + 2 * k:2, 3 * m + c] = -d_int[name][0]
+                J[row + 1:row + 2 * k:2, 3 * m + c] = -d_int[name][1]
+            row += 2 * k
+        return J
+
     q0 = np.concatenate([np.zeros(3 * m), [base[k] for k in fit]])
     scale = {"focal_px": base["focal_px"] * 1e-3, "k1": 1e-2, "k2": 1e-1, "cx": 1.0, "cy": 1.0}
     x_scale = np.concatenate([np.full(3 * m, 1e-4), [scale[k] for k in fit]])
-    # each image's rotation moves only that image's residuals: with the sparsity pattern the
-    # finite-difference Jacobian costs ~3 + len(fit) evaluations instead of 3 m + len(fit)
-    sparsity = np.zeros((2 * n, p), dtype=bool)
-    rows = np.cumsum([0] + [2 * o.shape[0] for o in obs])
-    for i in range(m):
-        sparsity[rows[i]:rows[i + 1], 3 * i:3 * i + 3] = True
-    sparsity[:, 3 * m:] = True
-    sol = least_squares(resid, q0, method="trf", x_scale=x_scale, jac_sparsity=sparsity if m > 1 else None,
-                        max_nfev=max_nfev, xtol=1e-12, ftol=1e-12)
+    sol = least_squares(resid, q0, jac=jac, method="lm", x_scale=x_scale, max_nfev=max_nfev, xtol=1e-12, ftol=1e-12)
     cam, rots = unpack(sol.x)
     r = sol.fun
     dof = r.size - p
     s2 = float(r @ r) / dof
-    J = sol.jac.toarray() if hasattr(sol.jac, "toarray") else sol.jac
+    J = jac(sol.x)
     try:
         cov = np.linalg.inv(J.T @ J) * s2
         sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))

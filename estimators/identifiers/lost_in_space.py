@@ -48,7 +48,8 @@ class LostInSpaceParams(BaseModel):
     k1: float = Field(default=0.0, ge=-1.0, le=1.0, description="Known radial distortion k1 of the camera (normalised "
                       "coordinates, sensors/effects/radial_distortion.py convention); centroids are undistorted with it before "
                       "the pattern search, and it starts the fit with fit_distortion='radial'.")
-    k2: float = Field(default=0.0, ge=-10.0, le=10.0, description="Known radial distortion k2 (as k1).")
+    k2: float = Field(default=0.0, ge=-1e3, le=1e3, description="Known radial distortion k2 (as k1; a narrow field constrains it "
+                      "poorly, so fitted values can be large while k2 r^4 stays small).")
     fit_distortion: Literal["none", "radial"] = Field(
         default="none", description="'radial': after the pattern match fit focal length and radial distortion (k1, and k2 "
         "with distortion_terms=2) jointly with the attitude to the matched stars, re-match with the fitted model and "
@@ -146,7 +147,11 @@ class LostInSpaceIdentifier(Identifier):
         if self.params.magnitude_limit is not None:
             cat = cat.subset(cat.magnitude <= self.params.magnitude_limit)
         self._catalog = cat
-        self._db = solver_database(cat, self._fov_deg * (1 - tol), self._fov_deg * (1 + tol), self.params.magnitude_limit)
+        # the field range is widened to a quarter-degree grid so that cameras a little apart (one
+        # lens' per-image or calibrated focal lengths) share one memoised database (~1 s to build)
+        lo = np.floor(self._fov_deg * (1 - tol) * 4.0) / 4.0
+        hi = np.ceil(self._fov_deg * (1 + tol) * 4.0) / 4.0
+        self._db = solver_database(cat, lo, hi, self.params.magnitude_limit)
         import tetra3rs
 
         self._camera_model = tetra3rs.CameraModel(float(cam.focal_px), int(cam.width), int(cam.height))

@@ -13,7 +13,8 @@ over the recording (:func:`sensors.effects.design.detection_limit` on the noise-
 the same design). One parameter of the effect is set to ``m`` times its limit, ``m`` log-uniform
 in [0.3, 30], random sign. An effect whose signature the attitude absorbs entirely (limit inf) is
 recorded as invisible in that design. The *alias* of a case: every other library effect whose
-projected signature has a canonical correlation above 0.95 with the drawn one; a case whose
+projected signature space has a canonical correlation above 0.95 with the drawn effect's (whole
+groups, as the diagnosis compares them); a case whose
 effect has an alias is "not separable" by its design and counts as correctly named when the
 diagnosis names the effect or reports the ambiguity that contains it.
 
@@ -218,8 +219,13 @@ def projected(cls, ctx) -> np.ndarray:
 
 
 def aliases_in_design(name: str, param_index: int, ctx, classes: dict) -> list[str]:
-    """Library effects whose projected signature correlates above 0.95 with ``name``'s drawn parameter."""
-    a = projected(classes[name], ctx)[:, [param_index]]
+    """Library effects whose projected signature space correlates above 0.95 with ``name``'s.
+
+    Whole effect groups are compared (canonical correlation), as the diagnosis does: it fits and
+    names groups, so two groups it cannot tell apart in this design are aliases here too.
+    """
+    a = projected(classes[name], ctx)
+    a = a[:, np.linalg.norm(a, axis=0) > 1e-12]
     out = []
     for other, cls in classes.items():
         if other == name:

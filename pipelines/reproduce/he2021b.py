@@ -13,6 +13,12 @@ Set-up (our choices where the paper is silent, stated in ``docs/reproductions/he
 - Monte Carlo: ``trials`` noise realisations, scenario seeds ``seed, seed + 1, ...``; RMSE pooled
   over every valid update of every trial.
 - Fig 12 "global exposure": the same scenario with a global shutter, QUEST once per frame.
+- Table 3 readings: the literal one (forgetting 1, 0.05 px) and the explained one: for each
+  forgetting factor in ``RHOS`` the centroid noise that maps our nine Table 3 RMSEs onto the paper's
+  (RMSE is linear in the noise), the factor with the best shape, then a measured run at that
+  (noise, forgetting) (:func:`explain_table3`).
+- Fig 11 rate sources: the true rate, the :data:`GYRO` gyro, the ``pso-rate`` estimate and a zero
+  rate (forgetting 1), plus the true rate and the gyro at the explained reading.
 - Star1000 (Table 4): its sensor, 8 synthetic stars evenly spread over the rows (the experiment's
   star simulator field is not given), 0.1 deg/s, 30 frames = 6 s at 5 Hz.
 """

@@ -1,0 +1,74 @@
+"""``rollingstar bench perf --quick --json``: structure, ratio arithmetic and the equality checks.
+
+No timing is asserted (issue 7: performance targets live in the benchmark, not in tests); what is
+asserted is that every line compares the same answers (QUEST vs scipy, batched KF vs filterpy,
+windowed vs full-frame centroids, the noise generator before vs after, replayed frame counts) and
+that the reported ratios and pass/fail follow from the reported numbers.
+"""
+from __future__ import annotations
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from pipelines.cli import app
+
+EXPECTED = {"quest", "kf", "rate", "centroid_full", "centroid_windowed", "render", "render_speedup",
+            "replay_centroid", "replay_image", "compare"}
+
+
+@pytest.fixture(scope="module")
+def quick_result() -> dict:
+    res = CliRunner().invoke(app, ["bench", "perf", "--quick", "--json"])
+    assert res.exit_code == 0, res.output
+    return json.loads(res.stdout)
+
+
+def test_structure(quick_result):
+    r = quick_result
+    assert r["benchmark"] == "perf" and r["quick"] is True
+    assert r["machine"]["cpu_count"] >= 1
+    assert {ln["id"] for ln in r["lines"]} == EXPECTED
+    for ln in r["lines"]:
+        assert set(ln) >= {"id", "title", "status", "measured", "peer", "ratio", "ratio_kind", "target", "pass", "checks"}
+        if ln["status"] != "measured":
+            assert ln["ratio"] is None and ln["pass"] is None and ln["note"]
+            continue
+        m, p = ln["measured"]["value"], ln["peer"]["value"]
+        assert m > 0 and p > 0
+        expect = p / m if ln["ratio_kind"] == "speedup" else m / p
+        assert ln["ratio"] == pytest.approx(expect, rel=1e-12)
+        if ln["target"] is None:
+            assert ln["pass"] is None
+        else:
+            op, value = ln["target"]["op"], ln["target"]["value"]
+            assert ln["pass"] == (ln["ratio"] >= value if op == ">=" else ln["ratio"] <= value)
+
+
+def test_same_answers(quick_result):
+    """Every equality check holds: same attitudes, same KF states, same spots, same noise law."""
+    lines = {ln["id"]: ln for ln in quick_result["lines"]}
+    assert quick_result["checks_ok"]
+    for ln in lines.values():
+        for c in ln["checks"]:
+            assert c["ok"] and c["value"] <= c["limit"], (ln["id"], c)
+    quest = {c["name"]: c for c in lines["quest"]["checks"]}
+    assert quest["max |QUEST - scipy| angle"]["value"] < 1e-3  # arcsec
+    kf = lines["kf"]["checks"]
+    assert len(kf) == 2 and all(c["limit"] == 1e-9 for c in kf)
+    assert len(lines["render_speedup"]["checks"]) == 4  # mean and variance at two signal levels
+
+
+def test_replay_lines(quick_result):
+    lines = {ln["id"]: ln for ln in quick_result["lines"]}
+    for level in ("centroid", "image"):
+        ln = lines[f"replay_{level}"]
+        assert ln["measured"]["unit"] == "MiB" and ln["frames_long"] > ln["frames_short"]
+        assert ln["peak_alloc_ratio"] == pytest.approx(ln["ratio"])
+        assert ln["fps"] > 0
+
+
+def test_compare_line_not_invented(quick_result):
+    line = next(ln for ln in quick_result["lines"] if ln["id"] == "compare")
+    assert line["status"] == "not available" and "--quick" in line["note"]
