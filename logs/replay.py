@@ -30,6 +30,7 @@ class FrameMessages:
     index: int
     frame: Message
     side: dict[str, tuple[Message, ...]] = field(default_factory=dict)
+    dropped: tuple[tuple[str, str], ...] = ()  # (topic, reason) of side messages that could not be decoded
 
     @property
     def t0_ns(self) -> int:
@@ -37,11 +38,14 @@ class FrameMessages:
 
 
 def iter_frames(reader: LogReader, frame_topic: str = "/camera/image",
-                side_topics: Iterable[str] = ()) -> Iterator[FrameMessages]:
+                side_topics: Iterable[str] = (), *, tolerate_bad_side: bool = False) -> Iterator[FrameMessages]:
     """Yield a :class:`FrameMessages` per message on ``frame_topic``, in log-time order.
 
     Side messages logged after the last frame belong to no frame and are not yielded. Two different frame
     messages with the same log time raise :class:`LogFormatError` (frame times must increase); an identical repeat is skipped with a DuplicateFrameWarning.
+    With ``tolerate_bad_side`` a side message that cannot be decoded or validated (e.g. a NaN in a
+    gyro record) is left out with a :class:`BadSideMessageWarning` and listed in the frame's
+    ``dropped`` (topic, reason), so the consumer can flag that frame; a bad *frame* message always raises.
     """
     side = tuple(side_topics)
     if frame_topic in side:
@@ -50,12 +54,17 @@ def iter_frames(reader: LogReader, frame_topic: str = "/camera/image",
     buckets: dict[str, list[Message]] = {t: [] for t in side}
     pending: Message | None = None
     index = 0
-    for msg in reader.messages(topics=(frame_topic, *side)):
+    dropped: list[tuple[str, str]] = []
+    for msg in _decoded(reader, (frame_topic, *side), frame_topic, tolerate_bad_side):
         if pending is not None and msg.log_time_ns > pending.log_time_ns:
-            yield FrameMessages(index, pending, {t: tuple(v) for t, v in buckets.items()})
+            yield FrameMessages(index, pending, {t: tuple(v) for t, v in buckets.items()}, tuple(dropped))
             index += 1
             buckets = {t: [] for t in side}
+            dropped = []
             pending = None
+        if isinstance(msg, _Dropped):
+            dropped.append((msg.topic, msg.reason))
+            continue
         if msg.topic == frame_topic:
             if pending is not None:
                 if _payload(msg) == _payload(pending):  # an exact duplicate (e.g. a re-sent frame): keep one
@@ -69,7 +78,33 @@ def iter_frames(reader: LogReader, frame_topic: str = "/camera/image",
         else:
             buckets[msg.topic].append(msg)
     if pending is not None:
-        yield FrameMessages(index, pending, {t: tuple(v) for t, v in buckets.items()})
+        yield FrameMessages(index, pending, {t: tuple(v) for t, v in buckets.items()}, tuple(dropped))
+
+
+@dataclass(frozen=True)
+class _Dropped:
+    topic: str
+    log_time_ns: int
+    reason: str
+
+
+def _decoded(reader: LogReader, topics: tuple[str, ...], frame_topic: str, tolerate: bool):
+    """Decoded messages; with ``tolerate``, side messages that fail to decode become :class:`_Dropped`."""
+    if not tolerate:
+        yield from reader.messages(topics=topics)
+        return
+    for raw in reader._raw_messages(topics):  # same package: decode one by one to keep going past a bad one
+        try:
+            yield reader._decode(raw)
+        except LogFormatError as exc:
+            if raw.channel.topic == frame_topic:
+                raise
+            warnings.warn(f"{exc}; message skipped", BadSideMessageWarning, stacklevel=3)
+            yield _Dropped(raw.channel.topic, raw.message.log_time, str(exc))
+
+
+class BadSideMessageWarning(UserWarning):
+    """A side-topic message (gyro, truth) that could not be decoded was skipped; its frame is flagged."""
 
 
 def _payload(msg: Message):

@@ -147,7 +147,7 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
             progress_bar(f"run {pipeline.name}", total, show_progress) as advance:
         for m in partial.copy:
             writer.write_message(m)
-        for group in iter_frames(reader, frame_topic, [TOPIC_GYRO, *TRUTH_TOPICS]):
+        for group in iter_frames(reader, frame_topic, [TOPIC_GYRO, *TRUTH_TOPICS], tolerate_bad_side=True):
             if (max_frames is not None and n_frames >= max_frames) or stop.requested:
                 break
             for topic in TRUTH_TOPICS:
@@ -163,6 +163,8 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
             if frame is None:  # an exact duplicate of the previous frame (warned)
                 continue
             frame = frame.evolve(gyro=_gyro_from_messages(group.side.get(TOPIC_GYRO, [])))
+            for topic in sorted({t for t, _ in group.dropped}):  # undecodable side messages were skipped (warned)
+                frame = frame.flagged(f"side_message_invalid:{topic}")
             if pass_truth:
                 frame = frame.evolve(truth=_truth_from_messages(group.side.get(TOPIC_TRUTH_ATTITUDE, [])))
             n_frames += 1

@@ -14,7 +14,7 @@ from pipelines.config import PipelineConfig, load_scenario
 from pipelines.runner import run_pipeline
 from pipelines.simulate import simulate_to_log
 
-from .helpers import PIPELINE, SCENARIO, assert_exit_2, rewrite
+from .helpers import PIPELINE, SCENARIO, assert_exit_2, cli, rewrite
 
 QUEST = PipelineConfig(stages=[{"kind": "tracking"}, {"kind": "quest"}])
 
@@ -184,8 +184,10 @@ def test_bad_images_name_topic_frame_and_expectation(tmp_path, image_recording, 
     assert sorted(_frame_flags(tmp_path / "o.mcap")) == [0]  # frame 0 was written before and is kept
 
 
-def test_non_finite_values_in_json_records_are_refused_with_topic_and_time(tmp_path, small_recording):
-    # NaN in a gyro sample: JSON records forbid NaN/inf (null marks a missing centroid only)
+def test_non_finite_values_in_a_side_record_skip_that_message_and_flag_its_frame(tmp_path, small_recording):
+    # NaN in a gyro sample: JSON records forbid NaN/inf (null marks a missing centroid only). A bad
+    # side message (gyro, truth) must not stop the run: it is skipped with a warning naming the
+    # topic and log time, and the frame it belonged to is flagged; every frame is still estimated.
     reader = LogReader(small_recording)
     bad = tmp_path / "nan.mcap"
     meta = {k: v for k, v in reader.metadata().items() if k != "rollingstar"}
@@ -198,6 +200,25 @@ def test_non_finite_values_in_json_records_are_refused_with_topic_and_time(tmp_p
         cid = w._channel("/gyro", GyroSamples.SCHEMA_NAME, lambda: w._mcap.register_schema(
             name=GyroSamples.SCHEMA_NAME, encoding="jsonschema", data=b"{}"))
         w._add(cid, t, b'{"t_ns": [%d], "x": [NaN], "y": [0.0], "z": [Infinity]}' % t)
-    msg = assert_exit_2(("run", PIPELINE, bad, "-o", tmp_path / "o.mcap"), "nan.mcap", "topic /gyro",
-                        f"log time {t} ns", "x.0: Input should be a finite number", "z.0: Input should be a finite number")
-    print(msg)
+    code, out, err = cli("run", PIPELINE, bad, "-o", tmp_path / "o.mcap")
+    assert code == 0, (code, out, err)
+    flags = _frame_flags(tmp_path / "o.mcap")
+    clean = _frame_flags_of_run(small_recording, tmp_path / "clean.mcap")
+    assert sorted(flags) == sorted(clean)  # every frame estimated
+    flagged = [f for f, fl in flags.items() if "side_message_invalid:/gyro" in fl]
+    assert flagged == [max(flags)]  # only the frame the bad message belonged to (the last one)
+    with pytest.warns(UserWarning, match=r"topic /gyro at log time %d ns.*x\.0: Input should be a finite number" % t):
+        run_pipeline(bad, PipelineConfig.model_validate(_yaml(PIPELINE)), tmp_path / "o2.mcap", show_progress=False)
+
+
+def _frame_flags_of_run(recording, out):
+    code, o, e = cli("run", PIPELINE, recording, "-o", out)
+    assert code == 0, (o, e)
+    return _frame_flags(out)
+
+
+def _yaml(path):
+    import yaml
+
+    with open(path) as f:
+        return yaml.safe_load(f)
