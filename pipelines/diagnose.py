@@ -11,7 +11,13 @@ Orchestrates :mod:`estimators.diagnosis` (see docs/diagnosis.md for the method):
    screen, forward-stepwise BIC, bootstrap inclusion, aliases (:mod:`estimators.diagnosis.selection`).
 3. Model: nonlinear refit with uncertainties and stability (:mod:`estimators.diagnosis.refit`);
    test what is left against generic bases (:mod:`estimators.diagnosis.catchall`).
-4. Show the fit improve: residual RMS and chi2/dof before and after on training and held-out data.
+4. Show the fit improve: residual RMS and chi2/dof before and after on training and held-out data;
+   re-simulate with the input and the updated model and compare residual distributions
+   (:mod:`estimators.diagnosis.resimulate`).
+
+With ``/gyro`` in the recording, attitude increments against the gyro are a second residual
+channel throughout (:mod:`estimators.diagnosis.gyro_channel`); the final parameters and sigmas
+come from a joint fit with the rates tied to the attitudes (:func:`estimators.diagnosis.refit.joint_refit`).
 """
 from __future__ import annotations
 
@@ -22,9 +28,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from estimators.diagnosis import catchall, refit as refit_mod, residuals, selection
+from estimators.diagnosis import catchall, gyro_channel, refit as refit_mod, resimulate, residuals, selection
 from estimators.diagnosis.library import Candidate, library, separating_experiment
-from estimators.diagnosis.observations import Observations, fit_attitudes, fit_nuisance
+from estimators.diagnosis.observations import Observations, fit_attitudes, fit_nuisance, frame_reference_times
 from logs.reader import LogReader
 from logs.records import stars_to_arrays
 from pipelines import build
@@ -65,6 +71,7 @@ class DiagnoseOptions:
     n_boot: int = 50
     min_delta_bic: float = selection.MIN_DELTA_BIC
     stability: bool = True
+    resimulate: bool = True
     show_progress: bool = False
 
 
@@ -108,7 +115,7 @@ def build_observations(stars: dict, att: dict, scenario: ScenarioConfig, catalog
     timing = build.build_timing(scenario)
     frames = sorted(k for k in stars if k in att)
     cols = {k: [] for k in ("frame", "x", "y", "sigma", "t_ns", "u", "cat", "flux")}
-    f_index, f_t0, f_q = [], [], []
+    f_index, f_t0, f_q, f_exp = [], [], [], []
     for k in frames:
         t0, c = stars[k]
         cat = c.get("catalog_id", np.full(len(c["x"]), -1))
@@ -120,6 +127,11 @@ def build_observations(stars: dict, att: dict, scenario: ScenarioConfig, catalog
         f_index.append(k)
         f_t0.append(t0)
         f_q.append(att[k])
+        # the exposure each frame was taken with: a star's t_ns (mid-exposure of its row) minus its
+        # row_time_ns (exposure start of its row) is half of it; absent -> the scenario's
+        rt = c.get("row_time_ns")
+        f_exp.append(int(np.median(2 * (c["t_ns"][ok] - rt[ok]))) if rt is not None and np.all(np.isfinite(rt[ok]))
+                     else int(timing.exposure_ns))
         n = int(ok.sum())
         cols["frame"].append(np.full(n, j))
         cols["x"].append(c["x"][ok])
@@ -159,13 +171,42 @@ def build_observations(stars: dict, att: dict, scenario: ScenarioConfig, catalog
             sigma = np.where(bad, np.nan, sigma)
             source = "estimated"
     t0 = np.asarray(f_t0, dtype=np.int64)
+    expo = np.asarray(f_exp, dtype=np.int64)
+    # one exposure (rounding aside): the scenario's timing holds; mixed: carried per frame
+    mixed = np.ptp(expo) > 1000 if expo.size else False
+    expo = expo if mixed else None
     obs = Observations(
         frame=np.concatenate(cols["frame"]).astype(np.int64), x=np.concatenate(cols["x"]), y=np.concatenate(cols["y"]),
         sigma=sigma, t_ns=np.concatenate(cols["t_ns"]).astype(np.int64), u_icrs=u_all,
         magnitude=np.asarray(mag, dtype=float), catalog_id=cat_ids, flux=flux, frame_index=np.asarray(f_index),
-        t0_ns=t0, t_ref_ns=np.array([timing.frame_reference_ns(int(t)) for t in t0], dtype=np.int64), sigma_source=source,
-        pm_rad_yr=pm)
+        t0_ns=t0, t_ref_ns=frame_reference_times(t0, timing, expo), sigma_source=source,
+        pm_rad_yr=pm, exposure_ns=expo)
     return obs, Rotation.from_quat(np.asarray(f_q))
+
+
+def read_gyro(recording: Path, scenario: ScenarioConfig):
+    """The recording's gyro samples (``/gyro``) as :class:`gyro_channel.GyroData`, None without any.
+
+    The angle random walk comes from the scenario's gyro model (0 when it declares none: the
+    increment noise is then the attitude error of the image fit alone)."""
+    from pipelines.simulate import TOPIC_GYRO
+
+    reader = LogReader(recording)
+    if TOPIC_GYRO not in reader.topics():
+        return None
+    t, w = [], []
+    for m in reader.messages([TOPIC_GYRO]):
+        d = m.data
+        t.append(np.asarray(d["t_ns"], dtype=np.int64))
+        w.append(np.stack([d["x"], d["y"], d["z"]], axis=-1).astype(float))
+    if not t:
+        return None
+    t, w = np.concatenate(t), np.concatenate(w)
+    order = np.argsort(t, kind="stable")
+    t, w = t[order], w[order]
+    keep = np.concatenate([[True], np.diff(t) > 0])  # a sample published twice at a frame boundary
+    arw = np.deg2rad(scenario.gyro.arw_deg_sqrt_h) / 60.0 if scenario.gyro.enabled else 0.0  # deg/sqrt(h) -> rad/sqrt(s)
+    return gyro_channel.GyroData(t[keep], w[keep], float(arw))
 
 
 def scenario_moves(scenario: ScenarioConfig) -> bool:
@@ -213,13 +254,14 @@ def _signatures(obs, pred, cands: dict[str, Candidate], base_effects, mask):
     sig = obs.sigma
     aj = pred.att_jac / sig[:, None, None]
     groups, raw, untestable = {}, {}, []
+    chan = obs.channel
     for name, c in cands.items():
-        why = c.testable(pred.ctx)
+        why = c.testable(pred.ctx, gyro=chan is not None)
         if why is not None:
             untestable.append({"name": name, "reason": why})
             continue
         try:
-            j = c.signature(pred.ctx, base_effects)
+            j = c.signature(pred.ctx, base_effects, pred.exposure_ns)
         except (ValueError, TypeError, NotImplementedError) as exc:
             untestable.append({"name": name, "reason": f"signature not available: {exc}"})
             continue
@@ -227,6 +269,13 @@ def _signatures(obs, pred, cands: dict[str, Candidate], base_effects, mask):
         p = selection.project_frames(obs.frame, obs.n_frames, aj, j)
         groups[name] = np.concatenate([p[mask, 0, :], p[mask, 1, :]])  # rows: all x residuals, then all y
         raw[name] = np.concatenate([j[mask, 0, :], j[mask, 1, :]])
+        if chan is not None:  # then the attitude-increment rows (gyro_channel module doc)
+            inc = gyro_channel.image_effect_signature(gyro_channel.absorbed_rotations(obs.frame, obs.n_frames, aj, j))
+            if "gyro" in c.channels:
+                inc = inc + gyro_channel.gyro_signature(c.instance(), chan.gyro, obs.t_ref_ns) * c.scales[None, None, :]
+            g = chan.whiten(inc)
+            groups[name] = np.concatenate([groups[name], g])
+            raw[name] = np.concatenate([raw[name], g])
     return groups, raw, untestable
 
 
@@ -234,7 +283,7 @@ def _whitened_residual(obs, pred, mask):
     aj = pred.att_jac / obs.sigma[:, None, None]
     r = np.stack([(obs.x - pred.x) / obs.sigma, (obs.y - pred.y) / obs.sigma], axis=-1)[:, :, None]
     p = selection.project_frames(obs.frame, obs.n_frames, aj, r)[:, :, 0]
-    return np.concatenate([p[mask, 0], p[mask, 1]])
+    return np.concatenate([p[mask, 0], p[mask, 1], gyro_channel.channel_rows(obs, pred)])
 
 
 def _ks(obs, pred0, pred1, m) -> dict | None:
@@ -334,6 +383,14 @@ def _diagnose(recording, scenario, pipeline, options, pipeline_source, sim_sourc
         nuis0, pred0 = fit_nuisance(obs, att0, camera, timing, base_effects, att_mask, moving)
     n_train_frames = int(frame_has_train.sum())
     n_out_frames = int((~frame_has_train).sum())
+    # second channel: attitude increments of consecutive training frames against the gyro
+    gyro_data = read_gyro(recording, scenario) if unit == "frames" else None
+    chan = gyro_channel.build_channel(gyro_data, obs, pred0, frame_has_train, att_mask)
+    chan_out = gyro_channel.build_channel(gyro_data, obs, pred0, frame_has_train, att_mask, heldout=True)
+    if chan is not None:
+        obs = replace(obs, channel=chan)
+        nuis0, pred0 = fit_nuisance(obs, nuis0, camera, timing, base_effects, att_mask, moving)
+    gyro_before = None if chan is None else float(np.sum(gyro_channel.channel_rows(obs, pred0) ** 2))
     located_full = residuals.locate(obs, pred0, camera, train, 3 * n_train_frames)
     located = {k: v for k, v in located_full.items() if not k.startswith("_")}
     located["structure"] = located["structure"][:12]
@@ -341,7 +398,7 @@ def _diagnose(recording, scenario, pipeline, options, pipeline_source, sim_sourc
     # ---- 2. name (linearised at the simulation as given) and 3. model (nonlinear), iterated
     cands = library(exclude=exclude_effects)
     blocks_all = obs.frame if unit == "frames" else np.arange(obs.n)
-    blocks = np.concatenate([blocks_all[train], blocks_all[train]])
+    blocks = np.concatenate([blocks_all[train], blocks_all[train], np.repeat(chan.pairs, 3) if chan is not None else []])
     problem0, untestable = _problem_at(obs, pred0, cands, base_effects, train, blocks)
     first = selection.forward_stepwise(problem0, options.min_delta_bic)
     names = [st["name"] for st in first]
@@ -353,11 +410,16 @@ def _diagnose(recording, scenario, pipeline, options, pipeline_source, sim_sourc
     problem, _ = _problem_at(obs, pred1, cands, effects_final, train, blocks,
                              add_back={c.name: (th - c.defaults) / c.scales for c, th in zip(chosen, fit["thetas"])})
     sel = selection.select(problem, n_boot=options.n_boot, seed=options.seed, min_delta_bic=options.min_delta_bic)
-    n_res = 2 * int(train.sum())
+    n_res = 2 * int(train.sum()) + (chan.rows if chan is not None else 0)
     drop_one = _drop_one_delta_bic(obs, nuis0, camera, timing, base_effects, chosen, fit, train, n_res)
     # an effect is named only when it also wins the majority of bootstrap resamples of the problem
     # linearised at the fitted model; otherwise it is a weak candidate, reported but not named
-    weak = [n for n in names if (options.n_boot > 0 and sel["inclusion"].get(n, 0.0) < MIN_INCLUSION)
+    # (inclusion pooled over the candidates the data cannot tell from it: those split the votes)
+    alias_of = {n: [h for h in problem.groups if h != n and n in problem.groups
+                    and selection.canonical_correlation(selection.design(problem, [n]), selection.design(problem, [h]))
+                    > selection.CORR_LIMIT] for n in names}
+    pooled = {n: selection.pooled_inclusion(sel["bootstrap_sets"], n, alias_of[n]) for n in names}
+    weak = [n for n in names if (options.n_boot > 0 and pooled[n] < MIN_INCLUSION)
             or drop_one.get(n, 0.0) < options.min_delta_bic]  # or no longer earning its place nonlinearly
     if weak:
         names = [n for n in names if n not in weak]
@@ -365,11 +427,19 @@ def _diagnose(recording, scenario, pipeline, options, pipeline_source, sim_sourc
         fit = _refit_chi2(obs, nuis0, camera, timing, base_effects, chosen, train)
         effects_final = refit_mod.chain_with(base_effects, chosen, fit["thetas"])
         nuis1, pred1 = fit_nuisance(obs, nuis0, camera, timing, effects_final, att_mask, moving)
-        weak_rows = [{"name": n, "delta_bic_nonlinear": drop_one.get(n), "inclusion_probability": sel["inclusion"].get(n)}
-                     for n in weak]
+        weak_rows = [{"name": n, "delta_bic_nonlinear": drop_one.get(n), "inclusion_probability": sel["inclusion"].get(n),
+                      "inclusion_with_aliases": pooled[n]} for n in weak]
         drop_one = _drop_one_delta_bic(obs, nuis0, camera, timing, base_effects, chosen, fit, train, n_res)
     else:
         weak_rows = []
+    if chosen:
+        # final estimate and covariance with the rates tied to the attitudes (refit.joint_refit):
+        # the variable-projection refit holds the rates fixed and its sigmas ignore their error
+        jf = refit_mod.joint_refit(obs, fit["nuisance"], camera, timing, base_effects, chosen, fit["thetas"], train, moving)
+        if jf["cost"] is not None:
+            fit = {**fit, "thetas": jf["thetas"], "sigmas": jf["sigmas"], "corr": jf["corr"], "joint_success": jf["success"]}
+            effects_final = refit_mod.chain_with(base_effects, chosen, fit["thetas"])
+            nuis1, pred1 = fit_nuisance(obs, jf["nuisance"], camera, timing, effects_final, att_mask, moving)
     sel["selected"] = names
     screened = [row["name"] for row in sel["screen"]]
     sel["ambiguous"] = selection.ambiguities(problem, names, screened)
@@ -382,7 +452,7 @@ def _diagnose(recording, scenario, pipeline, options, pipeline_source, sim_sourc
     gproj = {}
     for name, g in bases.items():
         p = selection.project_frames(obs.frame, obs.n_frames, aj, g / obs.sigma[:, None, None])
-        gproj[name] = np.concatenate([p[train, 0, :], p[train, 1, :]])
+        gproj[name] = np.concatenate([p[train, 0, :], p[train, 1, :], np.zeros((chan.rows if chan is not None else 0, p.shape[2]))])
     r1 = _whitened_residual(obs, pred1, train)
     left = catchall.residual_structure(r1, gproj)
     after_stats = residuals.chi2_stats(obs, pred1, train, 3 * n_train_frames + sum(len(c.parameters) for c in chosen))
@@ -422,8 +492,20 @@ def _diagnose(recording, scenario, pipeline, options, pipeline_source, sim_sourc
         "heldout_chi2_dof_before": _chi2_dof(obs, pred0, heldout, n_out_frames if unit == "frames" else 0),
         "heldout_chi2_dof_after": _chi2_dof(obs, pred1, heldout, n_out_frames if unit == "frames" else 0),
         "heldout_residual_distribution": _ks(obs, pred0, pred1, heldout),
+        "gyro_channel": None if chan is None else {
+            "pairs": int(chan.pairs.size), "rows": chan.rows, "arw_rad_sqrt_s": chan.gyro.arw_rad_sqrt_s,
+            "chi2_dof_before": gyro_before / chan.rows,
+            "chi2_dof_after": float(np.sum(gyro_channel.channel_rows(obs, pred1) ** 2)) / chan.rows,
+            "heldout_pairs": 0 if chan_out is None else int(chan_out.pairs.size),
+            "heldout_chi2_dof_before": None if chan_out is None else float(np.sum(chan_out.residual(
+                pred0.nuisance.attitude, obs.t_ref_ns, pred0.effects) ** 2)) / chan_out.rows,
+            "heldout_chi2_dof_after": None if chan_out is None else float(np.sum(chan_out.residual(
+                pred1.nuisance.attitude, obs.t_ref_ns, pred1.effects) ** 2)) / chan_out.rows},
         "stability": stab,
         "refit_success": fit["success"],
+        "resimulation": resimulate.resimulation_check(
+            obs, {"before": (base_effects, nuis0, pred0), "after": (effects_final, nuis1, pred1)}, camera, timing,
+            att_mask, moving, options.seed) if options.resimulate else None,
     }
     for name in problem.absorbed:
         c = cands[name]
@@ -434,6 +516,17 @@ def _diagnose(recording, scenario, pipeline, options, pipeline_source, sim_sourc
             text = separating_experiment(c, "attitude")
         result["absorbed_by_attitude"].append({"name": name, "separating_experiment": text})
     step_bic = drop_one
+    # a named model must hold up on data the fit never saw: held-out chi-square must drop
+    hb, ha = result["heldout_chi2_dof_before"], result["heldout_chi2_dof_after"]
+    if hb is not None and ha is not None:  # chi-square sums over held-out image rows and gyro pairs
+        n_img = max(2 * int(heldout.sum()) - (3 * n_out_frames if unit == "frames" else 0), 1)
+        hb, ha = hb * n_img, ha * n_img
+        g = result["gyro_channel"]
+        if g is not None and g["heldout_chi2_dof_before"] is not None:
+            hb += g["heldout_chi2_dof_before"] * 3 * g["heldout_pairs"]
+            ha += g["heldout_chi2_dof_after"] * 3 * g["heldout_pairs"]
+    heldout_confirms = hb is None or ha is None or ha < hb
+    result["heldout_confirms"] = bool(heldout_confirms)
     k = 0
     for c, th, sg in zip(chosen, fit["thetas"], fit["sigmas"]):
         params = {p.name: {"value": float(v), "sigma": float(s), "unit": p.unit} for p, v, s in zip(c.parameters, th, sg)}
@@ -443,10 +536,14 @@ def _diagnose(recording, scenario, pipeline, options, pipeline_source, sim_sourc
                     or v >= p.bounds[1] - 1e-9 * (p.bounds[1] - p.bounds[0])]
         result["effects"].append({
             "name": c.name, "params": params, "delta_bic": step_bic.get(c.name),
-            "inclusion_probability": sel["inclusion"].get(c.name), "aliases_checked": checked,
+            "inclusion_probability": sel["inclusion"].get(c.name), "inclusion_with_aliases": pooled.get(c.name), "aliases_checked": checked,
             "declared_aliases": [getattr(a, "other", str(a)) for a in c.aliases],
             "explanation": c.explanation, "stable": not unstable, "at_bound": at_bound,
-            "confidence": "tentative" if (unexplained or unstable or at_bound) else "confident",
+            "confidence": "tentative" if (unexplained or unstable or at_bound or not heldout_confirms) else "confident",
+            "tentative_because": [why for why, flag in (("residual structure left", unexplained),
+                                                       ("unstable across subsets", bool(unstable)),
+                                                       ("parameter at its bound", bool(at_bound)),
+                                                       ("no held-out improvement", not heldout_confirms)) if flag],
         })
         k += len(c.parameters)
     seen = set()
@@ -486,7 +583,8 @@ def _refit_chi2(obs, nuis0, camera, timing, base_effects, chosen, mask, warm=Non
     fit = refit_mod.refit(obs, nuis0, camera, timing, base_effects, chosen, mask, theta0)
     if fit["cost"] is None:  # no effect: chi2 of the effect-free model with the attitude refitted
         _, pred = fit_attitudes(obs, nuis0, camera, timing, base_effects, mask)
-        fit["cost"] = float(np.sum(((obs.x - pred.x)[mask] ** 2 + (obs.y - pred.y)[mask] ** 2) / obs.sigma[mask] ** 2))
+        fit["cost"] = float(np.sum(((obs.x - pred.x)[mask] ** 2 + (obs.y - pred.y)[mask] ** 2) / obs.sigma[mask] ** 2)
+                            + np.sum(gyro_channel.channel_rows(obs, pred) ** 2))
     return fit
 
 
@@ -495,7 +593,7 @@ def _select_nonlinear(obs, nuis0, camera, timing, base_effects, cands, names, ma
     """Refine a linear selection with the nonlinear model: backward elimination by nonlinear
     delta BIC, then forward stepwise on the problem re-linearised at the fitted model; repeat
     until nothing changes. Returns names, the fit, the final nuisance/prediction and the rounds."""
-    n_res = 2 * int(mask.sum())
+    n_res = 2 * int(mask.sum()) + (obs.channel.rows if obs.channel is not None else 0)
     rounds = []
     for _ in range(max_rounds):
         chosen = [cands[n] for n in names]
@@ -627,5 +725,9 @@ def print_summary(result: dict, console) -> None:
     t.add_row("training", f(result["train_rms_before_px"]), f(result["train_rms_after_px"]))
     t.add_row("held-out", f(result["heldout_rms_before_px"]), f(result["heldout_rms_after_px"]))
     console.print(t)
+    rs = result.get("resimulation")
+    if rs:
+        console.print("re-simulation, recording vs re-simulated residuals (KS p): "
+                      f"before {f(rs['before']['ks_p_value'])}, after {f(rs['after']['ks_p_value'])}", highlight=False)
     if result.get("scenario_updated"):
         console.print(f"wrote {Path(result['scenario_updated']).parent}/index.html and scenario_updated.yaml", highlight=False)

@@ -1,5 +1,9 @@
 """Centre-of-gravity centroiding of many small windows in one vectorised pass (liu2013 sec 2.1).
 
+The ``windowed`` centroider's ``kernel: numpy`` path (the previous default, kept as the "before" of
+``benchmarks/windowed_speed.py`` and as an independent check of the compiled kernel
+``window_kernel.py``, which gives the same spots for the same background and noise).
+
 The windowed centroider (``estimators/centroiders/windowed.py``) reads a few ``h x w`` windows per
 frame. Centroiding them one ``cog`` call at a time costs a fixed Python/numpy overhead per window
 (measured: ~1 ms per 64 x 64 window, most of the windowed chain); here all windows are stacked

@@ -19,9 +19,10 @@ background ``b_k`` and noise ``s_k``:
 4. per window the component whose centroid is nearest to the predicted position ``(px_k, py_k)``
    (window coordinates) is returned, ties to the brighter.
 
-It also returns, per window, the sums over the *background* pixels (outside every grown spot and
-within ``+-3 s_k`` of ``b_k``) that the ``windowed`` centroider's tracked background needs:
-``count``, ``sum d`` and ``sum d^2``.
+It also returns, per window, the sums over the *background* pixels (every ``BG_STEP``-th row,
+outside every grown spot, ``|d| < clip_sigma s_k`` with ``clip_sigma = min(3, threshold_sigma)``)
+that the ``windowed`` centroider's tracked background needs: ``count``, ``sum d`` and
+``sum d^2``; :func:`track_windows` does a whole windowed frame (prediction included) in one call.
 
 Why compiled code (numba; hand-written because no library centroids a handful of windows in
 place): the work per frame is tiny (two 64 x 64 windows are 8192 pixels, ~1 % of a 1000 x 1000
@@ -36,42 +37,54 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-_TRUNC3_CLIP = 3.0  # background pixels: |d| < 3 s
-TRUNC3 = 0.98658  # std of a unit normal truncated to +-3
-BG_STEP = 2  # background sums over every 2nd pixel of every 2nd row: 1024 of a 64 x 64 window
+from estimators.centroiders.window_gyro import gyro_increment
+
+BG_STEP = 4  # background sums over every 4th row (all columns, contiguous): 1024 of a 64 x 64 window's pixels
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def centroid_windows_kernel(image, integer, r0, c0, h, w, px, py, bg, noise, threshold_sigma, min_pixels, max_pixels,
-                            eight, grow_px, saturation, reject_border, gain, alpha, noise_floor):  # pragma: no cover
+                            eight, grow_px, saturation, reject_border, gain, alpha, noise_floor, clip_sigma, trunc,
+                            iwork, fwork, bwork):  # pragma: no cover
     """See the module docstring. ``image`` 2-D (any real dtype; ``integer``: an integer dtype, then
     ``I - b > t`` is tested as ``I > floor(b + t)`` in integers, as ``cog`` does); ``r0, c0`` (n,)
     int64 window origins with the windows inside the frame; ``px, py, bg, noise`` (n,) float64;
-    ``max_pixels < 0``: no limit; ``gain <= 0``: no shot-noise term. ``alpha > 0``: afterwards
-    ``bg`` and ``noise`` are updated in place by the running mean (:func:`update_background`).
+    ``max_pixels < 0``: no limit; ``gain <= 0``: no shot-noise term. ``px, py`` and the returned
+    ``x, y`` are in frame coordinates. Background sums over
+    ``|d| < clip_sigma s``; ``alpha > 0``: afterwards ``bg`` and ``noise`` are updated in place
+    by the running mean (:func:`update_background`, ``trunc``: the std of a unit normal truncated
+    to ``+-clip_sigma``). ``iwork``, ``fwork`` and ``bwork`` are scratch buffers from
+    :func:`workspace` (allocated once: zeroing fresh buffers costs more than the windows).
 
-    Returns ``found (n,) bool, vals (n, 6) float64 [x, y, flux, peak, snr, sigma_px],
+    Returns ``found (n,) bool, vals (6, n) float64 [x, y, flux, peak, snr, sigma_px],
     npix (n,) int64, saturated (n,) bool, bgsum (n, 3) float64 [count, sum d, sum d^2]``
     (compiled; the tests call it with and without numba's JIT through the wrapper)."""
     n = r0.shape[0]
     m = h * w
     found = np.zeros(n, dtype=np.bool_)
-    vals = np.full((n, 6), np.nan)
+    vals = np.full((6, n), np.nan)
     npix_out = np.zeros(n, dtype=np.int64)
     sat_out = np.zeros(n, dtype=np.bool_)
     bgsum = np.zeros((n, 3))
-    d = np.empty(m)
-    cand = np.empty(m, dtype=np.int32)  # pixels above threshold, raster order
-    above = np.zeros(m, dtype=np.bool_)  # marks them (reset after each window)
-    lab = np.zeros(m, dtype=np.int32)  # zero between windows (only touched pixels are reset)
-    tmp = np.zeros(m, dtype=np.int32)
-    stack = np.empty(m, dtype=np.int32)
-    pix = np.empty(m, dtype=np.int32)  # pixels grouped by component (flood-fill order), then ring pixels
-    ring = np.empty(m, dtype=np.int32)
-    n_above = np.zeros(m + 1, dtype=np.int64)
-    raw_max = np.empty(m + 1)
-    start = np.empty(m + 2, dtype=np.int64)
-    keep = np.zeros(m + 1, dtype=np.bool_)
+    d = fwork[:m]
+    raw_max = fwork[m:2 * m + 1]
+    cand = iwork[:m]  # pixels above threshold, raster order
+    lab = iwork[m:2 * m]  # zero between windows (only touched pixels are reset)
+    tmp = iwork[2 * m:3 * m]  # zero between rings
+    stack = iwork[3 * m:4 * m]
+    pix = iwork[4 * m:5 * m]  # pixels grouped by component (flood-fill order), then ring pixels
+    ring = iwork[5 * m:6 * m]
+    n_above = iwork[6 * m:7 * m + 1]
+    start = iwork[7 * m + 1:8 * m + 3]
+    cnt = iwork[8 * m + 3:9 * m + 4]
+    above = bwork[:m]  # marks the pixels above threshold (reset after labelling)
+    keep = bwork[m:2 * m + 1]
+    border = bwork[2 * m + 1:3 * m + 2]
+    flux = fwork[2 * m + 1:3 * m + 2]  # per component
+    sx = fwork[3 * m + 2:4 * m + 3]
+    sy = fwork[4 * m + 3:5 * m + 4]
+    peak = fwork[5 * m + 4:6 * m + 5]
+    m2 = fwork[6 * m + 5:7 * m + 6]
     if eight:
         dr = np.array([-1, 1, 0, 0, -1, -1, 1, 1])
         dc = np.array([0, 0, -1, 1, -1, 1, -1, 1])
@@ -85,39 +98,37 @@ def centroid_windows_kernel(image, integer, r0, c0, h, w, px, py, bg, noise, thr
         t = threshold_sigma * s
         rk = r0[k]
         ck = c0[k]
-        clip = _TRUNC3_CLIP * s
+        clip = clip_sigma * s
         # one pass over the window for the pixels above threshold (d of the others is not kept)
         nc = 0
         if integer:  # I - b > t  <=>  I > floor(b + t) for integer I: compared in integers (vectorises)
             lev = np.int64(np.floor(b + t))
             for i in range(h):
                 row = image[rk + i, ck:ck + w]
-                base = i * w
-                for j in range(w):
-                    if row[j] > lev:
-                        cand[nc] = base + j
-                        nc += 1
+                hits = 0
+                for j in range(w):  # a branch-free count first: most rows have no pixel above
+                    hits += row[j] > lev
+                if hits:
+                    base = i * w
+                    for j in range(w):
+                        if row[j] > lev:
+                            cand[nc] = base + j
+                            nc += 1
         else:
             for i in range(h):
                 row = image[rk + i, ck:ck + w]
-                base = i * w
+                hits = 0
                 for j in range(w):
-                    if row[j] - b > t:
-                        cand[nc] = base + j
-                        nc += 1
-        # background sums over every BG_STEP-th pixel of every BG_STEP-th row below threshold and
-        # within +-3 s (ring pixels are taken out again below)
-        c_n = 0.0
-        c_s = 0.0
-        c_s2 = 0.0
-        for i in range(0, h, BG_STEP):
-            row = image[rk + i, ck:ck + w]
-            for j in range(0, w, BG_STEP):
-                dv = row[j] - b
-                if dv <= t and abs(dv) < clip:
-                    c_n += 1.0
-                    c_s += dv
-                    c_s2 += dv * dv
+                    hits += row[j] - b > t
+                if hits:
+                    base = i * w
+                    for j in range(w):
+                        if row[j] - b > t:
+                            cand[nc] = base + j
+                            nc += 1
+        # background sums over every BG_STEP-th row within +-clip (below
+        # threshold: clip_sigma <= threshold_sigma); ring pixels are taken out again below
+        c_n, c_s, c_s2 = _background_sums(image, rk, ck, h, w, b, clip)
         for e0 in range(nc):
             q = cand[e0]
             qi = q // w
@@ -208,13 +219,14 @@ def centroid_windows_kernel(image, integer, r0, c0, h, w, px, py, bg, noise, thr
             f0 = f1
             f1 = f1 + nr
         # 3. moments per component over its grown pixels
-        cnt = np.zeros(ncomp + 1, dtype=np.int64)
-        flux = np.zeros(ncomp + 1)
-        sx = np.zeros(ncomp + 1)
-        sy = np.zeros(ncomp + 1)
-        peak = np.full(ncomp + 1, -np.inf)
-        border = np.zeros(ncomp + 1, dtype=np.bool_)
-        m2 = np.zeros(ncomp + 1)
+        for c in range(ncomp + 1):
+            cnt[c] = 0
+            flux[c] = 0.0
+            sx[c] = 0.0
+            sy[c] = 0.0
+            peak[c] = -np.inf
+            border[c] = False
+            m2[c] = 0.0
         for e in range(f1):
             q = pix[e]
             L = lab[q]
@@ -245,30 +257,30 @@ def centroid_windows_kernel(image, integer, r0, c0, h, w, px, py, bg, noise, thr
                 continue
             x = sx[c] / flux[c]
             y = sy[c] / flux[c]
-            d2 = (x - px[k]) ** 2 + (y - py[k]) ** 2
+            d2 = (x - (px[k] - ck)) ** 2 + (y - (py[k] - rk)) ** 2
             if d2 < best_d2 or (d2 == best_d2 and flux[c] > flux[best]):
                 best = c
                 best_d2 = d2
         if best > 0:
             c = best
             found[k] = True
-            vals[k, 0] = sx[c] / flux[c]
-            vals[k, 1] = sy[c] / flux[c]
-            vals[k, 2] = flux[c]
-            vals[k, 3] = peak[c]
+            vals[0, k] = sx[c] / flux[c] + ck
+            vals[1, k] = sy[c] / flux[c] + rk
+            vals[2, k] = flux[c]
+            vals[3, k] = peak[c]
             shot = 0.0 if gain <= 0 else flux[c] / gain
-            vals[k, 4] = flux[c] / np.sqrt(cnt[c] * s * s + shot)
-            vals[k, 5] = s * np.sqrt(m2[c] / 2.0) / flux[c]
+            vals[4, k] = flux[c] / np.sqrt(cnt[c] * s * s + shot)
+            vals[5, k] = s * np.sqrt(m2[c] / 2.0) / flux[c]
             npix_out[k] = cnt[c]
             sat_out[k] = raw_max[c] >= saturation
         # background sums: without the ring pixels (below threshold, inside a grown spot)
         for e in range(nk, f1):
             q = pix[e]
             qi = q // w
-            if qi % BG_STEP or (q - qi * w) % BG_STEP:
+            if qi % BG_STEP:
                 continue
             dv = d[q]
-            if dv <= t and abs(dv) < clip:
+            if abs(dv) < clip:
                 c_n -= 1.0
                 c_s -= dv
                 c_s2 -= dv * dv
@@ -278,24 +290,43 @@ def centroid_windows_kernel(image, integer, r0, c0, h, w, px, py, bg, noise, thr
         for e in range(f1):
             lab[pix[e]] = 0
     if alpha > 0:
-        update_background(bg, noise, bgsum, alpha, noise_floor)
+        update_background(bg, noise, bgsum, alpha, noise_floor, trunc)
     return found, vals, npix_out, sat_out, bgsum
 
 
+@njit(cache=True, nogil=True, fastmath=True)
+def _background_sums(image, r0, c0, h, w, b, lim):  # pragma: no cover - compiled
+    """``count, sum d, sum d^2`` over every ``BG_STEP``-th row of the window with ``-lim < d = I - b <
+    lim`` (branch-free so that it vectorises; fastmath lets the sums be reordered: they only
+    feed a running mean)."""
+    cn = 0.0
+    cs = 0.0
+    cs2 = 0.0
+    for i in range(0, h, BG_STEP):
+        row = image[r0 + i, c0:c0 + w]
+        for j in range(w):
+            dv = row[j] - b
+            m = 1.0 if abs(dv) < lim else 0.0
+            cn += m
+            cs += m * dv
+            cs2 += m * dv * dv
+    return cn, cs, cs2
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
-def update_background(bg, noise, bgsum, alpha, noise_floor):  # pragma: no cover - compiled
+def update_background(bg, noise, bgsum, alpha, noise_floor, trunc):  # pragma: no cover - compiled
     """Running-mean update of each window's background and noise from its background sums
     (``windowed`` centroider, ``background: tracked``): with ``m``, ``v`` the mean and variance
     of ``d = I - b`` over the background pixels, ``b += alpha m`` and
-    ``s^2 = (1 - alpha) s^2 + alpha v / 0.98658^2`` (0.98658: the std of a unit normal truncated
-    to +-3, the clip of the sums), floored at ``noise_floor``; windows with fewer than 16
-    background pixels keep their values."""
+    ``s^2 = (1 - alpha) s^2 + alpha v / trunc^2`` (``trunc``: the std of a unit normal truncated
+    to the clip of the sums, 0.98658 for +-3), floored at ``noise_floor``; windows with fewer
+    than 16 background pixels keep their values."""
     for k in range(bg.shape[0]):
         c = bgsum[k, 0]
         if c < 16:
             continue
         mean = bgsum[k, 1] / c
-        var = max(bgsum[k, 2] / c - mean * mean, 0.0) / (TRUNC3 * TRUNC3)
+        var = max(bgsum[k, 2] / c - mean * mean, 0.0) / (trunc * trunc)
         bg[k] += alpha * mean
         noise[k] = max(np.sqrt((1.0 - alpha) * noise[k] * noise[k] + alpha * var), noise_floor)
 
@@ -326,19 +357,33 @@ def predict_windows(x, y, dtheta, cx, cy, f, height, width, h, w):  # pragma: no
     return px, py, r0, c0
 
 
+def workspace(m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Zeroed scratch buffers ``(iwork, fwork, bwork)`` of :func:`centroid_windows_kernel` for
+    windows of ``m`` pixels."""
+    return np.zeros(9 * m + 4, dtype=np.int64), np.zeros(7 * m + 6), np.zeros(3 * m + 2, dtype=bool)
+
+
+def truncated_normal_std(c: float) -> float:
+    """Standard deviation of a unit normal truncated to ``+-c`` (0.98658 for c = 3)."""
+    from scipy.stats import truncnorm
+
+    return float(truncnorm(-c, c).std())
+
+
 def centroid_windows_at(image: np.ndarray, r0: np.ndarray, c0: np.ndarray, h: int, w: int, px: np.ndarray,
                         py: np.ndarray, bg: np.ndarray, noise: np.ndarray, *, threshold_sigma: float, min_pixels: int,
                         max_pixels: int | None, connectivity: int, grow_px: int, saturation_adu: float,
                         reject_border: bool = False, gain_e_per_adu: float | None = None):
     """:func:`centroid_windows_kernel` on the windows ``image[r0_k : r0_k + h, c0_k : c0_k + w]``
     (inside the frame) with background ``bg`` and noise ``noise`` per window (threshold
-    ``threshold_sigma * noise``); ``px, py`` in window coordinates.
+    ``threshold_sigma * noise``); ``px, py`` and the spots' ``x, y`` in frame coordinates.
 
     Returns ``(WindowSpots, bgsum)`` (``bgsum`` (n, 3): count, sum d, sum d^2 over each window's
     background pixels, see the module docstring)."""
     from estimators.centroiders.window_cog import WindowSpots
 
     img = np.asarray(image)
+    clip = min(3.0, float(threshold_sigma))
     if img.dtype == bool:
         img = img.astype(np.uint8)
     found, vals, npix, sat, bgsum = centroid_windows_kernel(
@@ -346,8 +391,9 @@ def centroid_windows_at(image: np.ndarray, r0: np.ndarray, c0: np.ndarray, h: in
         int(h), int(w), np.asarray(px, dtype=float), np.asarray(py, dtype=float), np.array(bg, dtype=float),
         np.array(noise, dtype=float), float(threshold_sigma), int(min_pixels), -1 if max_pixels is None else int(max_pixels),
         connectivity == 8, int(grow_px), float(saturation_adu), bool(reject_border),
-        0.0 if gain_e_per_adu is None else float(gain_e_per_adu), 0.0, 0.0)
-    spots = WindowSpots(found, vals[:, 0], vals[:, 1], vals[:, 2], vals[:, 3], npix, sat, vals[:, 4], vals[:, 5])
+        0.0 if gain_e_per_adu is None else float(gain_e_per_adu), 0.0, 0.0, clip, truncated_normal_std(clip),
+        *workspace(int(h) * int(w)))
+    spots = WindowSpots(found, vals[0], vals[1], vals[2], vals[3], npix, sat, vals[4], vals[5])
     return spots, bgsum
 
 
@@ -361,3 +407,63 @@ def any_coincident(x, y, tol):  # pragma: no cover - compiled
             if abs(x[i] - x[j]) < tol and abs(y[i] - y[j]) < tol:
                 return True
     return False
+
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def predict_step(x, y, t_prev, tau, psi, theta, rate, origin_ns, exposure_mean, t0_ns, line_delay_ns, exposure_ns,
+                 cx, cy, f, height, width, h, w):  # pragma: no cover - compiled
+    """The ``windowed`` centroider's prediction (its class docstring, step 1), compiled: the gyro
+    increment (:func:`~estimators.centroiders.window_gyro.gyro_increment`) from each track's
+    ``t_prev`` (its row start with ``exposure_mean``, else its ``t_ns``) to the predicted row's
+    start (mid-exposure) in the frame starting at ``t0_ns``, then eqs (8)-(10) and the windows
+    (:func:`predict_windows`). With a rolling shutter (``line_delay_ns > 0``) twice, the second
+    time at the row predicted by the first. Row times as ``DetectorTiming.row_start_ns``:
+    ``t0 + rint(y line_delay)`` (+ ``exposure // 2`` for the mid-exposure).
+
+    Returns ``px, py, r0, c0, dtheta (n, 3), t_new (n,) int64``."""
+    n = x.shape[0]
+    y_guess = y.copy()
+    t_new = np.empty(n, dtype=np.int64)
+    for it in range(2 if line_delay_ns > 0 else 1):
+        for k in range(n):
+            t_new[k] = t0_ns + np.int64(np.rint(y_guess[k] * line_delay_ns))
+            if not exposure_mean:
+                t_new[k] += exposure_ns // 2
+        dtheta = gyro_increment(tau, psi, theta, rate, origin_ns, t_prev, t_new, exposure_ns, exposure_mean)
+        px, py, r0, c0 = predict_windows(x, y, dtheta, cx, cy, f, height, width, h, w)
+        y_guess = py
+    return px, py, r0, c0, dtheta, t_new
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def track_windows(image, integer, x, y, t_prev, tau, psi, theta, rate, origin_ns, exposure_mean, t0_ns, line_delay_ns,
+                  exposure_ns, cx, cy, f, height, width, h, w, bg, noise, threshold_sigma, min_pixels, max_pixels,
+                  eight, grow_px, saturation, reject_border, gain, alpha, noise_floor, clip_sigma, trunc,
+                  iwork, fwork, bwork):  # pragma: no cover - compiled
+    """One windowed frame in one compiled call: :func:`predict_step`, then
+    :func:`centroid_windows_kernel` (which updates ``bg``/``noise`` when ``alpha > 0``), then the
+    check that no two guide stars took the same spot. Returns ``status`` (0: every star found;
+    1: a prediction not finite or a window without a spot; 2: two stars on one spot), ``vals``
+    (6, n), ``npix``, ``saturated`` and ``times`` (2, n) int64: each spot's mid-exposure and row
+    start, ``DetectorTiming.row_mid_exposure_ns`` / ``row_start_ns`` of its ``y`` (same formulas)."""
+    px, py, r0, c0, _, _ = predict_step(x, y, t_prev, tau, psi, theta, rate, origin_ns, exposure_mean, t0_ns,
+                                        line_delay_ns, exposure_ns, cx, cy, f, height, width, h, w)
+    n = x.shape[0]
+    times = np.zeros((2, n), dtype=np.int64)
+    for k in range(n):
+        if not (np.isfinite(px[k]) and np.isfinite(py[k])):
+            return 1, np.full((6, n), np.nan), np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.bool_), times
+    found, vals, npix, sat, _ = centroid_windows_kernel(image, integer, r0, c0, h, w, px, py, bg, noise, threshold_sigma,
+                                                        min_pixels, max_pixels, eight, grow_px, saturation,
+                                                        reject_border, gain, alpha, noise_floor, clip_sigma, trunc,
+                                                        iwork, fwork, bwork)
+    for k in range(n):
+        if not found[k]:
+            return 1, vals, npix, sat, times
+    if any_coincident(vals[0], vals[1], 1e-6):
+        return 2, vals, npix, sat, times
+    for k in range(n):
+        times[1, k] = t0_ns + np.int64(np.rint(vals[1, k] * line_delay_ns))
+        times[0, k] = times[1, k] + exposure_ns // 2
+    return 0, vals, npix, sat, times

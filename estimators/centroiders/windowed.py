@@ -10,9 +10,10 @@ from pydantic import BaseModel, ConfigDict, Field
 from estimators.centroiders.base import Centroider
 from estimators.centroiders.cog import CogCentroider, CogParams
 from estimators.centroiders.window_cog import centroid_windows, cut_windows, median_rows, robust_sigma_rows
-from estimators.centroiders.window_kernel import any_coincident, centroid_windows_kernel, predict_windows
+from estimators.centroiders.window_gyro import FastGyroIntegrator
+from estimators.centroiders.window_kernel import (any_coincident, centroid_windows_kernel, predict_step, track_windows,
+                                                  truncated_normal_std, workspace)
 from estimators.data import FrameData, SensorContext, StarTable
-from estimators.filters.gyro_kf import GyroIntegrator
 
 NS = 1e-9
 
@@ -36,11 +37,12 @@ class WindowedParams(BaseModel):
         default="compiled", description="With batch: 'compiled' reads the windows in place with the numba kernel "
         "(window_kernel); 'numpy': the vectorised numpy pass over the stacked windows (window_cog, the previous default, "
         "kept as the 'before' of the side-by-side timing; needs background='window').")
-    background: Literal["tracked", "window"] = Field(
-        default="tracked", description="'tracked': each window's background and noise are measured once (its median and "
+    background: Literal["tracked", "window"] | None = Field(
+        default=None, description="'tracked': each window's background and noise are measured once (its median and "
         "robust sigma, at the first windowed frame after an acquisition) and then followed by a running mean over "
         "background_frames frames of its background pixels (outside the spots, within 3 sigma); 'window': each "
-        "window's own median and robust sigma every frame (the cog definition per window).")
+        "window's own median and robust sigma every frame (the cog definition per window). None: 'tracked' with the "
+        "compiled kernel, 'window' with kernel='numpy' or batch=False (the only one they implement).")
     background_frames: float = Field(
         default=100.0, ge=1.0, description="Time constant (frames) of the tracked background and noise (an "
         "exponential running mean; 100 frames = 1 s at 100 Hz).")
@@ -60,7 +62,9 @@ class WindowedCentroider(Centroider):
        and ``dtheta`` the gyro angle increment from the previous centroid's time to this frame's
        (:class:`~estimators.filters.gyro_kf.GyroIntegrator`; with ``exposure_mean`` the increment of
        the exposure-window means, see there). For a rolling shutter the new row time uses the
-       predicted row.
+       predicted row. Compiled, with steps 3-4, in one call per frame
+       (:func:`~estimators.centroiders.window_kernel.track_windows`; the gyro history is
+       :class:`~estimators.centroiders.window_gyro.FastGyroIntegrator`, the same model compiled).
     2. predicted 1-sigma error per axis (:meth:`predict`): the previous centroid's ``sigma_px``,
        the gyro angle random walk ``F N sqrt(dt)`` and the second-order term ``F |dtheta|^2``
        (neglected by eq 8), added in quadrature.
@@ -102,11 +106,11 @@ class WindowedCentroider(Centroider):
         self._full.setup(context)
         self._wh = min(p.window_px, int(cam.height))
         self._ww = min(p.window_px, int(cam.width))
-        if p.batch and p.kernel == "numpy" and p.background == "tracked":
-            raise ValueError("windowed: kernel='numpy' implements background='window' only; set background: window")
-        if not p.batch and p.background == "tracked":
-            raise ValueError("windowed: batch=False runs the cog core per window (background='window'); "
-                             "set background: window")
+        compiled = p.batch and p.kernel == "compiled"
+        if not compiled and p.background == "tracked":
+            raise ValueError("windowed: background='tracked' needs the compiled kernel (batch=True, kernel='compiled'); "
+                             "kernel='numpy' and batch=False implement background='window' only")
+        self._tracked = compiled and p.background != "window"
         if p.batch and p.cog.background != "median":
             raise ValueError("windowed: with batch=True cog.background must be 'median' (each window uses its own "
                              "median background); set batch=False to run the cog core per window")
@@ -118,19 +122,23 @@ class WindowedCentroider(Centroider):
         self._win.setup(SensorContext(camera=wcam, timing=context.timing, catalog=None, bit_depth=bit_depth))
         self._saturation = (float(p.cog.saturation_adu) if p.cog.saturation_adu is not None
                             else float(2 ** int(bit_depth) - 1) if bit_depth else None)  # None: the image dtype's max
-        self._gyro = GyroIntegrator(p.gyro_bias_rad_s, default_period_s=float(context.timing.frame_period_ns) * NS)
+        self._gyro = FastGyroIntegrator(p.gyro_bias_rad_s, default_period_s=float(context.timing.frame_period_ns) * NS)
         self._tracks: StarTable | None = None
         self._bg: np.ndarray | None = None  # tracked background / noise per guide star (ADU)
         self._noise: np.ndarray | None = None
         self._n_frames = 0
         self._exposure_ns = int(context.timing.exposure_ns)
+        self._line_delay_ns = int(context.timing.effective_line_delay_ns)
         self._geometry = (float(cam.cx), float(cam.cy), float(cam.focal_px), int(cam.height), int(cam.width),
                           self._wh, self._ww)
         c = p.cog
         self._kernel_args = (float(c.threshold_sigma), int(c.min_pixels), -1 if c.max_pixels is None else int(c.max_pixels),
                              c.connectivity == 8, int(c.grow_px))
+        clip = min(3.0, float(c.threshold_sigma))  # background pixels: |I - b| < clip s (below threshold)
+        self._track_args = (self._line_delay_ns, self._exposure_ns, *self._geometry)
         self._kernel_args2 = (bool(c.reject_border), 0.0 if c.gain_e_per_adu is None else float(c.gain_e_per_adu),
-                              1.0 / p.background_frames if p.background == "tracked" else 0.0, float(c.noise_floor_adu))
+                              1.0 / p.background_frames if self._tracked else 0.0, float(c.noise_floor_adu),
+                              clip, truncated_normal_std(clip), *workspace(self._wh * self._ww))
         self.last_mode = ""
 
     # ------------------------------------------------------------------ prediction
@@ -145,22 +153,17 @@ class WindowedCentroider(Centroider):
         return x, y, sigma
 
     def _predict_windows(self, t0_ns: int):
-        """Eq (10) (compiled, :func:`~estimators.centroiders.window_kernel.predict_windows`):
-        predicted ``px, py``, the window origins ``r0, c0``, the gyro increments ``dtheta`` (n, 3)
-        and their time spans (s)."""
+        """Eq (10), compiled (:func:`~estimators.centroiders.window_kernel.predict_step`): predicted
+        ``px, py``, window origins ``r0, c0``, gyro increments ``dtheta`` (n, 3), their spans (s)."""
         tr = self._tracks
-        timing = self.context.timing
-        y_guess = tr.y
-        for _ in range(2 if timing.effective_line_delay_ns else 1):  # rolling: the row time depends on the predicted row
-            row_new = timing.row_start_ns(t0_ns, y_guess)
-            if self.params.exposure_mean:
-                dtheta = self._gyro.increment(tr.row_time_ns, row_new, self._exposure_ns)
-            else:
-                dtheta = self._gyro.increment(tr.t_ns, timing.row_mid_exposure_ns(t0_ns, y_guess))
-            px, py, r0, c0 = predict_windows(tr.x, tr.y, dtheta, *self._geometry)  # eqs (8)-(10)
-            y_guess = py
-        dt = np.abs(row_new - tr.row_time_ns) * NS
-        return px, py, r0, c0, dtheta, dt
+        g = self._gyro
+        t_prev = tr.row_time_ns if self.params.exposure_mean else tr.t_ns
+        px, py, r0, c0, dtheta, t_new = predict_step(tr.x, tr.y, t_prev, g.tau, g.psi, g.theta, g.rate,
+                                                     g.origin_ns or 0, *self._timing_args(t0_ns), *self._geometry)
+        return px, py, r0, c0, dtheta, np.abs(t_new - t_prev) * NS
+
+    def _timing_args(self, t0_ns: int) -> tuple:
+        return self.params.exposure_mean, int(t0_ns), self._line_delay_ns, self._exposure_ns
 
     def _saturation_of(self, image: np.ndarray) -> float:
         if self._saturation is not None:
@@ -190,10 +193,23 @@ class WindowedCentroider(Centroider):
         self._n_frames += 1
         if self._n_frames % 256 == 0:
             self._gyro.trim(frame.t0_ns)  # bounded gyro history (keep_s); the increments span one frame
-        px, py, r0, c0, _, _ = self._predict_windows(frame.t0_ns)
-        if not (np.isfinite(px).all() and np.isfinite(py).all()):
-            return self._full_frame(frame)
         p = self.params
+        if image.dtype == bool:
+            image = image.astype(np.uint8)
+        if self._tracked and self._bg is not None:
+            # the default: prediction, windows, background update and checks in one compiled call
+            tr = self._tracks
+            g = self._gyro
+            status, vals, npix, saturated, times = track_windows(
+                image, image.dtype.kind in "iu", tr.x, tr.y, tr.row_time_ns if p.exposure_mean else tr.t_ns, g.tau,
+                g.psi, g.theta, g.rate, g.origin_ns or 0, p.exposure_mean, int(frame.t0_ns), *self._track_args,
+                self._bg, self._noise, *self._kernel_args, self._saturation_of(image), *self._kernel_args2)
+            if status:
+                return self._full_frame(frame)  # a star lost, or two on one spot: re-acquire
+            return self._table(frame, *vals, npix, saturated, times)
+        px, py, r0, c0, _, _ = self._predict_windows(frame.t0_ns)
+        if not (np.isfinite(px.sum()) and np.isfinite(py.sum())):
+            return self._full_frame(frame)
         c = p.cog
         if not p.batch:
             return self._windows_loop(frame, image, px, py, r0, c0)
@@ -203,30 +219,36 @@ class WindowedCentroider(Centroider):
                                      connectivity=c.connectivity, grow_px=c.grow_px, noise_floor_adu=c.noise_floor_adu,
                                      saturation_adu=self._saturation_of(image), reject_border=c.reject_border,
                                      gain_e_per_adu=c.gain_e_per_adu)
-            found, x, y = spots.found, spots.x + c0, spots.y + r0
-            flux, peak, npix, saturated, snr, sigma = (spots.flux, spots.peak, spots.npix.astype(np.int64),
-                                                       spots.saturated, spots.snr, spots.sigma_px)
-        else:
-            if p.background == "window" or self._bg is None:
-                self._bg, self._noise = self._window_background(image, r0, c0)
-            if image.dtype == bool:
-                image = image.astype(np.uint8)
-            # one compiled pass over the windows, in place in the frame; with the tracked background
-            # it also updates self._bg / self._noise (discarded below if the frame falls back)
+            found = spots.found
+            cols = (spots.x + c0, spots.y + r0, spots.flux, spots.peak, spots.snr, spots.sigma_px,
+                    spots.npix.astype(np.int64), spots.saturated)
+        else:  # compiled kernel with each window's own background (background='window', or the first windowed frame)
+            self._bg, self._noise = self._window_background(image, r0, c0)
             found, vals, npix, saturated, _ = centroid_windows_kernel(
-                image, image.dtype.kind in "iu", r0, c0, self._wh, self._ww, px - c0, py - r0, self._bg, self._noise,
+                image, image.dtype.kind in "iu", r0, c0, self._wh, self._ww, px, py, self._bg, self._noise,
                 *self._kernel_args, self._saturation_of(image), *self._kernel_args2)
-            x, y, flux, peak, snr, sigma = vals[:, 0] + c0, vals[:, 1] + r0, vals[:, 2], vals[:, 3], vals[:, 4], vals[:, 5]
+            cols = (*vals, npix, saturated)
         if not found.all():
             return self._full_frame(frame)
-        timing = self.context.timing
+        if found.size > 1 and any_coincident(cols[0], cols[1], 1e-6):
+            return self._full_frame(frame)  # two guide stars took the same spot: re-acquire
+        return self._table(frame, *cols)
+
+    def _table(self, frame: FrameData, x, y, flux, peak, snr, sigma, npix, saturated, times=None) -> FrameData:
+        """The guide stars' spots as the frame's stars (they become the tracks); ``times``: their
+        (mid-exposure, row start) from the compiled path, else from the sensor timing."""
+        if times is None:
+            timing = self.context.timing
+            times = timing.row_mid_exposure_ns(frame.t0_ns, y), timing.row_start_ns(frame.t0_ns, y)
         n = x.size
+        unknown = np.full(5 * n, np.nan)  # vx, vy, ref_icrs: one allocation, contiguous views
         # the table directly (StarTable.build's checks and broadcasts cost more than the kernel here)
-        stars = StarTable(x=x, y=y, t_ns=timing.row_mid_exposure_ns(frame.t0_ns, y),
-                          row_time_ns=timing.row_start_ns(frame.t0_ns, y), flux=flux, peak=peak, npix=npix,
-                          saturated=saturated, snr=snr, sigma_px=sigma, vx=np.full(n, np.nan), vy=np.full(n, np.nan),
-                          catalog_id=np.full(n, -1, dtype=np.int64), ref_icrs=np.full((n, 3), np.nan))
-        return self._accept(frame, stars)
+        stars = StarTable(x=x, y=y, t_ns=times[0], row_time_ns=times[1], flux=flux, peak=peak, npix=npix,
+                          saturated=saturated, snr=snr, sigma_px=sigma, vx=unknown[:n], vy=unknown[n:2 * n],
+                          catalog_id=np.full(n, -1, dtype=np.int64), ref_icrs=unknown[2 * n:].reshape(n, 3))
+        self._tracks = stars
+        self.last_mode = "window"
+        return frame.evolve(stars=stars)
 
     def _window_background(self, image: np.ndarray, r0: np.ndarray, c0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each window's median and robust sigma (floored): the ``cog`` definition per window."""

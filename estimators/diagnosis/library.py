@@ -48,9 +48,10 @@ class Candidate:
         theta = self.defaults if theta is None else np.clip(np.asarray(theta, dtype=float), self.lower, self.upper)
         return self.cls(**dict(zip(self.param_names, map(float, theta))))
 
-    def testable(self, ctx) -> str | None:
-        """None when the recording can show this effect, else the reason it cannot."""
-        if "image" not in self.channels and "time" not in self.channels:
+    def testable(self, ctx, gyro: bool = False) -> str | None:
+        """None when the recording can show this effect, else the reason it cannot (``gyro``: the
+        recording has the gyro/attitude-increment channel, :mod:`estimators.diagnosis.gyro_channel`)."""
+        if "image" not in self.channels and "time" not in self.channels and not (gyro and "gyro" in self.channels):
             return f"no image-plane signature (channels: {', '.join(sorted(self.channels))})"
         missing = [k for k in self.needs if (k.startswith("covariate:") and k.split(":", 1)[1] not in ctx.covariates)
                    or (not k.startswith("covariate:") and getattr(ctx, k, None) is None)]
@@ -58,12 +59,22 @@ class Candidate:
             return f"the recording does not provide {', '.join(missing)}"
         return None
 
-    def signature(self, ctx, base_effects=()) -> np.ndarray:
-        """``d(x', y')/d(theta)`` at the absent values inside the base chain, (n, 2, m), px per unit."""
+    def signature(self, ctx, base_effects=(), exposure_ns=None) -> np.ndarray:
+        """``d(x', y')/d(theta)`` at the absent values inside the base chain, (n, 2, m), px per unit.
+
+        ``exposure_ns`` (per observation) evaluates a recording that mixes exposure times group by
+        group (:func:`estimators.diagnosis.observations.by_exposure`)."""
+        from estimators.diagnosis.observations import by_exposure
+
         eff = self.instance()
-        jac, labels = chain_jacobian(tuple(base_effects) + (eff,), ctx)
-        cols = [i for i, (name, _) in enumerate(labels) if name == self.name]
-        return jac[:, :, cols[-len(self.parameters):]]
+        chain = tuple(base_effects) + (eff,)
+
+        def one(c):
+            jac, labels = chain_jacobian(chain, c)
+            cols = [i for i, (name, _) in enumerate(labels) if name == self.name]
+            return jac[:, :, cols[-len(self.parameters):]]
+
+        return by_exposure(ctx, exposure_ns, one)
 
     def alias_of(self, other: str):
         for a in self.aliases:

@@ -38,6 +38,11 @@ from sensors.effects.chain import predict as chain_predict
 
 
 POS_STEP_PX = 1e-3
+# A frame takes a one-sided (backward/forward) rate instead of the central difference only when it
+# fits its stars better by this much chi-square: picking the best of three on noise alone overfits
+# the rate and biases every time-like effect (measured: rolling-shutter pulls shifted by -0.5
+# sigma); a rate reversal at a frame boundary gains orders of magnitude more.
+RATE_SWITCH_CHI2 = 25.0
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -74,6 +79,8 @@ class Observations:
     heldout: np.ndarray = field(default=None)
     sigma_source: str = "recording"
     pm_rad_yr: np.ndarray | None = None  # (n, 3) catalogue proper motions (ICRS tangent, rad/yr) when known
+    exposure_ns: np.ndarray | None = None  # (F,) per-frame exposure when the recording mixes exposure times
+    channel: object = None  # gyro_channel.GyroChannel: attitude increments vs the gyro, when the recording has one
 
     def __post_init__(self):
         if self.heldout is None:
@@ -123,6 +130,9 @@ class Prediction:
     vy: np.ndarray
     omega: np.ndarray  # (n, 3) body rate of each star's frame
     ctx: EffectContext
+    exposure_ns: np.ndarray | None = None  # (n,) per-star exposure when the recording mixes exposure times
+    nuisance: Nuisance | None = None  # the nuisance and effect chain this prediction was made with
+    effects: tuple = ()
 
 
 def camera_rotations(obs: Observations, nuis: Nuisance) -> Rotation:
@@ -138,6 +148,38 @@ def effect_context(obs: Observations, camera, timing, rot: Rotation, x, y, vx, v
                          t_start_ns=int(obs.t0_ns.min()) if obs.n_frames else 0)
 
 
+def by_exposure(ctx: EffectContext, exposure_ns, fn):
+    """``fn(ctx)`` evaluated per exposure time of a recording that mixes them.
+
+    :class:`~sensors.effects.base.EffectContext` carries one :class:`~sensors.timing.DetectorTiming`;
+    a recording whose frames alternate exposure times (``Observations.exposure_ns``) is evaluated
+    group by group with that group's exposure (one call per distinct exposure, not per star) and
+    the results (arrays over observations, first axis) put back in order. ``fn`` returns an array
+    or a tuple of arrays.
+    """
+    if exposure_ns is None or ctx.timing is None or np.unique(exposure_ns).size < 2:
+        return fn(ctx)
+    out = None
+    for e in np.unique(exposure_ns):
+        idx = np.flatnonzero(exposure_ns == e)
+        sub = ctx.take(idx).evolve(timing=replace(ctx.timing, exposure_ns=int(e)))
+        res = fn(sub)
+        res_t = res if isinstance(res, tuple) else (res,)
+        if out is None:
+            out = [np.zeros((ctx.n,) + np.shape(r)[1:], dtype=np.asarray(r).dtype) for r in res_t]
+        for o, r in zip(out, res_t):
+            o[idx] = r
+    return tuple(out) if isinstance(res, tuple) else out[0]
+
+
+def frame_reference_times(t0_ns: np.ndarray, timing, exposure_ns: np.ndarray | None = None) -> np.ndarray:
+    """Per-frame reference time (mid-exposure of the middle row), with per-frame exposures if given."""
+    t_ref = np.array([timing.frame_reference_ns(int(t)) for t in t0_ns], dtype=np.int64)
+    if exposure_ns is not None:
+        t_ref = t_ref + (np.asarray(exposure_ns, dtype=np.int64) - np.int64(timing.exposure_ns)) // 2
+    return t_ref
+
+
 def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=()) -> Prediction:
     """Predict every observation: ideal pinhole position, then the effect chain in stage order."""
     rot = camera_rotations(obs, nuis)
@@ -148,19 +190,26 @@ def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=()) 
     v = np.einsum("nij,nj->ni", jac, omega)
     ctx = effect_context(obs, camera, timing, rot, x0, y0, v[:, 0], v[:, 1], omega)
     x, y = (x0, y0)
+    expo = None if obs.exposure_ns is None else obs.exposure_ns[obs.frame]
     if len(effects):
         effects = tuple(effects)
-        x, y = chain_predict(effects, ctx)
-        # the attitude moves the ideal position; the chain maps that motion through its position
-        # Jacobian d(x', y')/d(x, y), taken by central differences (the effects publish only
-        # parameter Jacobians). Needed where an effect is strongly nonlinear in position.
-        cols = []
-        for dx, dy in ((POS_STEP_PX, 0.0), (0.0, POS_STEP_PX)):
-            xp, yp = chain_predict(effects, ctx.evolve(x=x0 + dx, y=y0 + dy))
-            xm, ym = chain_predict(effects, ctx.evolve(x=x0 - dx, y=y0 - dy))
-            cols.append(np.stack([xp - xm, yp - ym], axis=-1) / (2 * POS_STEP_PX))
-        jac = np.stack(cols, axis=-1) @ jac  # (n, 2, 2) @ (n, 2, 3)
-    return Prediction(np.asarray(x, float), np.asarray(y, float), x0, y0, w, jac, v[:, 0], v[:, 1], omega, ctx)
+
+        def chain(c):
+            x, y = chain_predict(effects, c)
+            # the attitude moves the ideal position; the chain maps that motion through its position
+            # Jacobian d(x', y')/d(x, y), taken by central differences (the effects publish only
+            # parameter Jacobians). Needed where an effect is strongly nonlinear in position.
+            cols = []
+            for dx, dy in ((POS_STEP_PX, 0.0), (0.0, POS_STEP_PX)):
+                xp, yp = chain_predict(effects, c.evolve(x=c.x + dx, y=c.y + dy))
+                xm, ym = chain_predict(effects, c.evolve(x=c.x - dx, y=c.y - dy))
+                cols.append(np.stack([xp - xm, yp - ym], axis=-1) / (2 * POS_STEP_PX))
+            return x, y, np.stack(cols, axis=-1)
+
+        x, y, pos_jac = by_exposure(ctx, expo, chain)
+        jac = pos_jac @ jac  # (n, 2, 2) @ (n, 2, 3)
+    return Prediction(np.asarray(x, float), np.asarray(y, float), x0, y0, w, jac, v[:, 0], v[:, 1], omega, ctx, expo,
+                      nuis, tuple(effects))
 
 
 def frame_normal(obs_frame: np.ndarray, n_frames: int, jac: np.ndarray, wts: np.ndarray, rhs: np.ndarray):
@@ -242,8 +291,9 @@ def fit_nuisance(obs: Observations, start, camera, timing=None, effects=(), mask
     From bare attitudes: attitudes at rate 0, rates from the attitude sequence, attitudes again;
     from a Nuisance its rates are kept for the first attitude fit (an effect that is strongly
     nonlinear in position needs a start near the solution). Then twice: rates from the attitude
-    sequence and attitudes again, keeping per frame the rate candidate (backward, forward, central
-    difference) that fits its stars best, so that a rate reversal between frames costs nothing.
+    sequence and attitudes again. Per frame the central difference is kept unless a one-sided
+    (backward or forward) difference fits its stars better by ``RATE_SWITCH_CHI2``, so that a rate
+    reversal between frames costs nothing while a constant rate is not overfitted.
     """
     if isinstance(start, Nuisance):
         nuis = start
@@ -254,16 +304,14 @@ def fit_nuisance(obs: Observations, start, camera, timing=None, effects=(), mask
         return nuis, pred
     for _ in range(2):
         options = rates_from_attitudes(nuis.attitude, obs.t_ref_ns)
-        best, best_chi = None, None
-        for j, omega in enumerate(options):
+        chis = []
+        for omega in options:
             _, p_j = fit_attitudes(obs, Nuisance(nuis.attitude, omega), camera, timing, effects, mask)
-            chi = frame_chi2(obs, p_j, mask)
-            if best is None:
-                best, best_chi = np.zeros(obs.n_frames, dtype=int), chi
-            else:
-                better = chi < best_chi - 1e-9
-                best[better] = j
-                best_chi = np.where(better, chi, best_chi)
+            chis.append(frame_chi2(obs, p_j, mask))
+        chis = np.stack(chis)  # (3, F): backward, forward, central
+        one_sided = np.argmin(chis[:2], axis=0)
+        gain = chis[2] - chis[:2].min(axis=0)
+        best = np.where(gain > RATE_SWITCH_CHI2, one_sided, 2)
         omega = np.stack(options)[best, np.arange(obs.n_frames)]
         nuis, pred = fit_attitudes(obs, Nuisance(nuis.attitude, omega), camera, timing, effects, mask)
     return nuis, pred

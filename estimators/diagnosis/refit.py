@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
+from estimators.diagnosis.gyro_channel import channel_rows
 from estimators.diagnosis.library import Candidate
 from estimators.diagnosis.observations import Nuisance, Observations, fit_attitudes
 
@@ -59,7 +60,8 @@ def refit(obs: Observations, nuis: Nuisance, camera, timing, base_effects, candi
         # hysteresis between evaluations, which finite differences and the trust region need)
         n2, pred = fit_attitudes(obs, nuis, camera, timing, effects, mask, iterations=4)
         state["nuis"] = n2
-        r = np.concatenate([(obs.x[mask] - pred.x[mask]) / sig, (obs.y[mask] - pred.y[mask]) / sig])
+        r = np.concatenate([(obs.x[mask] - pred.x[mask]) / sig, (obs.y[mask] - pred.y[mask]) / sig,
+                            channel_rows(obs, pred)])  # + the gyro increment channel, when present
         return np.nan_to_num(r, nan=1e6)
 
     try:
@@ -121,3 +123,169 @@ def stability(obs: Observations, nuis: Nuisance, pred, camera, timing, base_effe
                              "b": float(tb[j]), "sigma_b": float(sb[j]), "z": z,
                              "stable": bool(np.isfinite(z) and z < STABILITY_Z) if np.isfinite(s) else None})
     return rows
+
+
+# ------------------------------------------------------------------ joint refit with tied rates
+def rate_operator(nuis: Nuisance, t_ref_ns: np.ndarray) -> np.ndarray:
+    """``C`` (F, F-1) with ``omega = C @ steps``, ``steps_s = log(R_s^T R_{s+1}) / dt_s``.
+
+    Per frame the finite-difference rate the nuisance fit chose (backward, forward or central,
+    :func:`observations.rates_from_attitudes`) is recovered as the candidate closest to
+    ``nuis.omega``; the operator then keeps that choice while the attitudes move.
+    """
+    from estimators.diagnosis.observations import rates_from_attitudes
+
+    f = len(t_ref_ns)
+    c = np.zeros((f, max(f - 1, 0)))
+    if f < 2:
+        return c
+    options = np.stack(rates_from_attitudes(nuis.attitude, t_ref_ns))  # (3, F, 3): bwd, fwd, central
+    choice = np.argmin(np.linalg.norm(options - nuis.omega[None], axis=2), axis=0)
+    k = np.arange(f)
+    bwd = np.clip(k - 1, 0, f - 2)
+    fwd = np.clip(k, 0, f - 2)
+    for j, (wb, wf) in enumerate(((1.0, 0.0), (0.0, 1.0), (0.5, 0.5))):  # three candidates, not a per-frame loop
+        sel = choice == j
+        np.add.at(c, (k[sel], bwd[sel]), wb)
+        np.add.at(c, (k[sel], fwd[sel]), wf)
+    return c
+
+
+def tied_rates(attitude, t_ref_ns: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Body rates ``C @ steps`` of an attitude sequence (see :func:`rate_operator`)."""
+    f = len(t_ref_ns)
+    if f < 2:
+        return np.zeros((f, 3))
+    dt = np.diff(t_ref_ns).astype(float) / 1e9
+    steps = (attitude[:-1].inv() * attitude[1:]).as_rotvec() / dt[:, None]
+    return c @ steps
+
+
+def joint_refit(obs: Observations, nuis: Nuisance, camera, timing, base_effects, candidates: list[Candidate],
+                thetas: list[np.ndarray], mask: np.ndarray, moving: bool, max_nfev: int = 30) -> dict:
+    """Joint nonlinear least squares over every frame's attitude and the effect parameters, with
+    the rates tied to the attitudes; the covariance then carries the rate uncertainty.
+
+    The variable-projection :func:`refit` holds each frame's rate fixed at the finite difference
+    of the attitude sequence fitted *before* the effects were modelled, and its covariance treats
+    those rates as exact. But within a frame a rate error is a time-proportional rotation that
+    trades against every time-like effect (rolling shutter, smear, acceleration...), and the rate
+    is itself estimated from the noisy attitudes. Here the parameters are ``x = (delta, z)``: a
+    body rotation ``delta_k`` per frame with training stars (``R_k -> R_k Exp(delta_k)``) and the
+    prior-scaled effect parameters ``z``; the rates are ``omega = C steps(R)``
+    (:func:`rate_operator`, zero for a recording that does not move). Residuals are the whitened
+    training residuals. Jacobian (Gauss-Newton, first order in the small inter-frame rotation)::
+
+        d p_i / d delta_j = P_i [w_i]_x (1[k(i) = j] + dt_i (C D)_{k(i) j})
+        D_{s j} = (1[j = s+1] - 1[j = s]) / dt_s                (d steps_s / d delta_j)
+
+    (``P_i [w_i]_x`` the attitude Jacobian through the effect chain; ``R(t_i) = R_k Exp(omega_k dt_i)``
+    makes a rate change a rotation ``dt_i d omega``) and central differences in ``z``. The
+    covariance of ``z`` is the ``z`` block of ``(J^T J)^-1`` (noise known), i.e. the attitudes
+    *and* the rates they imply are profiled out. Returns the same keys as :func:`refit`.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from estimators.diagnosis.observations import predict
+
+    if not candidates:
+        return {"thetas": [], "sigmas": [], "corr": np.zeros((0, 0)), "nuisance": nuis, "success": True, "cost": None}
+    f = obs.n_frames
+    free = np.bincount(obs.frame[mask], minlength=f) > 0
+    col_of = np.full(f, -1)
+    col_of[free] = np.arange(free.sum())
+    nf = int(free.sum())
+    tied = bool(moving) and f >= 2
+    c = rate_operator(nuis, obs.t_ref_ns) if tied else None
+    if tied:
+        dts = np.diff(obs.t_ref_ns).astype(float) / 1e9
+        d = np.zeros((f - 1, f))
+        d[np.arange(f - 1), np.arange(f - 1)] = -1.0 / dts
+        d[np.arange(f - 1), np.arange(1, f)] = 1.0 / dts
+        cd = c @ d  # (F, F): d omega_k / d delta_j (times I3)
+    m = sum(len(cand.parameters) for cand in candidates)
+    z0 = np.concatenate([(t - cand.defaults) / cand.scales for cand, t in zip(candidates, thetas)])
+    lo = np.concatenate([[(p.bounds[0] - p.default) / p.prior_scale for p in cand.parameters] for cand in candidates])
+    hi = np.concatenate([[(p.bounds[1] - p.default) / p.prior_scale for p in cand.parameters] for cand in candidates])
+    z0 = np.clip(z0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+    sig = obs.sigma[mask]
+    idx = np.flatnonzero(mask)
+    dt_i = obs.dt_s()[idx]
+    k_i = obs.frame[idx]
+    att0 = nuis.attitude
+
+    def state(x):
+        rv = np.zeros((f, 3))
+        rv[free] = x[:3 * nf].reshape(nf, 3)
+        att = att0 * Rotation.from_rotvec(rv)
+        omega = tied_rates(att, obs.t_ref_ns, c) if tied else nuis.omega
+        return Nuisance(att, omega), split_theta(candidates, x[3 * nf:])
+
+    def model(x):
+        n2, th = state(x)
+        return n2, predict(obs, n2, camera, timing, chain_with(base_effects, candidates, th))
+
+    chan = obs.channel
+    g_att = None if chan is None else chan.attitude_rows(f).reshape(chan.rows, f, 3)[:, free, :].reshape(chan.rows, 3 * nf)
+
+    def fun(x):
+        _, p = model(x)
+        return np.nan_to_num(np.concatenate([(obs.x[idx] - p.x[idx]) / sig, (obs.y[idx] - p.y[idx]) / sig,
+                                             channel_rows(obs, p)]), nan=1e6)
+
+    def jac(x):
+        n2, p = model(x)
+        aj = p.att_jac[idx] / sig[:, None, None]  # (N, 2, 3)
+        jd = np.zeros((idx.size, 2, f, 3))
+        jd[np.arange(idx.size), :, k_i, :] = aj
+        if tied:
+            jd += (aj[:, :, None, :] * (dt_i[:, None, None, None] * cd[k_i][:, None, :, None]))
+        jd = -jd[:, :, free, :].reshape(idx.size, 2, 3 * nf)
+        jz = np.zeros((idx.size, 2, m))
+        gz = np.zeros((0 if chan is None else chan.rows, m))
+        for j in range(m):  # p columns by central differences (the effects' Jacobians are at theta only)
+            h = 1e-3 * max(1.0, abs(x[3 * nf + j]))
+            out, gout = [], []
+            for s in (1.0, -1.0):
+                zz = x[3 * nf:].copy()
+                zz[j] += s * h
+                pp = predict(obs, n2, camera, timing, chain_with(base_effects, candidates, split_theta(candidates, zz)))
+                out.append(np.stack([pp.x[idx], pp.y[idx]], axis=-1))
+                gout.append(channel_rows(obs, pp))
+            jz[:, :, j] = -(out[0] - out[1]) / (2 * h) / sig[:, None]
+            if chan is not None:
+                gz[:, j] = (gout[0] - gout[1]) / (2 * h)
+        full = np.concatenate([jd, jz], axis=2)
+        rows = [full[:, 0, :], full[:, 1, :]]
+        if chan is not None:  # increment rows: d e / d delta (+I next frame, -I this frame), whitened
+            rows.append(np.concatenate([g_att, gz], axis=1))
+        return np.concatenate(rows)
+
+    x0 = np.concatenate([np.zeros(3 * nf), z0])
+    lb = np.concatenate([np.full(3 * nf, -np.inf), lo])
+    ub = np.concatenate([np.full(3 * nf, np.inf), hi])
+    try:
+        res = least_squares(fun, x0, jac=jac, bounds=(lb, ub), method="trf", x_scale="jac", max_nfev=max_nfev)
+    except (ValueError, np.linalg.LinAlgError):
+        return {"thetas": list(thetas), "sigmas": [np.full(len(cand.parameters), np.nan) for cand in candidates],
+                "corr": np.full((m, m), np.nan), "nuisance": nuis, "success": False, "cost": None}
+    jj = jac(res.x)
+    jtj = jj.T @ jj
+    try:
+        cov = np.linalg.inv(jtj)
+    except np.linalg.LinAlgError:
+        cov = np.linalg.pinv(jtj)
+    cov_z = cov[3 * nf:, 3 * nf:]
+    sd_z = np.sqrt(np.clip(np.diag(cov_z), 0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov_z / np.outer(sd_z, sd_z)
+    scales = np.concatenate([cand.scales for cand in candidates])
+    sig_theta = sd_z * scales
+    out_s, i = [], 0
+    for cand in candidates:
+        k = len(cand.parameters)
+        out_s.append(sig_theta[i:i + k])
+        i += k
+    n2, th = state(res.x)
+    return {"thetas": th, "sigmas": out_s, "corr": corr, "nuisance": n2, "success": bool(res.success),
+            "cost": float(2 * res.cost), "rates_tied": tied}

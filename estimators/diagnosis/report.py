@@ -163,6 +163,14 @@ def write_report(result: dict, internals: dict, out_dir: Path) -> Path:
                          ["held-out", _f(result["heldout_rms_before_px"]), _f(result["heldout_rms_after_px"]),
                           _f(result["heldout_chi2_dof_before"]), _f(result["heldout_chi2_dof_after"])]],
                         ["data", "RMS before (px)", "RMS after (px)", "chi2/dof before", "chi2/dof after"]))
+    rs = result.get("resimulation")
+    if rs:
+        parts.append(f"<p>Re-simulation ({html.escape(rs['method'])}; seed {rs['seed']}): recording vs re-simulated "
+                     "normalised residuals under each model.</p>")
+        parts.append(_table([[k, _f(rs[k]["rms_recording"]), _f(rs[k]["rms_resimulated"]), _f(rs[k]["ks_statistic"]),
+                              _f(rs[k]["ks_p_value"]), _f(rs[k]["ad_statistic"]), _f(rs[k]["ad_p_value"])]
+                             for k in ("before", "after") if k in rs],
+                            ["model", "RMS recording (sigma)", "RMS re-simulated (sigma)", "KS D", "KS p", "AD", "AD p"]))
     parts.append('<img src="residual_quiver.png" alt="residual quiver maps before and after">')
     if cov:
         parts.append('<img src="residual_vs_covariate.png" alt="residual against the covariate">')

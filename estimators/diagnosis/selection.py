@@ -138,19 +138,33 @@ def forward_stepwise(problem: LinearProblem, min_delta_bic: float = MIN_DELTA_BI
     return steps
 
 
-def bootstrap_inclusion(problem: LinearProblem, n_boot: int = 50, seed: int = 0,
-                        min_delta_bic: float = MIN_DELTA_BIC) -> dict[str, float]:
-    """Fraction of block-bootstrap resamples in which each group is selected."""
+def bootstrap_selections(problem: LinearProblem, n_boot: int = 50, seed: int = 0,
+                         min_delta_bic: float = MIN_DELTA_BIC) -> list[set[str]]:
+    """The groups selected in each block-bootstrap resample."""
     rng = np.random.default_rng(seed)
     ids = np.unique(problem.blocks)
     rows_of = {b: np.flatnonzero(problem.blocks == b) for b in ids}
-    counts = {n: 0 for n in problem.groups}
+    out = []
     for _ in range(n_boot):
         pick = rng.choice(ids, size=ids.size, replace=True)
         rows = np.concatenate([rows_of[b] for b in pick])
-        for step in forward_stepwise(problem.subset(rows), min_delta_bic):
-            counts[step["name"]] += 1
-    return {n: c / n_boot for n, c in counts.items()}
+        out.append({step["name"] for step in forward_stepwise(problem.subset(rows), min_delta_bic)})
+    return out
+
+
+def bootstrap_inclusion(problem: LinearProblem, n_boot: int = 50, seed: int = 0,
+                        min_delta_bic: float = MIN_DELTA_BIC, sets: list[set[str]] | None = None) -> dict[str, float]:
+    """Fraction of block-bootstrap resamples in which each group is selected."""
+    sets = bootstrap_selections(problem, n_boot, seed, min_delta_bic) if sets is None else sets
+    return {n: (sum(n in s for s in sets) / len(sets) if sets else 0.0) for n in problem.groups}
+
+
+def pooled_inclusion(sets: list[set[str]], name: str, aliases) -> float:
+    """Fraction of resamples selecting ``name`` or one of its ``aliases`` (effects the data cannot
+    tell from it: the bootstrap then splits its votes among them, while the report names the
+    ambiguity)."""
+    pool = {name, *aliases}
+    return sum(bool(pool & s) for s in sets) / len(sets) if sets else 0.0
 
 
 def canonical_correlation(a: np.ndarray, b: np.ndarray) -> float:
@@ -190,10 +204,11 @@ def select(problem: LinearProblem, n_boot: int = 50, seed: int = 0, min_delta_bi
     screened = screen(problem)
     steps = forward_stepwise(problem, min_delta_bic)
     selected = [s["name"] for s in steps]
-    inclusion = bootstrap_inclusion(problem, n_boot, seed, min_delta_bic) if n_boot > 0 else {}
+    sets = bootstrap_selections(problem, n_boot, seed, min_delta_bic) if n_boot > 0 else []
+    inclusion = bootstrap_inclusion(problem, sets=sets) if n_boot > 0 else {}
     candidates = [s["name"] for s in screened]
     amb = ambiguities(problem, selected, candidates, bic_window, corr_limit)
     corr_table = {g: {h: canonical_correlation(design(problem, [g]), design(problem, [h]))
                       for h in candidates if h != g} for g in selected}
-    return {"screen": screened, "steps": steps, "selected": selected, "inclusion": inclusion,
+    return {"screen": screened, "steps": steps, "selected": selected, "inclusion": inclusion, "bootstrap_sets": sets,
             "ambiguous": amb, "correlations": corr_table, "absorbed": list(problem.absorbed)}

@@ -2,10 +2,10 @@
 
 The problem is fu2022's (eqs 7-16, see :mod:`estimators.rates.pso`): the catalogue angle between two
 identified stars equals the angle between their camera directions once both are moved to one common
-time. Here it is solved by Gauss-Newton / Levenberg-Marquardt (``scipy.optimize.least_squares``,
-MINPACK ``lm``) with the analytic Jacobian below, for the full rate ``omega = (wx, wy, wz)`` -- the
-paper's ``omega_z = 0`` installation assumption is not needed -- over the pairs of every identified
-star, and with the estimate's covariance.
+time. Here it is solved by damped Gauss-Newton (Levenberg-Marquardt) with the analytic Jacobian
+below, for the full rate ``omega = (wx, wy, wz)`` -- the paper's ``omega_z = 0`` installation
+assumption is not needed -- over the pairs of every identified star, and with the estimate's
+covariance.
 
 Model
 -----
@@ -43,20 +43,35 @@ double counting; the covariance of the estimate is ``(J_w^T J_w)^-1`` with the w
 ``J_w``. To first order this is the maximum-likelihood estimate of the rate with the attitude as a
 nuisance, i.e. it attains the single-frame Cramér-Rao bound of :func:`pipelines.truth.rate_crb_rad2`.
 
-Hand-written parts: the residual/Jacobian (the model is ours) and the whitening (a 2-line SVD);
-the solver is scipy's MINPACK Levenberg-Marquardt.
+Hand-written parts: the residual/Jacobian (the model is ours), the whitening, and the solver: a
+damped Gauss-Newton loop on the 3x3 normal equations (:func:`_levenberg_marquardt`), because for a
+3-parameter problem ``scipy.optimize.least_squares``' per-call overhead cost more than the problem
+(~1.6 ms/frame with it, ~0.3 ms without; ``benchmarks/rate_solvers.py`` runs both). The
+least_squares version stays as the reference, :func:`solve_rate_least_squares` (``solver:
+least_squares``), built from the numpy functions below, and the tests check the two agree. Per
+frame the omega-independent parts (unit vectors, pair indices, catalogue angles, whitening) are
+computed once (:class:`_Problem`); an evaluation of eqs 1-3 is one compiled loop over the pairs
+(:mod:`estimators.rates.ls_rate_kernel`, numba: ~4 us instead of ~45 us of numpy calls, each
+checked against the numpy functions here); the whitening uses the known
+null space of a common rotation and a Cholesky inverse instead of an eigendecomposition
+(:func:`whitening_rotation_null`, falling back to :func:`whitening`). No warm start from the
+previous frame: from ``omega = 0`` the solver needs 3 evaluations, a warm start would save at most one
+and would make a frame's estimate depend on the frames before it (``run --resume``, determinism).
 """
 from __future__ import annotations
 
+import math
+from functools import lru_cache
 from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.optimize import least_squares
+from scipy.linalg import lapack
 
 from estimators.corrections.base import Correction
 from estimators.data import FrameData, RateEstimate, StarTable
 from estimators.rates.base import RateEstimator
+from estimators.rates.ls_rate_kernel import pair_setup_kernel, residual_jacobian_kernel
 
 DEG = np.pi / 180.0
 
@@ -165,23 +180,21 @@ def pixel_sensitivity(camera, w: np.ndarray, i: np.ndarray, j: np.ndarray) -> np
     ``d theta_ij / d w_i = -t_ij`` (unit tangent at ``w_i`` towards ``w_j``) and
     ``d w / d(x, y) = -(I - w w^T) [e_x, e_y] / |W|`` with ``W = [-(x - cx), -(y - cy), F]``, so
     ``d theta_ij / d(x_i, y_i) = (t_ij,x, t_ij,y) / |W_i|`` (``t_ij`` is already orthogonal to ``w_i``).
+    ``|w_j - cos w_i| = |w_i - cos w_j| = sin theta_ij`` normalises both tangents.
     """
     n_stars = w.shape[0]
-    norm_W = camera.focal_px / w[:, 2]  # |W| = F / w_z for the unit vector w
+    inv_W = w[:, 2] / camera.focal_px  # 1 / |W| = w_z / F for the unit vector w
     wi, wj = w[i], w[j]
-    cos = np.sum(wi * wj, axis=-1, keepdims=True)
+    cos = np.einsum("ij,ij->i", wi, wj)[:, None]
     t_ij = wj - cos * wi
-    t_ij /= np.linalg.norm(t_ij, axis=-1, keepdims=True)
     t_ji = wi - cos * wj
-    t_ji /= np.linalg.norm(t_ji, axis=-1, keepdims=True)
+    inv_sin = 1.0 / np.sqrt(np.einsum("ij,ij->i", t_ij, t_ij))
     m = i.shape[0]
-    G = np.zeros((m, 2 * n_stars))
+    G = np.zeros((m, n_stars, 2))
     rows = np.arange(m)
-    G[rows, 2 * i] = t_ij[:, 0] / norm_W[i]
-    G[rows, 2 * i + 1] = t_ij[:, 1] / norm_W[i]
-    G[rows, 2 * j] = t_ji[:, 0] / norm_W[j]
-    G[rows, 2 * j + 1] = t_ji[:, 1] / norm_W[j]
-    return G
+    G[rows, i] = t_ij[:, :2] * (inv_W[i] * inv_sin)[:, None]
+    G[rows, j] = t_ji[:, :2] * (inv_W[j] * inv_sin)[:, None]
+    return G.reshape(m, 2 * n_stars)
 
 
 def whitening(G: np.ndarray, sigma_px: np.ndarray, rtol: float = 1e-10) -> np.ndarray:
@@ -190,11 +203,109 @@ def whitening(G: np.ndarray, sigma_px: np.ndarray, rtol: float = 1e-10) -> np.nd
     ``B^T B = V D^2 V^T`` (2n x 2n instead of an m x 2n SVD; 3x cheaper):
     ``D^-1 U^T = D^-2 V^T B^T``. ``B`` has the 3 null directions of a common rotation; eigenvalues
     below ``rtol`` times the largest are dropped.
+
+    The reference form (any null space); :func:`whitening_rotation_null` is the fast form the solver
+    uses when the null space is exactly the common rotation (always, for >= 3 stars not on one great circle).
     """
     B = G * np.repeat(np.asarray(sigma_px, dtype=float), 2)[None, :]
     d2, V = np.linalg.eigh(B.T @ B)
     keep = d2 > d2[-1] * rtol
     return (V[:, keep] / d2[keep][None, :]).T @ B.T
+
+
+def rotation_null_space(w: np.ndarray, sigma_px: np.ndarray) -> np.ndarray:
+    """Basis (2n, 3) of the null space of ``B = G diag(sigma)``: the pixel displacements of the stars
+    under a common infinitesimal rotation (which changes no angle), divided by ``sigma``.
+
+    A rotation ``dphi = e_k`` moves ``w`` by ``e_k x w``; through ``x = cx - F w_x / w_z``,
+    ``y = cy - F w_y / w_z`` that is, with ``a = w_x / w_z``, ``b = w_y / w_z`` and up to the common
+    factor ``F``: ``(a b, 1 + b^2)`` about x, ``(-(1 + a^2), -a b)`` about y, ``(b, -a)`` about z.
+    """
+    a = w[:, 0] / w[:, 2]
+    b = w[:, 1] / w[:, 2]
+    ab = a * b
+    U = np.empty((w.shape[0], 2, 3))
+    U[:, 0, 0], U[:, 1, 0] = ab, 1.0 + b * b
+    U[:, 0, 1], U[:, 1, 1] = -(1.0 + a * a), -ab
+    U[:, 0, 2], U[:, 1, 2] = b, -a
+    U /= np.asarray(sigma_px, dtype=float)[:, None, None]
+    return U.reshape(-1, 3)
+
+
+def whitening_rotation_null(G: np.ndarray, sigma_px: np.ndarray, U: np.ndarray, rtol: float = 1e-10) -> np.ndarray | None:
+    """A whitening ``Wh`` (2n, m) with ``Wh^T Wh = C^+`` (as :func:`whitening`), without an eigensolver.
+
+    With ``M = B^T B``, ``U`` a basis of its null space (:func:`rotation_null_space`) and the
+    positive semi-definite ``P = U U^T`` (unit columns), ``M~ = M + c P`` (``c = trace(M) / 2n``: same
+    scale) is positive definite and ``M~^-1 B^T = M^+ B^T`` (``M~ M^+ y = y`` for ``y`` in the range of
+    ``M``, where the columns of ``B^T`` lie, since ``U^T M^+ y = 0``), so
+    ``(M^+ B^T)^T (M^+ B^T) = B (M^+)^2 B^T = U_B D^-2 U_B^T = C^+`` for the SVD ``B = U_B D V^T``.
+    A Cholesky factorisation and inverse (LAPACK potrf/potri) instead of :func:`whitening`'s
+    eigendecomposition: 3-5x cheaper for 10-25 stars, where the eigensolver dominated the solver's
+    set-up. Returns None when ``M~`` is not numerically positive definite or its Cholesky pivots
+    spread by more than ``1/rtol`` (a geometry with more null directions than a common rotation,
+    e.g. all stars on one great circle): the caller then uses :func:`whitening`, which drops them.
+    """
+    B = G * np.repeat(np.asarray(sigma_px, dtype=float), 2)[None, :]
+    M = B.T @ B
+    # any positive semi-definite term whose range is the null space works; unit columns keep M~'s scale
+    U = U / np.sqrt(np.sum(U * U, axis=0))[None, :]
+    Mt = M + (np.trace(M) / M.shape[0]) * (U @ U.T)
+    R, info = lapack.dpotrf(Mt, lower=0, clean=1)
+    if info != 0:
+        return None
+    piv = np.diag(R) ** 2  # lambda_min <= min(piv), lambda_max >= max(piv)
+    if not piv.min() > piv.max() * rtol:
+        return None
+    inv, info = lapack.dpotri(R, lower=0)  # upper triangle of M~^-1
+    if info != 0:
+        return None
+    inv = inv + inv.T  # potri fills the upper triangle; R's lower one was zeroed (clean=1)
+    inv.flat[:: inv.shape[0] + 1] *= 0.5
+    return inv @ B.T
+
+
+@lru_cache(maxsize=128)
+def _pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.triu_indices(n, 1)`` cached per star count (read-only: shared between calls)."""
+    i, j = np.triu_indices(n, k=1)
+    i.flags.writeable = j.flags.writeable = False
+    return i, j
+
+
+class _Problem:
+    """One frame's least-squares problem (eqs 1-3, whitened): everything that does not depend on omega
+    (unit vectors, pairs, catalogue angles, whitening) is computed once here; an evaluation is one
+    compiled pass over the pairs (:mod:`estimators.rates.ls_rate_kernel`) and one matrix product."""
+
+    __slots__ = ("w", "dt", "i", "j", "cat", "Wh", "rank", "k", "_X")
+
+    def __init__(self, camera, x, y, dt_s, ref_icrs, sigma_px, k: int):
+        n = x.shape[0]
+        self.w = camera.unproject(x, y)
+        self.dt = np.ascontiguousarray(dt_s, dtype=float)
+        self.i, self.j = _pairs(n)
+        m = self.i.shape[0]
+        G = np.zeros((m, 2 * n))
+        self.cat = np.empty(m)
+        pair_setup_kernel(self.w, np.ascontiguousarray(ref_icrs, dtype=float), self.w[:, 2] / camera.focal_px,
+                          self.i, self.j, G, self.cat)
+        Wh = whitening_rotation_null(G, sigma_px, rotation_null_space(self.w, sigma_px))
+        self.Wh = whitening(G, sigma_px) if Wh is None else Wh
+        self.rank = 2 * n - 3 if Wh is not None else self.Wh.shape[0]  # independent whitened residuals
+        self.k = k
+        self._X = np.empty((m, 4))
+
+    def evaluate(self, omega: np.ndarray) -> np.ndarray:
+        """``Wh [r | dr/domega[:, :k]]`` (rank rows, 1 + k columns) at the full rate ``omega`` (3,):
+        whitened residuals (column 0, eq 2) and Jacobian (eq 3), from one compiled pass over the pairs."""
+        residual_jacobian_kernel(self.w, self.dt, self.i, self.j, self.cat, omega, self._X)
+        return (self.Wh @ self._X)[:, : 1 + self.k]
+
+    def gram(self, omega: np.ndarray) -> np.ndarray:
+        """``Q = [rw | Jw]^T [rw | Jw]`` ((1 + k) x (1 + k)) of :meth:`evaluate`: all the solver needs."""
+        Y = self.evaluate(omega)
+        return Y.T @ Y
 
 
 class LsRateResult:
@@ -207,14 +318,128 @@ class LsRateResult:
         self.nfev, self.success, self.message = nfev, success, message
 
 
+def _levenberg_marquardt(evaluate, p0: np.ndarray, max_nfev: int, step_tol: float):
+    """Damped Gauss-Newton (Levenberg-Marquardt, Marquardt's diagonal scaling) on whitened residuals.
+
+    Hand-written rather than ``scipy.optimize.least_squares``: with 2-3 parameters an evaluation is a
+    few dozen vectorised operations over the pairs (tens of microseconds), and least_squares'
+    per-call set-up, checks and MINPACK wrapping cost more than the problem itself (profiled:
+    1.2-1.6 ms/frame with least_squares, 0.3-0.5 ms without; benchmarks/rate_solvers.py).
+
+    ``evaluate(p) -> Q``, the Gram matrix ``[rw | Jw]^T [rw | Jw]`` of the whitened residuals and
+    Jacobian (cost ``Q[0, 0]``, ``A = Q[1:, 1:]``, ``g = Q[1:, 0]``). Each iteration solves the 3x3 (or 2x2) normal equations
+    ``(A + lam diag(A)) d = -g``, ``A = Jw^T Jw``, ``g = Jw^T rw``. ``lam`` starts at 0 (pure
+    Gauss-Newton: over one frame the model is nearly linear in omega, so the iteration converges
+    linearly with a tiny factor, about 1e-5 on the fu2022 scenario) and grows 10x on a step that does
+    not lower the cost, shrinks 10x on one that does.
+
+    Stopping, with step lengths ``L = sqrt(d^T A d)`` in standard deviations of the estimate: at a
+    point whose Gauss-Newton step ``L_k <= step_tol`` (converged); or, after an undamped step of
+    length ``L_{k-1}``, when ``L_k^2 <= step_tol L_{k-1}`` (and ``L_k <= L_{k-1} / 2``): the
+    iteration's contraction factor is then about ``rho = L_k / L_{k-1}`` and the error left after
+    taking the step, ``~ rho L_k``, is below ``step_tol``, so the step is taken without another
+    evaluation (the returned ``Q`` is the last evaluated one, ``L_k`` standard deviations
+    away; its chi^2 and covariance differ by ``O(L_k^2)``). Returns
+    ``(p, Q, evaluations, converged, message)``.
+    """
+    p = p0
+    Q = evaluate(p)
+    nfev = 1
+    if not math.isfinite(Q[0, 0]):
+        return p, Q, nfev, False, "residuals not finite at the starting point"
+    lam, previous = 0.0, math.inf  # previous: length of the last undamped step taken
+    while True:
+        A, g = Q[1:, 1:], Q[1:, 0]
+        try:
+            gn = np.linalg.solve(A, -g)
+            length2 = -float(gn @ g)  # gn^T A gn
+        except np.linalg.LinAlgError:
+            gn, length2 = None, math.nan
+        if math.isfinite(length2):
+            if length2 <= step_tol * step_tol:
+                return p, Q, nfev, True, "converged: Gauss-Newton step below tolerance"
+            length = math.sqrt(max(length2, 0.0))
+            if previous < math.inf and length2 <= step_tol * previous and length <= 0.5 * previous:
+                return p + gn, Q, nfev, True, "converged: last Gauss-Newton step taken, remaining error below tolerance"
+        if nfev >= max_nfev:
+            return p, Q, nfev, False, f"max_nfev = {max_nfev} evaluations reached"
+        undamped = lam == 0.0 and math.isfinite(length2)
+        if undamped:
+            d = gn
+        else:
+            try:
+                d = np.linalg.solve(A + lam * np.diag(np.diag(A)), -g)
+            except np.linalg.LinAlgError:
+                d = None
+            if d is None or not np.all(np.isfinite(d)):
+                if lam > 1e12:
+                    return p, Q, nfev, False, "normal equations singular"
+                lam = max(10.0 * lam, 1e-6)
+                continue
+        trial = evaluate(p + d)
+        nfev += 1
+        if math.isfinite(trial[0, 0]) and trial[0, 0] <= Q[0, 0] * (1.0 + 1e-12):  # rounding at the minimum
+            p, Q = p + d, trial
+            previous = length if undamped else math.inf
+            lam = 0.0 if lam <= 1e-6 else lam / 10.0
+        else:
+            if lam > 1e12:
+                return p, Q, nfev, False, "no step lowers the cost"
+            lam = max(10.0 * lam, 1e-6)
+
+
 def solve_rate(camera, x, y, dt_s, ref_icrs, sigma_px, estimate_z: bool = True, max_nfev: int = 50,
-               x0: np.ndarray | None = None, max_condition: float = 1e12) -> LsRateResult:
+               x0: np.ndarray | None = None, max_condition: float = 1e12, step_tol: float = 1e-6) -> LsRateResult:
     """Least-squares rate (rad/s, camera frame) from ``n >= 3`` identified stars (eqs 1-3, GLS weighted).
 
     ``dt_s``: each star's time minus the reference time (s); ``sigma_px`` (n,) centroid sigma per axis.
-    ``estimate_z=False`` fixes ``omega_z = 0`` (fu2022's assumption). Raises ``ValueError`` with a
-    reason when the rate is not observable (all stars at one time, or a singular normal matrix).
+    ``estimate_z=False`` fixes ``omega_z = 0`` (fu2022's assumption). ``x0``: starting rate (default
+    0). ``step_tol``: convergence threshold on the Gauss-Newton step in standard deviations of the
+    estimate (:func:`_levenberg_marquardt`). Raises ``ValueError`` with a reason when the rate is not
+    observable (all stars at one time, or a singular normal matrix).
     """
+    x = np.asarray(x, dtype=float)
+    y = np.asarray(y, dtype=float)
+    dt_s = np.asarray(dt_s, dtype=float)
+    n = x.shape[0]
+    if n < 3:
+        raise ValueError(f"too_few_stars: {n} identified, the rate needs >= 3")
+    if not dt_s.max() > dt_s.min():
+        raise ValueError("rate_unobservable: every star refers to the same time (global shutter or already corrected)")
+    k = 3 if estimate_z else 2
+    prob = _Problem(camera, x, y, dt_s, ref_icrs, sigma_px, k)
+    full = np.zeros(3)
+
+    def gram(p):
+        full[:k] = p
+        return prob.gram(full)
+
+    p0 = np.zeros(k) if x0 is None else np.array(x0, dtype=float)[:k]
+    p, Q, nfev, success, message = _levenberg_marquardt(gram, p0, max_nfev, step_tol)
+    normal = Q[1:, 1:]  # Jw^T Jw
+    if not np.all(np.isfinite(normal)):
+        raise ValueError("rate_unobservable: normal matrix not finite (star geometry or timing)")
+    ev, V = np.linalg.eigh(normal)
+    cond = ev[-1] / ev[0] if ev[0] > 0 else np.inf
+    if not np.isfinite(cond) or cond > max_condition:
+        raise ValueError(f"rate_unobservable: normal matrix condition {cond:.3g} (star geometry or timing)")
+    cov = np.zeros((3, 3))
+    cov[:k, :k] = (V / ev) @ V.T  # (Jw^T Jw)^-1
+    omega = np.zeros(3)
+    omega[:k] = p
+    return LsRateResult(omega, cov, float(Q[0, 0]), int(prob.rank - k), nfev, success, message)
+
+
+def solve_rate_least_squares(camera, x, y, dt_s, ref_icrs, sigma_px, estimate_z: bool = True, max_nfev: int = 50,
+                             max_condition: float = 1e12, **tolerances) -> LsRateResult:
+    """The reference for :func:`solve_rate`: the same estimate by ``scipy.optimize.least_squares``
+    (MINPACK ``lm``) over :func:`pair_residuals` / :func:`pair_jacobian`, whitened by :func:`whitening`
+    (eigendecomposition) -- independent code for the residuals, the weighting and the solver.
+    ``tolerances``: least_squares' ``xtol``, ``ftol``, ``gtol`` (default 1e-8 each). Same errors as
+    :func:`solve_rate`. About 4x slower (benchmarks/rate_solvers.py); kept for tests and benchmarks.
+    """
+    from scipy.optimize import least_squares
+
     x = np.asarray(x, dtype=float)
     y = np.asarray(y, dtype=float)
     dt_s = np.asarray(dt_s, dtype=float)
@@ -233,46 +458,23 @@ def solve_rate(camera, x, y, dt_s, ref_icrs, sigma_px, estimate_z: bool = True, 
     def full(p):
         return p if estimate_z else np.array([p[0], p[1], 0.0])
 
-    cache: dict = {}
-
-    def at(p):
-        """Residual and Jacobian share the rotated stars' cross products, and least_squares asks for
-        both at its starting point twice (its checks, then MINPACK's): compute each once per point."""
-        key = p.tobytes()
-        if cache.get("key") != key:
-            a = moved_directions(full(p), w, dt_s)
-            cache.clear()
-            cache["key"] = key
-            cache["ang"], cache["cross"] = _angles(a[i], a[j])
-        return cache
-
     def fun(p):
-        c = at(p)
-        if "fun" not in c:
-            c["fun"] = Wh @ (c["ang"] - cat)
-        return c["fun"]
+        return Wh @ pair_residuals(full(p), w, dt_s, i, j, cat)
 
     def jac(p):
-        c = at(p)
-        if "jac" not in c:
-            c["jac"] = Wh @ pair_jacobian(full(p), w, dt_s, i, j, cross=c["cross"])[:, :k]
-        return c["jac"]
+        return Wh @ pair_jacobian(full(p), w, dt_s, i, j)[:, :k]
 
-    p0 = np.zeros(k) if x0 is None else np.asarray(x0, dtype=float)[:k]
     method = "lm" if Wh.shape[0] >= k else "trf"
-    sol = least_squares(fun, p0, jac=jac, method=method, max_nfev=max_nfev, x_scale="jac")
-    Jw = jac(sol.x)
-    normal = Jw.T @ Jw
+    sol = least_squares(fun, np.zeros(k), jac=jac, method=method, max_nfev=max_nfev, x_scale="jac", **tolerances)
+    normal = jac(sol.x).T @ jac(sol.x)
     ev = np.linalg.eigvalsh(normal) if np.all(np.isfinite(normal)) else np.array([np.nan])
     cond = ev[-1] / ev[0] if ev[0] > 0 else np.inf
     if not np.isfinite(cond) or cond > max_condition:
         raise ValueError(f"rate_unobservable: normal matrix condition {cond:.3g} (star geometry or timing)")
-    cov_k = np.linalg.inv(normal)
     cov = np.zeros((3, 3))
-    cov[:k, :k] = cov_k
-    chi2 = float(np.sum(sol.fun**2))
-    return LsRateResult(full(sol.x).copy(), cov, chi2, int(Wh.shape[0] - k), int(sol.nfev), bool(sol.success),
-                        str(sol.message))
+    cov[:k, :k] = np.linalg.inv(normal)
+    return LsRateResult(full(sol.x).copy(), cov, float(np.sum(sol.fun**2)), int(Wh.shape[0] - k), int(sol.nfev),
+                        bool(sol.success), str(sol.message))
 
 
 # ---------------------------------------------------------------------------------- plugins
@@ -289,6 +491,10 @@ class LsRateParams(BaseModel):
     min_sigma_px: float = Field(
         default=1e-3, gt=0, description="Floor on the centroid sigma used for weighting (noise-free recordings state 0).")
     max_condition: float = Field(default=1e12, gt=1, description="Normal-matrix condition number above which the rate is flagged unobservable.")
+    solver: Literal["gauss-newton", "least_squares"] = Field(
+        default="gauss-newton",
+        description="'gauss-newton': the hand-written damped Gauss-Newton (solve_rate, ~4x faster); "
+        "'least_squares': scipy's MINPACK LM (solve_rate_least_squares), the reference. Same estimate.")
 
 
 class _LsCore:
@@ -299,11 +505,11 @@ class _LsCore:
             return int(frame.t0_ns)
         return int(self.context.timing.frame_reference_ns(frame.t0_ns))
 
-    def _sigma(self, stars: StarTable) -> np.ndarray:
+    def _sigma(self, sigma_px: np.ndarray) -> np.ndarray:
         p = self.params
         fallback = getattr(self.context, "centroid_sigma_px", None)
         fallback = p.default_sigma_px if fallback is None else float(fallback)
-        s = np.where(np.isfinite(stars.sigma_px), stars.sigma_px, fallback)
+        s = np.where(np.isfinite(sigma_px), sigma_px, fallback)
         return np.maximum(s, p.min_sigma_px)
 
     def estimate(self, frame: FrameData) -> tuple[RateEstimate, int]:
@@ -311,11 +517,12 @@ class _LsCore:
         stars = frame.stars if frame.stars is not None else StarTable.empty()
         ident = np.flatnonzero(stars.identified & np.isfinite(stars.x) & np.isfinite(stars.y)
                                & np.all(np.isfinite(stars.ref_icrs), axis=1))
-        s = stars.take(ident)
-        dt = (s.t_ns - np.int64(t_ref)).astype(float) * 1e-9
+        dt = (stars.t_ns[ident] - np.int64(t_ref)).astype(float) * 1e-9
         try:
-            res = solve_rate(self.context.camera, s.x, s.y, dt, s.ref_icrs, self._sigma(s), self.params.estimate_z,
-                             self.params.max_nfev, max_condition=self.params.max_condition)
+            solve = solve_rate if self.params.solver == "gauss-newton" else solve_rate_least_squares
+            res = solve(self.context.camera, stars.x[ident], stars.y[ident], dt, stars.ref_icrs[ident],
+                             self._sigma(stars.sigma_px[ident]), self.params.estimate_z, self.params.max_nfev,
+                             max_condition=self.params.max_condition)
         except ValueError as exc:
             return RateEstimate(t_ns=t_ref, omega_rad_s=np.full(3, np.nan), valid=False, reason=str(exc)), t_ref
         if not np.all(np.isfinite(res.omega)):

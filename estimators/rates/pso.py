@@ -115,27 +115,30 @@ def corrected_positions(camera, omega_xy, x, y, dt_s) -> tuple[np.ndarray, np.nd
     return x - v[..., 0:1] * dt, y - v[..., 1:2] * dt
 
 
-def corrected_directions(camera, omega_xy, x, y, dt_s, model: str = "linear") -> np.ndarray:
+def corrected_directions(camera, omega_xy, x, y, dt_s, model: str = "linear", w: np.ndarray | None = None) -> np.ndarray:
     """Camera-frame unit directions (..., n, 3) of the stars moved to the reference time.
 
     ``model="linear"``: eqs 11-14 then eq 2 (``omega_x, omega_y`` only: eq 8 assumes ``omega_z = 0``);
     ``model="rotation"``: ``Exp(omega dt_i) w_i`` exactly, with ``omega = (omega_x, omega_y, 0)`` for a
     (..., 2) ``omega_xy`` or the full body rate for a (..., 3) one (e.g. a gyro rate reused by
-    :class:`PsoCorrection`).
+    :class:`PsoCorrection`). ``w``: the stars' unit directions ``unproject(x, y)`` when already
+    computed (``model="rotation"``; the swarm's loss reuses them in every generation).
     """
     om = np.asarray(omega_xy, dtype=float)
     if model == "linear":
         xc, yc = corrected_positions(camera, om[..., :2], x, y, dt_s)
         return _unit_from_pixels(camera, xc, yc)
-    w = _unit_from_pixels(camera, x, y)  # (n, 3)
+    w = _unit_from_pixels(camera, x, y) if w is None else w  # (n, 3)
     om3 = om if om.shape[-1] == 3 else np.concatenate([om, np.zeros(om.shape[:-1] + (1,))], axis=-1)  # (..., 3)
     rotvec = om3[..., None, :] * np.asarray(dt_s, dtype=float)[:, None]  # (..., n, 3)
     return _rodrigues(rotvec, w)
 
 
-def angular_distance_loss(camera, omega_xy, x, y, dt_s, cat_angles, pairs, model: str = "linear") -> np.ndarray:
-    """Eq 16: ``J(omega) = sum_pairs |theta_ij - theta'_ij|`` (rad), vectorised over ``omega_xy`` (..., 2)."""
-    u = corrected_directions(camera, omega_xy, x, y, dt_s, model)
+def angular_distance_loss(camera, omega_xy, x, y, dt_s, cat_angles, pairs, model: str = "linear",
+                          w: np.ndarray | None = None) -> np.ndarray:
+    """Eq 16: ``J(omega) = sum_pairs |theta_ij - theta'_ij|`` (rad), vectorised over ``omega_xy`` (..., 2).
+    ``w``: see :func:`corrected_directions`."""
+    u = corrected_directions(camera, omega_xy, x, y, dt_s, model, w)
     i, j = pairs
     return np.sum(np.abs(_pair_angles(u, i, j) - cat_angles), axis=-1)
 
@@ -309,9 +312,10 @@ class _PsoCore:
         i, j = np.triu_indices(sel.size, k=1)
         ref = stars.ref_icrs[sel]
         cat = _pair_angles(ref, i, j)
+        w = _unit_from_pixels(cam, x, y) if p.model == "rotation" else None  # once, not in every generation
 
         def loss(om):
-            return angular_distance_loss(cam, om, x, y, dt, cat, (i, j), p.model)
+            return angular_distance_loss(cam, om, x, y, dt, cat, (i, j), p.model, w)
 
         rng = np.random.default_rng([p.seed, int(frame.index)])
         S = p.search_deg_s * DEG

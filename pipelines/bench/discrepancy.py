@@ -5,7 +5,10 @@ scenario (he2021b sensor: 24.09 mm, 1024 x 1024 px of 5.5 um, Hipparcos stars to
 noise 0.05 px) with a random motion design and zero, one or two effects switched on; the
 diagnosing side is given only the base scenario. Designs: inertial hold, constant single-axis
 rate, constant multi-axis rate, rate reversal (the rate flips sign at a frame boundary halfway),
-each with the exposure drawn from two times (20 ms and 80 ms).
+each with the exposure drawn from two times (20 ms and 80 ms), and two exposure times (frames
+alternate 20 and 80 ms, :func:`simulate_mixed`). The rate-reversal and two-exposure designs log a
+gyro (``GYRO``): there the attitude-increment channel counts in detection limits and aliases and
+the gyro effects are drawn too.
 
 Effect magnitudes. For the drawn design, the *detection limit* of a parameter is the value whose
 image signature, with the per-frame attitude projected out, reaches 5 sigma of the centroid noise
@@ -61,8 +64,13 @@ noise: {centroid_sigma_px: 0.05}
 frames: 20
 seed: 1
 """
-DESIGNS = ("inertial_hold", "single_axis", "multi_axis", "rate_reversal")
+DESIGNS = ("inertial_hold", "single_axis", "multi_axis", "rate_reversal", "two_exposures")
 EXPOSURES_MS = (20.0, 80.0)
+# two_exposures: frames alternate EXPOSURES_MS at one frame period (long enough for the longer)
+MIXED_PERIOD_MS = 140.0
+# designs logged with a gyro (the attitude-increment channel: gyro effects, clock offset, smear)
+GYRO_DESIGNS = ("rate_reversal", "two_exposures")
+GYRO = {"enabled": True, "rate_hz": 200.0, "arw_deg_sqrt_h": 0.02}
 N_SIGMA = 5.0
 MULT_RANGE = (0.3, 30.0)
 SNR_BINS = ((0.3, 1.0), (1.0, 3.0), (3.0, 10.0), (10.0, 30.0))
@@ -158,6 +166,10 @@ def design_scenario(base: ScenarioConfig, design: str, exposure_ms: float, rng, 
         v = rng.normal(size=3)
         v[2] *= 0.3
         data["motion"]["rate_deg_s"] = (rate * v / np.linalg.norm(v)).tolist()
+    elif design == "two_exposures":  # a constant rate about a random cross-boresight axis, period fixed
+        a = rng.uniform(0, 2 * np.pi)
+        data["motion"]["rate_deg_s"] = [rate * float(np.cos(a)), rate * float(np.sin(a)), 0.0]
+        data["shutter"]["frame_period_ms"] = MIXED_PERIOD_MS
     elif design == "rate_reversal":
         axis = np.zeros(3)
         axis[rng.integers(2)] = 1.0
@@ -165,18 +177,154 @@ def design_scenario(base: ScenarioConfig, design: str, exposure_ms: float, rng, 
         half = frames // 2
         data["motion"]["segments"] = [{"duration_s": half * period_s, "rate_deg_s": (rate * axis).tolist()},
                                       {"duration_s": (frames - half + 1) * period_s, "rate_deg_s": (-rate * axis).tolist()}]
+    if design in GYRO_DESIGNS:
+        data["gyro"] = dict(GYRO)
     data["seed"] = int(seed)
     data["name"] = f"bench-{design}"
     return validate(ScenarioConfig, data, "<bench design>")
 
 
-def design_context(cfg: ScenarioConfig):
-    """Noise-free truth of the design as an EffectContext (for detection limits and aliases)."""
+def exposure_variant(cfg: ScenarioConfig, exposure_ms: float) -> ScenarioConfig:
+    """The same scenario (motion, seed, frame period) with another exposure time."""
+    data = cfg.model_dump(mode="json")
+    data["shutter"]["exposure_ms"] = exposure_ms
+    return validate(ScenarioConfig, data, "<bench exposure variant>")
+
+
+def mixed_parts(cfg: ScenarioConfig) -> list[tuple[ScenarioConfig, np.ndarray]]:
+    """A two-exposure design as (scenario, frames taken from it): even frames at the first exposure."""
+    k = np.arange(cfg.frames)
+    return [(exposure_variant(cfg, EXPOSURES_MS[0]), k[k % 2 == 0]), (exposure_variant(cfg, EXPOSURES_MS[1]), k[k % 2 == 1])]
+
+
+def simulate_mixed(cfg: ScenarioConfig, output: Path) -> None:
+    """One recording whose frames alternate two exposure times (:func:`mixed_parts`).
+
+    The scenario language has a single exposure per recording, so each exposure is simulated as
+    its own recording over the same motion and frame times (same seed, same frame period), and
+    the frames are interleaved into one log: all of the first recording's messages except the
+    odd frames' centroids and truth stars, which come from the second. Each star keeps the
+    ``t_ns`` (mid-exposure of its row) and ``row_time_ns`` of its own exposure, so the recording
+    states the exposure of every frame; its declared scenario is the first exposure's.
+    """
+    from logs.reader import LogReader
+    from logs.writer import LogWriter
+    from pipelines.config import to_yaml
+    from pipelines.simulate import TOPIC_CENTROIDS, TOPIC_TRUTH_STARS
+
+    (cfg_a, _), (cfg_b, odd) = mixed_parts(cfg)
+    pa, pb = output.with_suffix(".a.mcap"), output.with_suffix(".b.mcap")
+    simulate_to_log(cfg_a, pa, show_progress=False)
+    simulate_to_log(cfg_b, pb, show_progress=False)
+    per_frame = (TOPIC_CENTROIDS, TOPIC_TRUTH_STARS)
+    odd = set(int(k) for k in odd)
+    from_b = {(m.topic, int(m.data["frame"])): m for m in LogReader(pb).messages(list(per_frame))
+              if int(m.data["frame"]) in odd}
+    with LogWriter(output, kind="simulation", metadata={"scenario": {"yaml": to_yaml(cfg_a)}}) as w:
+        for m in LogReader(pa).messages():
+            if m.topic in per_frame and int(m.data["frame"]) in odd:
+                m = from_b[(m.topic, int(m.data["frame"]))]
+            w.write_json(m.topic, m.data, m.log_time_ns)
+    pa.unlink(missing_ok=True)
+    pb.unlink(missing_ok=True)
+
+
+@dataclass
+class DesignContext:
+    """Noise-free truth of a design: one EffectContext per exposure group (each with its timing)
+    and their concatenation (frames, positions, attitudes) for the attitude projection; with a
+    gyro, its noise-free samples, the frames' reference times and angle random walk."""
+
+    parts: list
+    whole: object
+    gyro: object = None  # estimators.diagnosis.gyro_channel.GyroData (noise-free rates)
+    t_ref_ns: np.ndarray | None = None  # (F,) per frame (frames numbered 0..F-1 in `whole.frame`)
+
+    def jacobian(self, eff) -> np.ndarray:
+        return np.concatenate([eff.jacobian(c.x, c.y, c) for c in self.parts])
+
+    def design_matrix(self, eff, sigma: float) -> np.ndarray:
+        """Whitened, attitude-projected image rows and, with a gyro, the whitened attitude-increment
+        rows (:mod:`estimators.diagnosis.gyro_channel`) of ``eff``'s parameters, (N, p)."""
+        from estimators.diagnosis import gyro_channel as gc
+        from sensors.effects.geometry import rotation_jacobian
+
+        for c in self.parts:
+            c.check([eff])
+        j = self.jacobian(eff) / sigma
+        p = project_out(j, self.whole, "attitude")
+        rows = [p[:, 0, :], p[:, 1, :]]
+        if self.gyro is not None:
+            frame = np.asarray(self.whole.frame)
+            f = int(frame.max()) + 1
+            aj = rotation_jacobian(self.whole.camera, self.whole.x, self.whole.y) / sigma
+            inc = gc.image_effect_signature(gc.absorbed_rotations(frame, f, aj, j))
+            if "gyro" in eff.channels:
+                inc = inc + gc.gyro_signature(eff, self.gyro, self.t_ref_ns)
+            cov = gc.attitude_covariances(frame, f, aj * sigma, np.full(frame.size, sigma), np.ones(frame.size, bool))
+            pairs = np.arange(f - 1)
+            chan = gc.GyroChannel(self.gyro, pairs, gc.whitener(cov, pairs, self.t_ref_ns, self.gyro.arw_rad_sqrt_s))
+            rows.append(chan.whiten(inc))
+        return np.concatenate(rows)
+
+
+def _concat_contexts(parts):
+    from dataclasses import fields, replace as dc_replace
+
+    from scipy.spatial.transform import Rotation
+
+    if len(parts) == 1:
+        return parts[0]
+    kw = {}
+    for f in fields(parts[0]):
+        vals = [getattr(c, f.name) for c in parts]
+        if f.name in ("camera", "timing") or vals[0] is None:
+            kw[f.name] = vals[0]
+        elif f.name == "t_start_ns":
+            kw[f.name] = min(vals)
+        elif f.name == "covariates":
+            kw[f.name] = {k: np.concatenate([v[k] for v in vals]) for k in vals[0]}
+        elif f.name == "attitude":
+            kw[f.name] = Rotation.concatenate(vals)
+        else:
+            kw[f.name] = np.concatenate([np.asarray(v) for v in vals])
+    return dc_replace(parts[0], **kw)
+
+
+def design_context(cfg: ScenarioConfig, design: str = "") -> DesignContext:
+    """Noise-free truth of the design (for detection limits and aliases)."""
+    if design == "two_exposures":
+        parts = [_frame_context(c, keep) for c, keep in mixed_parts(cfg)]
+        whole = _concat_contexts(parts)
+    else:
+        parts = [_frame_context(cfg)]
+        whole = parts[0]
+    gyro = t_ref = None
+    if cfg.gyro.enabled:
+        from estimators.diagnosis import gyro_channel as gc
+        from sensors.gyro import sample_times_ns
+
+        sim = build_simulator(cfg)
+        timing = sim.timing
+        t0 = timing.frame_start_ns(np.arange(cfg.frames))
+        expo = np.full(cfg.frames, timing.exposure_ns, dtype=np.int64)
+        if design == "two_exposures":
+            for c, keep in mixed_parts(cfg):
+                expo[keep] = int(round(c.shutter.exposure_ms * 1e6))
+        t_ref = np.array([timing.frame_reference_ns(int(t)) for t in t0], dtype=np.int64) + (expo - timing.exposure_ns) // 2
+        ts = sample_times_ns(cfg.gyro.rate_hz, int(t0[0]) - int(timing.frame_period_ns),
+                             np.arange(int((cfg.frames + 2) * timing.frame_period_ns * 1e-9 * cfg.gyro.rate_hz) + 2))
+        w = sim.motion.angular_velocity(ts)
+        gyro = gc.GyroData(ts, w, float(np.deg2rad(cfg.gyro.arw_deg_sqrt_h) / 60.0))
+    return DesignContext(parts, whole, gyro, t_ref)
+
+
+def _frame_context(cfg: ScenarioConfig, keep=None):
     sim = build_simulator(cfg)
     xs = []
     for f in sim.frames(cfg.frames):
         tr = f.truth
-        if len(tr) == 0:
+        if len(tr) == 0 or (keep is not None and f.index not in keep):
             continue
         xs.append((f.index, f.t0_ns, tr))
     t = np.concatenate([tr.t_ns for _, _, tr in xs])
@@ -202,7 +350,7 @@ def candidate_classes() -> dict[str, type[Effect]]:
         if cls in OUT_OF_LIBRARY:
             continue
         c = Candidate(cls)
-        if cls().needs != c.needs or "image" not in c.channels and "time" not in c.channels:
+        if cls().needs != c.needs or not ({"image", "time", "gyro"} & c.channels):
             continue
         if any(k not in ("omega_rad_s", "row", "t0_ns", "frame", "magnitude", "timing", "vx", "vy", "attitude", "unit_icrs",
                          "pm_rad_yr") for k in c.needs):
@@ -211,11 +359,20 @@ def candidate_classes() -> dict[str, type[Effect]]:
     return out
 
 
-def projected(cls, ctx) -> np.ndarray:
-    eff = cls()
-    j = eff.jacobian(ctx.x, ctx.y, ctx)
-    p = project_out(j, ctx, "attitude")
-    return np.concatenate([p[:, 0, :], p[:, 1, :]])
+def projected(cls, ctx: DesignContext) -> np.ndarray:
+    return ctx.design_matrix(cls(), 1.0)
+
+
+def design_detection_limit(eff, ctx: DesignContext, sigma: float, n_sigma: float = N_SIGMA) -> dict[str, float]:
+    """:func:`sensors.effects.design.detection_limit` over the exposure groups and channels of a
+    design: the value whose whitened signature (image rows with the attitude projected out, plus
+    the gyro increment rows when the design has a gyro) reaches ``n_sigma``."""
+    if len(ctx.parts) == 1 and ctx.gyro is None:
+        return detection_limit(eff, ctx.whole, sigma, n_sigma, "attitude")
+    norm = np.linalg.norm(ctx.design_matrix(eff, sigma), axis=0)
+    with np.errstate(divide="ignore"):
+        lim = np.where(norm > 1e-12, n_sigma / np.where(norm > 1e-12, norm, 1.0), np.inf)
+    return {p.name: float(v) for p, v in zip(eff.parameters, lim)}
 
 
 def aliases_in_design(name: str, param_index: int, ctx, classes: dict) -> list[str]:
@@ -243,7 +400,7 @@ def aliases_in_design(name: str, param_index: int, ctx, classes: dict) -> list[s
 def draw_effect(cls, ctx, sigma: float, rng) -> dict | None:
     """One parameter of ``cls`` at m x its detection limit (m log-uniform), random sign; None if invisible."""
     eff = cls()
-    limits = detection_limit(eff, ctx, sigma, N_SIGMA, "attitude")
+    limits = design_detection_limit(eff, ctx, sigma)
     # a parameter can be drawn when 0.3x its limit is within its bounds (else the design cannot show it)
     finite = [i for i, p in enumerate(cls.parameters) if np.isfinite(limits[p.name]) and limits[p.name] > 0
               and MULT_RANGE[0] * limits[p.name] <= max(p.bounds[1] - p.default, p.default - p.bounds[0])]
@@ -276,18 +433,21 @@ def make_cases(n_cases: int, seed: int, frames: int) -> list[tuple[str, str, flo
 def run_case(i: int, kind: str, design: str, exposure_ms: float, case_seed: int, base: ScenarioConfig,
              frames: int, classes: dict, options: DiagnoseOptions, tmp: Path) -> dict:
     rng = np.random.default_rng(case_seed)
+    if design == "two_exposures":
+        exposure_ms = EXPOSURES_MS[0]  # the declared exposure; odd frames are taken at EXPOSURES_MS[1]
     cfg = design_scenario(base, design, exposure_ms, rng, frames, case_seed)
     sigma = cfg.noise.centroid_sigma_px
     drawn, excluded, invisible = [], [], []
     ctx = None
     if kind != "null":
-        ctx = design_context(cfg)
+        ctx = design_context(cfg, design)
         if kind == "out_of_library":
             d = draw_effect(OUT_OF_LIBRARY[rng.integers(len(OUT_OF_LIBRARY))], ctx, sigma, rng)
             d["multiple"] = d["multiple"]
             drawn.append(d)
         else:
-            names = list(rng.permutation(sorted(classes)))
+            usable = {n for n, c in classes.items() if cfg.gyro.enabled or {"image", "time"} & set(c.channels)}
+            names = list(rng.permutation(sorted(usable)))
             want = 2 if kind == "two" else 1
             while names and len(drawn) < want:
                 name = names.pop()
@@ -308,7 +468,10 @@ def run_case(i: int, kind: str, design: str, exposure_ms: float, case_seed: int,
     # as candidates (excluded by name) and is given the base scenario only.
     with registered(OUT_OF_LIBRARY):
         truth_cfg = validate(ScenarioConfig, {**cfg.model_dump(mode="json"), "effects": entries}, "<bench truth>")
-        simulate_to_log(truth_cfg, rec, show_progress=False)
+        if design == "two_exposures":
+            simulate_mixed(truth_cfg, rec)
+        else:
+            simulate_to_log(truth_cfg, rec, show_progress=False)
         t_start = time.perf_counter()
         try:
             result, _ = diagnose(rec, cfg, None, options, sim_source="bench base scenario",
@@ -376,6 +539,7 @@ def score_case(i, kind, design, exposure_ms, drawn, result, seconds) -> dict:
         truth_delta = d["value"] - default
         err = p["value"] - d["value"]
         errs.append({"effect": d["name"], "rel_error": abs(err) / abs(truth_delta) if truth_delta else None,
+                     "pull": float(err / p["sigma"]) if p["sigma"] and np.isfinite(p["sigma"]) else None,
                      "within_1sigma": bool(abs(err) <= p["sigma"]), "within_2sigma": bool(abs(err) <= 2 * p["sigma"])})
     row["param_errors"] = errs
     return row
@@ -419,6 +583,25 @@ def aggregate(rows: list[dict]) -> dict:
             "median_heldout_gain_px": float(np.median(gain)) if gain else None,
         })
     above = [r for r in lib if r["multiple"] is not None and r["multiple"] >= 3.0]
+    by_design = []
+    for d in DESIGNS:
+        rs = [r for r in lib if r["design"] == d]
+        ab = [r for r in rs if r["multiple"] is not None and r["multiple"] >= 3.0]
+        nl = [r for r in rows if r["kind"] == "null" and r["design"] == d]
+        by_design.append({"design": d, "gyro": d in GYRO_DESIGNS, "cases": len(rs), "cases_above_3x": len(ab),
+                          "correct_above_3x": frac(sum(r["outcome"] == "correct" for r in ab), len(ab)),
+                          "nulls": len(nl), "false_discoveries": sum(r["outcome"] == "false_discovery" for r in nl),
+                          "named_effects": sorted({d2["name"] for r in rs if r["outcome"] == "correct" for d2 in r["truth"]})})
+    # the effects only the gyro / attitude-increment channel can show
+    gyro_only = ("gyro_bias", "gyro_scale", "time_offset", "exposure_smear")
+    by_gyro_effect = []
+    for name in gyro_only:
+        rs = [r for r in lib if any(d2["name"] == name and d2["value"] is not None for d2 in r["truth"])]
+        ab = [r for r in rs if r["multiple"] is not None and r["multiple"] >= 3.0]
+        by_gyro_effect.append({"effect": name, "cases": len(rs), "cases_above_3x": len(ab),
+                               "correct_above_3x": frac(sum(r["outcome"] == "correct" for r in ab), len(ab)),
+                               "designs": sorted({r["design"] for r in rs})})
+    errs_all = [e for r in lib if r["outcome"] == "correct" for e in r.get("param_errors", []) if e["rel_error"] is not None]
     errs3 = [e for r in above if r["outcome"] == "correct" for e in r.get("param_errors", []) if e["rel_error"] is not None]
     nulls = [r for r in rows if r["kind"] == "null"]
     ool = [r for r in rows if r["kind"] == "out_of_library"]
@@ -433,6 +616,10 @@ def aggregate(rows: list[dict]) -> dict:
         "wrong_name_above_3x": frac(sum(r["outcome"] == "wrong_name" for r in above), len(above)),
         "median_param_error_above_3x": float(np.median([e["rel_error"] for e in errs3])) if errs3 else None,
         "coverage_1sigma_above_3x": frac(sum(e["within_1sigma"] for e in errs3), len(errs3)),
+        "parameters_above_3x": len(errs3),
+        "coverage_1sigma_all": frac(sum(e["within_1sigma"] for e in errs_all), len(errs_all)),
+        "coverage_2sigma_all": frac(sum(e["within_2sigma"] for e in errs_all), len(errs_all)),
+        "parameters_all": len(errs_all),
         "coverage_2sigma_above_3x": frac(sum(e["within_2sigma"] for e in errs3), len(errs3)),
         "out_of_library_cases": len(ool),
         "out_of_library_unexplained": frac(sum(r["outcome"] == "unexplained" for r in ool), len(ool)),
@@ -442,6 +629,8 @@ def aggregate(rows: list[dict]) -> dict:
         "identification_failed": sum(r["outcome"] == "identification_failed" for r in rows),
         "draws_invisible_in_their_design": sorted({n for r in rows for n in r.get("invisible_in_design", [])}),
         "by_snr_bin": by_bin,
+        "by_design": by_design,
+        "gyro_channel_effects": by_gyro_effect,
         "median_seconds_per_diagnosis": float(np.median([r["seconds"] for r in rows])) if rows else None,
     }
 
@@ -488,9 +677,23 @@ def format_markdown(result: dict) -> str:
     for b in s["by_snr_bin"]:
         lines.append(f"| {b['bin']} | {b['cases']} | {f(b['correct'])} | {f(b['wrong_name'])} | {f(b['missed'])} | {b['not_separable']} | "
                      f"{f(b['median_param_error'])} | {f(b['coverage_1sigma'])} | {f(b['coverage_2sigma'])} | {f(b['median_heldout_gain_px'])} |")
+    if "by_design" in s:
+        lines += ["", "| motion design | gyro | library cases | above 3x | correct above 3x | nulls | false discoveries | correctly named effects |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for d in s["by_design"]:
+            lines.append(f"| {d['design']} | {'yes' if d['gyro'] else 'no'} | {d['cases']} | {d['cases_above_3x']} | "
+                         f"{f(d['correct_above_3x'])} | {d['nulls']} | {d['false_discoveries']} | {', '.join(d['named_effects']) or '-'} |")
+        lines += ["", "| effect (gyro / attitude-increment channel) | cases | above 3x | correct above 3x | designs |",
+                  "|---|---|---|---|---|"]
+        for g in s["gyro_channel_effects"]:
+            lines.append(f"| {g['effect']} | {g['cases']} | {g['cases_above_3x']} | {f(g['correct_above_3x'])} | {', '.join(g['designs']) or '-'} |")
     lines += ["", "| target | required | measured | met |", "|---|---|---|---|"]
     for k, t in s["targets"].items():
         lines.append(f"| {k} | {t['target']} | {f(t['value'])} | {t['met']} |")
+    if "coverage_1sigma_all" in s:
+        lines += ["", f"- interval coverage over every correctly named parameter (all bins, {s['parameters_all']}): "
+                  f"{f(s['coverage_1sigma_all'])} within 1 sigma, {f(s['coverage_2sigma_all'])} within 2 sigma; above 3x "
+                  f"({s['parameters_above_3x']}): {f(s['coverage_1sigma_above_3x'])} and {f(s['coverage_2sigma_above_3x'])}"]
     lines += ["", f"- out-of-library recordings reported as an unexplained systematic: {f(s['out_of_library_unexplained'])} "
               f"(above 3x: {f(s['out_of_library_unexplained_above_3x'])}); confidently given a wrong library name: "
               f"{f(s['out_of_library_confident_wrong_name'])}",

@@ -2,8 +2,9 @@
 
 Issue 7 (speed). Each line runs its candidate and its peer (or the memory-bandwidth floor, one
 ``frame.sum()`` pass over the same frame) in the same process, on the same data, one after the
-other, and reports ``peer / candidate`` (a speed-up) or ``candidate / floor``. Timings are the
-minimum over repeats (the least disturbed run on a shared machine); slow peers run once. Lines
+other, and reports ``peer / candidate`` (a speed-up) or ``candidate / floor``. Timings are CPU
+time of single-threaded code, minimum over repeats (see :func:`_best`); slow peers run once; the
+replay's simulation and ``compare`` (parallel) are wall time. Lines
 whose answers can be compared carry an equality check (same attitudes, same filter states, ...)
 that must hold whatever the timings; ``tests/test_bench_perf.py`` runs ``--quick`` and asserts
 the checks and the JSON structure, never the timings.
@@ -494,12 +495,28 @@ def bench_compare(quick: bool) -> dict:
         t_dask, b = _wall_once(lambda: run_compare(config, Path(tmp) / "dask", executor="dask", workers=2, show_progress=False))
     from pipelines.compare.aggregate import deterministic_view
 
-    same = deterministic_view(a.results) == deterministic_view(b.results)
+    structure_differs, max_rel = _result_difference(deterministic_view(a.results), deterministic_view(b.results))
     return _line("compare", title, f"configs/compare/ci.yaml, {a.results.get('run', {}).get('tasks', '?')} tasks",
                  ("dask, 2 workers", t_dask), ("serial", t_serial), "speedup", (">=", 1.7),
-                 [_check("results differ between executors", 0.0 if same else 1.0, 0.0)],
+                 [_check("non-numeric results that differ between executors", structure_differs, 0.0),
+                  _check("max relative difference of numeric results", max_rel, 1e-9)],
                  note=f"wall time including the LocalCluster start-up; load average {os.getloadavg()[0]:.1f} on "
                       f"{os.cpu_count()} cpus (other jobs compete for the two workers' cores)")
+
+
+def _result_difference(x, y) -> tuple[int, float]:
+    """(number of differing non-numeric leaves, max relative difference of numeric leaves); NaN == NaN."""
+    if isinstance(x, dict) and isinstance(y, dict):
+        parts = [_result_difference(x[k], y[k]) for k in x if k in y] + [(len(set(x) ^ set(y)), 0.0)]
+    elif isinstance(x, list) and isinstance(y, list):
+        parts = [_result_difference(u, v) for u, v in zip(x, y)] + [(abs(len(x) - len(y)), 0.0)]
+    elif isinstance(x, (int, float)) and isinstance(y, (int, float)) and not isinstance(x, bool):
+        if np.isnan(x) and np.isnan(y) or x == y:
+            return 0, 0.0
+        return 0, float(abs(x - y) / max(abs(x), abs(y)))
+    else:
+        return int(x != y), 0.0
+    return sum(p[0] for p in parts), max((p[1] for p in parts), default=0.0)
 
 
 # ----------------------------------------------------------------------------------- driver
@@ -516,7 +533,13 @@ def run_perf(quick: bool = False, show_progress: bool = True, only: list[str] | 
              ("rate", lambda: [bench_rate(quick)]), ("centroid", lambda: bench_frames(quick)),
              ("replay", lambda: bench_replay(quick)), ("compare", lambda: [bench_compare(quick)])]
     if only:
-        steps = [s for s in steps if any(s[0].startswith(o) or o.startswith(s[0]) for o in only)]
+        from pipelines.errors import UserError
+
+        names = [name for name, _ in steps]
+        unknown = [o for o in only if o not in names]
+        if unknown:
+            raise UserError(f"--only: unknown line(s) {', '.join(unknown)}; expected some of {', '.join(names)}")
+        steps = [step for step in steps if step[0] in only]
     lines: list[dict] = []
     start = time.perf_counter()
     with progress_bar("bench perf", len(steps), show_progress) as advance:
@@ -561,3 +584,26 @@ def render_table(result: dict):
         table.add_row(ln["title"], ln["size"], f"{m['label']}: {_fmt_value(m)}{extra}",
                       f"{p['label']}: {_fmt_value(p)}", ratio, tgt, ok, checks)
     return table
+
+
+def format_markdown(result: dict) -> str:
+    """The results as a markdown table (the one in docs/performance.md)."""
+    esc = lambda text: str(text).replace("|", "\\|")  # noqa: E731  (pipes inside cells)
+    m = result["machine"]
+    out = [f"`{result['command']}` on {m['cpu_count']} cpus, Python {m['python']}, numpy {m['numpy']}, "
+           f"load average {m['load_average_1min']:.1f} at the end; {result['wall_time_s']:.0f} s.", "",
+           "| line | size | measured | floor / peer | ratio | target | pass | same answers |", "|---|---|---|---|---|---|---|---|"]
+    for ln in result["lines"]:
+        if ln["status"] != "measured":
+            out.append(f"| {esc(ln['title'])} | | not available | | | | | {esc(ln['note'])} |")
+            continue
+        ratio = f"{ln['ratio']:.3g}x" + (" faster" if ln["ratio_kind"] == "speedup" else "")
+        tgt = "-" if ln["target"] is None else f"{ln['target']['op']} {ln['target']['value']:g}x"
+        ok = {True: "pass", False: "**fail**", None: "-"}[ln["pass"]]
+        checks = "; ".join(f"{c['name']} {c['value']:.3g}{(' ' + c['unit']) if c['unit'] else ''} "
+                           f"({'ok' if c['ok'] else 'FAIL'}, <= {c['limit']:g})" for c in ln["checks"]) or "-"
+        extra = (f"; {ln['fps']:.0f} frames per CPU s ({ln['fps_marginal']:.0f} steady), peak RSS {ln['peak_rss_mib']:.0f} MiB"
+                 if ln.get("fps_marginal") else "")
+        out.append(f"| {esc(ln['title'])} | {esc(ln['size'])} | {esc(ln['measured']['label'])}: {_fmt_value(ln['measured'])}"
+                   f"{extra} | {esc(ln['peer']['label'])}: {_fmt_value(ln['peer'])} | {ratio} | {tgt} | {ok} | {esc(checks)} |")
+    return "\n".join(out)

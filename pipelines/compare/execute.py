@@ -3,6 +3,14 @@
 Both return the task results in task order whatever the completion order, so results.json is
 identical. ``dask``: a ``LocalCluster`` of ``workers`` single-threaded worker processes, or an
 existing cluster at ``scheduler`` (``tcp://host:8786``; its workers need rollingstar installed).
+
+Local cluster choices (measured with ``rollingstar compare configs/compare/rate_sweep.yaml``, see
+docs/comparison.md "Scaling"): processes, not threads (the tasks are many small numpy calls: the
+GIL would serialise threads); one thread per worker; the workers' statistical profiler off (it
+samples every worker's stack every 10 ms; nobody reads it without the dashboard, which is off).
+The fixed costs are the cluster start (~1-3 s: a scheduler and, per worker, a nanny and a fresh
+interpreter) and each worker's first task importing the project (~0.5 s CPU); per task, dask adds
+only the task's (small, plain-data) arguments and result.
 """
 from __future__ import annotations
 
@@ -22,6 +30,7 @@ def run_serial(fn: Callable, tasks: Sequence, advance: Callable[[int], None]) ->
 def run_dask(fn: Callable, tasks: Sequence, advance: Callable[[int], None], workers: int = 2,
              scheduler: str | None = None) -> list:
     try:
+        import dask
         from dask.distributed import Client, LocalCluster, as_completed
     except ImportError as exc:  # pragma: no cover - dask is a dependency
         raise UserError(f"--executor dask needs dask[distributed]: {exc}") from None
@@ -33,8 +42,10 @@ def run_dask(fn: Callable, tasks: Sequence, advance: Callable[[int], None], work
             except (OSError, TimeoutError) as exc:
                 raise UserError(f"--scheduler {scheduler}: cannot connect to a dask scheduler: {exc}") from None
         else:
-            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                   dashboard_address=None, silence_logs=40)
+            # the nannies hand the config to their worker processes
+            with dask.config.set({"distributed.worker.profile.enabled": False}):
+                cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                       dashboard_address=None, silence_logs=40)
             client = Client(cluster)
         with client:
             futures = client.map(fn, list(tasks), pure=False)
@@ -47,6 +58,24 @@ def run_dask(fn: Callable, tasks: Sequence, advance: Callable[[int], None], work
     finally:
         if cluster is not None:
             cluster.close()
+
+
+def executor_profile(task_results: list[dict], wall_s: float) -> dict:
+    """Where the wall time went: the tasks' own CPU time (``task.cpu_s``: simulate, run, evaluate),
+    summed and per process, and the CPU-bound estimate of the speed-up over one process,
+    ``sum / busiest process`` -- what the executor would reach with a free core per worker and no
+    fixed costs. A supplement to the measured wall time, never a substitute: on a shared machine
+    the wall time also shows the other load (``load_average``)."""
+    per_process: dict[int, float] = {}
+    for r in task_results:
+        t = r.get("task")
+        if t:
+            per_process[t["process"]] = per_process.get(t["process"], 0.0) + t["cpu_s"]
+    total = sum(per_process.values())
+    busiest = max(per_process.values(), default=0.0)
+    return {"task_cpu_s": total, "processes": len(per_process), "busiest_process_cpu_s": busiest,
+            "cpu_bound_speedup": total / busiest if busiest > 0 else None,
+            "wall_over_task_cpu": wall_s / total if total > 0 else None}
 
 
 def execute(fn: Callable, tasks: Sequence, advance: Callable[[int], None], executor: str = "serial",

@@ -2,13 +2,14 @@
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from pipelines.compare.aggregate import aggregate
 from pipelines.compare.config import load_compare
-from pipelines.compare.execute import execute
+from pipelines.compare.execute import execute, executor_profile
 from pipelines.compare.regression import compare_to_baseline, load_baseline
 from pipelines.compare.report import figures, html_report, markdown
 from pipelines.compare.tasks import run_task
@@ -38,11 +39,15 @@ def run_compare(config: str | Path, output: str | Path, executor: str | None = N
     tasks = comp.tasks()
     out = Path(output)
     out.mkdir(parents=True, exist_ok=True)
+    load_before = os.getloadavg()[0]
     start = time.perf_counter()
     with progress_bar(f"compare {comp.config.name} ({executor})", len(tasks), show_progress) as advance:
         task_results = execute(run_task, tasks, advance, executor, workers, scheduler)
+    wall = time.perf_counter() - start
     run_info = {"executor": executor, "workers": workers if not scheduler else None, "scheduler": scheduler,
-                "tasks": len(tasks), "wall_time_s": time.perf_counter() - start}
+                "tasks": len(tasks), "wall_time_s": wall,
+                "load_average_1min": {"before": load_before, "after": os.getloadavg()[0]},
+                "profile": executor_profile(task_results, wall)}
     results = aggregate(comp, task_results, run_info)
     command = command or f"rollingstar compare {config} -o {output}"
     (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")

@@ -16,14 +16,21 @@ from pipelines.compare.config import Task
 
 
 def run_task(task: Task) -> dict:
-    """``{"index", "variant", "pipeline", "seed", "metrics" | "error", "timing"}`` for one task."""
+    """``{"index", "variant", "pipeline", "seed", "metrics" | "error", "timing", "task"}`` for one task;
+    ``task``: the whole task's CPU time (this thread: simulate, run, evaluate), wall time and the
+    process that ran it (the executors' profile, :func:`pipelines.compare.execute.executor_profile`)."""
+    import os
+
     import numpy  # noqa: F401  (loaded before limiting its BLAS)
     from threadpoolctl import threadpool_limits
 
+    cpu, wall = time.thread_time(), time.perf_counter()
     # One BLAS thread in every executor: the same arithmetic whether the task runs here or on a
     # dask worker (and no thread oversubscription with several workers per machine).
     with threadpool_limits(limits=1):
-        return _run(task)
+        out = _run(task)
+    out["task"] = {"cpu_s": time.thread_time() - cpu, "wall_s": time.perf_counter() - wall, "process": os.getpid()}
+    return out
 
 
 def _run(task: Task) -> dict:

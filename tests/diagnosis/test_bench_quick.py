@@ -28,10 +28,11 @@ def test_named_correctly_above_3x(bench):
              and c["outcome"] != "invisible_in_design"]
     bad = [c for c in above if c["outcome"] != "correct"]
     assert not bad, bad
-    for c in above:  # parameters of correctly named effects: within 10 % of the truth (coverage is
-        # measured on the full benchmark; here a gross error, e.g. a fit stuck at its start, must fail)
+    for c in above:  # parameters of correctly named effects: no gross error (a fit stuck at its start,
+        # a wrong sign): within 4 reported sigma (P = 6e-5 per parameter for a correct sigma) and 25 %
+        # of the injected offset (coverage itself is measured on the full benchmark)
         for e in c["param_errors"]:
-            assert e["rel_error"] < 0.10, c
+            assert abs(e["pull"]) < 4.0 and e["rel_error"] < 0.25, c
 
 
 def test_out_of_library_is_not_named_confidently(bench):

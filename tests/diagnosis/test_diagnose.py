@@ -86,6 +86,10 @@ def test_radial_distortion_is_named_and_fitted(radial_result):
     assert abs(res["train_chi2_dof_after"] - 1.0) < 5 * np.sqrt(2.0 / dof)
     assert res["located"]["chi2_dof"] > 1.0 + 5 * np.sqrt(2.0 / dof)
     assert res["located"]["strongest_covariate"] is not None
+    # re-simulation: the input model leaves residuals unlike its own re-simulation, the updated one not
+    rs = res["resimulation"]
+    assert rs["before"]["ks_p_value"] < 0.01 and rs["before"]["rms_recording"] > rs["before"]["rms_resimulated"]
+    assert rs["after"]["ks_p_value"] > 0.05, rs
 
 
 def test_report_and_updated_scenario(radial_result):
@@ -106,6 +110,7 @@ def test_null_recording_is_explained_within_noise(recordings):
     r = json.loads(res.output)
     assert r["mismatch"] is False and r["effects"] == [] and not r["unexplained_systematic"]["present"]
     assert "within its noise" in r["verdict"]
+    assert r["resimulation"]["before"]["ks_p_value"] > 1e-3
 
 
 def test_heldout_frames_are_split_before_fitting(recordings):

@@ -118,6 +118,10 @@ def test_dask_gives_identical_results(serial, tiny, tmp_path):
     dask = run_compare(tiny, tmp_path, executor="dask", workers=2, show_progress=False)
     assert dask.results["run"]["executor"] == "dask"
     assert deterministic_view(dask.results) == deterministic_view(serial.results)
+    # the work was shared by both worker processes (none of them this one); serial ran here
+    prof, sprof = dask.results["run"]["profile"], serial.results["run"]["profile"]
+    assert prof["processes"] == 2 and sprof["processes"] == 1
+    assert 1.0 < prof["cpu_bound_speedup"] <= 2.0 and sprof["cpu_bound_speedup"] == 1.0
     assert json.loads((tmp_path / "results.json").read_text())["results"][0]["metrics"] == serial.results["results"][0]["metrics"]
 
 
@@ -170,3 +174,12 @@ def test_cli_gate_exit_codes(tmp_path):
     assert proc.exit_code == 0 and "no gated metric worse" in proc.stdout, (proc.stdout, proc.stderr)
     proc = cli("compare", micro, "-o", tmp_path / "out4", "--fail-on-regression")
     assert proc.exit_code == 2 and "--baseline" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_executor_profile_known_answer():
+    from pipelines.compare.execute import executor_profile
+
+    tasks = [{"task": {"cpu_s": c, "wall_s": 2 * c, "process": p}} for c, p in [(1.0, 7), (2.0, 8), (3.0, 7), (0.5, 8)]]
+    prof = executor_profile(tasks + [{"error": "stage failed"}], wall_s=13.0)
+    assert prof["task_cpu_s"] == 6.5 and prof["processes"] == 2 and prof["busiest_process_cpu_s"] == 4.0
+    assert prof["cpu_bound_speedup"] == 6.5 / 4.0 and prof["wall_over_task_cpu"] == 2.0
