@@ -304,6 +304,25 @@ def _ks(obs, pred0, pred1, m) -> dict | None:
     return out
 
 
+def _chi2_sf(chi2: float, dof: int) -> float:
+    from scipy import stats
+
+    return float(stats.chi2.sf(chi2, dof))
+
+
+def _heldout_chi2(obs, pred, heldout, frames_fitted: int, chan_out) -> list[tuple[str, float, int]]:
+    """Chi-square and dof of the held-out data under ``pred``: image rows, and gyro pairs touching
+    a held-out frame (when the recording has a gyro)."""
+    out = []
+    if heldout.any():
+        c = float(np.sum(((obs.x - pred.x)[heldout] ** 2 + (obs.y - pred.y)[heldout] ** 2) / obs.sigma[heldout] ** 2))
+        out.append(("image", c, int(2 * heldout.sum() - 3 * frames_fitted)))
+    if chan_out is not None:
+        e = chan_out.residual(pred.nuisance.attitude, obs.t_ref_ns, pred.effects)
+        out.append(("gyro increments", float(e @ e), chan_out.rows))
+    return out
+
+
 def _rms(obs, pred, m):
     if not m.any():
         return None
@@ -460,6 +479,14 @@ def _diagnose(recording, scenario, pipeline, options, pipeline_source, sim_sourc
     if after_stats["z"] > CHI2_Z_LIMIT and obs.sigma_source.startswith(("recording", "scenario")):
         evidence.append({"basis": "total chi-square", "delta_chi2": after_stats["chi2"] - after_stats["dof"],
                          "dof": after_stats["dof"], "z": after_stats["z"], "significant": True})
+    # held-out data the final model leaves far outside its noise is a mismatch even when the
+    # training data show nothing (e.g. the only frames that could show an effect were held out)
+    known_noise = obs.sigma_source.startswith(("recording", "scenario"))
+    for label, chi2, dof in _heldout_chi2(obs, pred1, heldout, n_out_frames if unit == "frames" else 0, chan_out):
+        z = residuals.z_from_sf(_chi2_sf(chi2, dof)) if dof > 0 else 0.0
+        if known_noise and z > CHI2_Z_LIMIT:
+            evidence.append({"basis": f"held-out chi-square ({label})", "delta_chi2": chi2 - dof, "dof": dof,
+                             "z": float(z), "significant": True})
     unexplained = bool(evidence)
 
     # ---- 4. show the fit improve
@@ -554,9 +581,24 @@ def _diagnose(recording, scenario, pipeline, options, pipeline_source, sim_sourc
         seen.add(key)
         result["ambiguous"].append({"candidates": list(key), "corr": a["corr"], "delta_bic_swap": a["delta_bic_swap"],
                                     "separating_experiment": separating_experiment(cands[key[0]], cands[key[1]])})
+    thetas = fit["thetas"]
+    result["rejected_on_heldout"] = []
+    if not heldout_confirms and result["effects"]:
+        # a claim must hold up on data the fit never saw: a model that does not lower the held-out
+        # chi-square is not named (its effects become weak candidates; the "after" numbers above
+        # describe that rejected model, and scenario_updated.yaml leaves it out)
+        result["rejected_on_heldout"] = [e["name"] for e in result["effects"]]
+        for e in result["effects"]:
+            result["weak_candidates"].append({"name": e["name"], "delta_bic_nonlinear": e["delta_bic"],
+                                              "inclusion_probability": e["inclusion_probability"],
+                                              "inclusion_with_aliases": e.get("inclusion_with_aliases"),
+                                              "reason": "no held-out improvement", "params": e["params"]})
+        result["effects"], result["ambiguous"] = [], []
+        result["mismatch"] = unexplained
+        chosen, thetas = [], []
     result["verdict"] = _verdict(result)
     internals = {"obs": obs, "pred_before": pred0, "pred_after": pred1, "train": train, "heldout": heldout,
-                 "camera": camera, "scenario": scenario, "chosen": chosen, "thetas": fit["thetas"],
+                 "camera": camera, "scenario": scenario, "chosen": chosen, "thetas": thetas,
                  "located_full": located_full, "base_effects": base_effects}
     return result, internals
 
@@ -646,10 +688,12 @@ def _drop_one_delta_bic(obs, nuis0, camera, timing, base_effects, chosen, fit, m
 
 def _verdict(res: dict) -> str:
     names = [e["name"] for e in res["effects"]]
+    rejected = res.get("rejected_on_heldout") or []
+    note = f"; not named, no held-out improvement: {', '.join(rejected)}" if rejected else ""
     if not res["mismatch"]:
         return ("no mismatch: the simulation explains the recording within its noise "
-                f"(chi2/dof {res['located']['chi2_dof']:.3f} over {res['split']['train_observations']} training stars)")
-    parts = []
+                f"(chi2/dof {res['located']['chi2_dof']:.3f} over {res['split']['train_observations']} training stars){note}")
+    parts = [note[2:]] if note else []
     if names:
         parts.append("named: " + ", ".join(names))
     for a in res["ambiguous"]:

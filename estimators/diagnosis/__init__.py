@@ -4,6 +4,8 @@ left out from the effect library (:mod:`sensors.effects`), model it and show the
 Modules, one job each: :mod:`.observations` (observations and the simulation model's prediction,
 attitude/rate nuisance), :mod:`.residuals` (locate), :mod:`.library` (candidate effects),
 :mod:`.selection` (nuisance projection, screening, stepwise BIC, bootstrap, aliases),
-:mod:`.refit` (nonlinear refit, uncertainties, stability), :mod:`.catchall` (unexplained
-systematics), :mod:`.report` (HTML report and plots). Orchestrated by :mod:`pipelines.diagnose`.
+:mod:`.refit` (nonlinear refit, joint refit with rates tied to attitudes, uncertainties,
+stability), :mod:`.catchall` (unexplained systematics), :mod:`.gyro_channel` (attitude increments
+against a gyro), :mod:`.resimulate` (re-simulation and residual-distribution comparison),
+:mod:`.report` (HTML report and plots). Orchestrated by :mod:`pipelines.diagnose`.
 """

@@ -297,7 +297,7 @@ class _Problem:
         self._X = np.empty((m, 4))
 
     def evaluate(self, omega: np.ndarray) -> np.ndarray:
-        """``Wh [r | dr/domega[:, :k]]`` (rank rows, 1 + k columns) at the full rate ``omega`` (3,):
+        """``Wh [r | dr/domega[:, :k]]`` (2n rows, or the rank with the fallback whitening; 1 + k columns) at ``omega`` (3,):
         whitened residuals (column 0, eq 2) and Jacobian (eq 3), from one compiled pass over the pairs."""
         residual_jacobian_kernel(self.w, self.dt, self.i, self.j, self.cat, omega, self._X)
         return (self.Wh @ self._X)[:, : 1 + self.k]

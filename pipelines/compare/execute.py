@@ -7,7 +7,9 @@ existing cluster at ``scheduler`` (``tcp://host:8786``; its workers need rolling
 Local cluster choices (measured with ``rollingstar compare configs/compare/rate_sweep.yaml``, see
 docs/comparison.md "Scaling"): processes, not threads (the tasks are many small numpy calls: the
 GIL would serialise threads); one thread per worker; the workers' statistical profiler off (it
-samples every worker's stack every 10 ms; nobody reads it without the dashboard, which is off).
+samples every worker's stack every 10 ms; nobody reads it without the dashboard, which is off);
+glibc's default memory trimming (``WORKER_ENVIRON``: dask's default environment disabled glibc's
+adaptive mmap threshold, which cost a third more CPU per image-level task).
 The fixed costs are the cluster start (~1-3 s: a scheduler and, per worker, a nanny and a fresh
 interpreter) and each worker's first task importing the project (~0.5 s CPU); per task, dask adds
 only the task's (small, plain-data) arguments and result.
@@ -17,6 +19,14 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 from pipelines.errors import UserError
+
+
+# The worker processes' environment. dask's default also sets MALLOC_TRIM_THRESHOLD_=65536, which
+# turns off glibc's adaptive mmap threshold: every large temporary array (image-level frames) is
+# then mmap'ed and unmapped, and its pages faulted in and zeroed again on each allocation -- measured
+# +33% CPU per task, most of it system time, on configs/compare/he2021a_sweep.yaml. The tasks free
+# what they allocate, so nothing is gained by trimming; the one-thread BLAS settings stay.
+WORKER_ENVIRON = {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1}
 
 
 def run_serial(fn: Callable, tasks: Sequence, advance: Callable[[int], None]) -> list:
@@ -43,7 +53,8 @@ def run_dask(fn: Callable, tasks: Sequence, advance: Callable[[int], None], work
                 raise UserError(f"--scheduler {scheduler}: cannot connect to a dask scheduler: {exc}") from None
         else:
             # the nannies hand the config to their worker processes
-            with dask.config.set({"distributed.worker.profile.enabled": False}):
+            with dask.config.set({"distributed.worker.profile.enabled": False,
+                                  "distributed.nanny.pre-spawn-environ": WORKER_ENVIRON}):
                 cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                        dashboard_address=None, silence_logs=40)
             client = Client(cluster)
