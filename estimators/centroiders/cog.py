@@ -10,6 +10,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from estimators.centroiders.base import Centroider
+from estimators.centroiders.window_cog import _grow as grow_stack
 from estimators.data import FrameData, StarTable
 
 _MAD_TO_SIGMA = 1.482602218505602  # 1 / Phi^-1(3/4): MAD of a Gaussian -> its sigma
@@ -374,26 +375,10 @@ def _label_max(values: np.ndarray, labels: np.ndarray, size: int) -> np.ndarray:
 
 
 def _grow(flat: np.ndarray, labels: np.ndarray, shape: tuple[int, int], eight: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Add the ring of neighbours around labelled pixels (flat indices); the higher label wins."""
-    H, W = shape
-    r, c = np.divmod(flat, W)
-    offsets = [(-1, 0), (1, 0), (0, -1), (0, 1)]
-    if eight:
-        offsets += [(-1, -1), (-1, 1), (1, -1), (1, 1)]
-    dr = np.array([o[0] for o in offsets])[:, None]
-    dc = np.array([o[1] for o in offsets])[:, None]
-    rr, cc = r[None, :] + dr, c[None, :] + dc
-    ok = (rr >= 0) & (rr < H) & (cc >= 0) & (cc < W)
-    nb_flat = (rr * W + cc)[ok]
-    nb_lab = np.broadcast_to(labels, rr.shape)[ok]
-    all_flat = np.concatenate([flat, nb_flat])
-    all_lab = np.concatenate([labels, nb_lab])
-    # core pixels keep their own label (a core pixel outranks any ring label: add a big offset)
-    rank = np.concatenate([labels.astype(np.int64) + (1 << 40), nb_lab.astype(np.int64)])
-    order = np.lexsort((-rank, all_flat))
-    all_flat, all_lab = all_flat[order], all_lab[order]
-    first = np.concatenate([[True], all_flat[1:] != all_flat[:-1]])
-    return all_flat[first], all_lab[first]
+    """Add the ring of neighbours around labelled pixels (flat indices); the higher label wins.
+
+    One implementation for the full frame and the window stack: the frame is a stack of one window."""
+    return grow_stack(flat, labels, (1, *shape), eight)
 
 
 def _interp_index(xq: np.ndarray, xp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
