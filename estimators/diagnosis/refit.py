@@ -70,21 +70,7 @@ def refit(obs: Observations, nuis: Nuisance, camera, timing, base_effects, candi
     except (ValueError, np.linalg.LinAlgError):  # a forward model that cannot be evaluated: report, not crash
         return {"thetas": split_theta(candidates, z0), "sigmas": [np.full(len(c.parameters), np.nan) for c in candidates],
                 "corr": np.full((m, m), np.nan), "nuisance": nuis, "success": False, "cost": None}
-    jtj = jac.T @ jac
-    try:
-        cov_z = np.linalg.inv(jtj)
-    except np.linalg.LinAlgError:
-        cov_z = np.linalg.pinv(jtj)
-    sd_z = np.sqrt(np.clip(np.diag(cov_z), 0, None))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        corr = cov_z / np.outer(sd_z, sd_z)
-    scales = np.concatenate([c.scales for c in candidates])
-    sig_theta = sd_z * scales
-    out_s, i = [], 0
-    for c in candidates:
-        k = len(c.parameters)
-        out_s.append(sig_theta[i:i + k])
-        i += k
+    out_s, corr = _sigmas_and_corr(_inverse_normal(jac), candidates)
     resid(z)  # leave the nuisance at the solution
     return {"thetas": split_theta(candidates, z), "sigmas": out_s, "corr": corr, "nuisance": state["nuis"],
             "success": success, "cost": cost}
@@ -269,23 +255,26 @@ def joint_refit(obs: Observations, nuis: Nuisance, camera, timing, base_effects,
     except (ValueError, np.linalg.LinAlgError):
         return {"thetas": list(thetas), "sigmas": [np.full(len(cand.parameters), np.nan) for cand in candidates],
                 "corr": np.full((m, m), np.nan), "nuisance": nuis, "success": False, "cost": None}
-    jj = jac(res.x)
-    jtj = jj.T @ jj
-    try:
-        cov = np.linalg.inv(jtj)
-    except np.linalg.LinAlgError:
-        cov = np.linalg.pinv(jtj)
-    cov_z = cov[3 * nf:, 3 * nf:]
-    sd_z = np.sqrt(np.clip(np.diag(cov_z), 0, None))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        corr = cov_z / np.outer(sd_z, sd_z)
-    scales = np.concatenate([cand.scales for cand in candidates])
-    sig_theta = sd_z * scales
-    out_s, i = [], 0
-    for cand in candidates:
-        k = len(cand.parameters)
-        out_s.append(sig_theta[i:i + k])
-        i += k
+    out_s, corr = _sigmas_and_corr(_inverse_normal(jac(res.x))[3 * nf:, 3 * nf:], candidates)
     n2, th = state(res.x)
     return {"thetas": th, "sigmas": out_s, "corr": corr, "nuisance": n2, "success": bool(res.success),
             "cost": float(2 * res.cost), "rates_tied": tied}
+
+
+def _inverse_normal(jac: np.ndarray) -> np.ndarray:
+    """``(J^T J)^-1`` of a whitened Jacobian (pseudo-inverse when singular): the parameter covariance."""
+    jtj = jac.T @ jac
+    try:
+        return np.linalg.inv(jtj)
+    except np.linalg.LinAlgError:
+        return np.linalg.pinv(jtj)
+
+
+def _sigmas_and_corr(cov_z: np.ndarray, candidates) -> tuple[list[np.ndarray], np.ndarray]:
+    """Per-candidate 1-sigma in parameter units (scaled ``z``) and the correlation matrix of ``cov_z``."""
+    sd_z = np.sqrt(np.clip(np.diag(cov_z), 0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov_z / np.outer(sd_z, sd_z)
+    sig_theta = sd_z * np.concatenate([c.scales for c in candidates])
+    bounds = np.cumsum([0] + [len(c.parameters) for c in candidates])
+    return [sig_theta[a:b] for a, b in zip(bounds[:-1], bounds[1:])], corr
