@@ -41,12 +41,13 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from estimators.data import FrameData
 from estimators.filters.base import StarMotionFilter
+from estimators.filters.kf_cv_kernel import kf_cv_batch_kernel, kf_cv_step_kernel
 
 H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
 _EYE4 = np.eye(4)
 
 
-# ------------------------------------------------------------------------ batched maths (numpy)
+# ------------------------------------------------- batched maths (numpy reference; the filter runs kf_cv_kernel)
 def cv_transition(dt) -> tuple[np.ndarray, np.ndarray]:
     """``F`` (n, 4, 4) and the random-acceleration input ``G`` (n, 4, 2) of eq (8) for steps ``dt`` (n,) s."""
     dt = np.asarray(dt, dtype=float).reshape(-1)
@@ -151,17 +152,9 @@ def kf_cv_batch(z: np.ndarray, dt, q: float = 1e-4, r: float = 0.05) -> tuple[np
     states[0, :, 0], states[0, :, 2] = z[0, :, 0], z[0, :, 1]
     if T < 2:
         return states, covs
-    X, P = kf_cv_init(z[0], z[1], dts[1], r)
-    states[1], covs[1] = X, P
-    # F and Q of every step in one vectorised call; the loop is then a few batched products
-    F = cv_transition(dts[2:].reshape(-1))[0].reshape(T - 2, n, 4, 4)
-    Q = cv_process_noise(dts[2:].reshape(-1), q).reshape(T - 2, n, 4, 4)
-    Ft = np.swapaxes(F, -1, -2)
-    for t in range(2, T):  # the recursion over time is sequential; stars are batched
-        X = (F[t - 2] @ X[:, :, None])[:, :, 0]  # eq (11) prediction, as kf_cv_predict
-        P = F[t - 2] @ P @ Ft[t - 2] + Q[t - 2]
-        X, P = kf_cv_update(X, P, z[t], r)
-        states[t], covs[t] = X, P
+    states[1], covs[1] = kf_cv_init(z[0], z[1], dts[1], r)
+    # the recursion over time is sequential: compiled loop (kf_cv_kernel explains why)
+    kf_cv_batch_kernel(np.ascontiguousarray(z), np.ascontiguousarray(dts), float(q), float(r), states, covs)
     return states, covs
 
 
@@ -256,8 +249,10 @@ class KfCvFilter(StarMotionFilter):
             stage[init] = 2
         if step.any():
             if p.backend == "batched":
-                Xp, Pp = kf_cv_predict(self._X[old[step]], self._P[old[step]], dt[step], p.q)
-                X[step], P[step] = kf_cv_update(Xp, Pp, z[step], p.r)
+                Xs, Ps = np.empty((int(step.sum()), 4)), np.empty((int(step.sum()), 4, 4))
+                kf_cv_step_kernel(self._X[old[step]], self._P[old[step]], z[step], dt[step], float(p.q), float(p.r),
+                                  Xs, Ps)
+                X[step], P[step] = Xs, Ps
             else:
                 X[step], P[step] = self._filterpy_steps(sid[step], dt[step], z[step])
             stage[step] = 2
