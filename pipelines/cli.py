@@ -315,13 +315,16 @@ def bench_discrepancy(quick: bool = typer.Option(False, "--quick", help="the red
 @handle_errors
 def bench_perf(quick: bool = typer.Option(False, "--quick", help="tiny sizes (the test suite's run; ratios not meaningful)"),
                as_json: bool = typer.Option(False, "--json", help="print one JSON object"),
-               only: list[str] = typer.Option(None, "--only", help="run only these lines: quest kf rate centroid replay compare")):
+               only: list[str] = typer.Option(None, "--only", help="run only these lines: quest kf rate centroid replay compare"),
+               markdown: bool = typer.Option(False, "--markdown", help="print the markdown table of docs/performance.md")):
     """Hot paths side by side with a peer or the frame.sum() floor, as ratios (issue 7); docs/performance.md."""
-    from pipelines.bench.perf import render_table, run_perf
+    from pipelines.bench.perf import format_markdown, render_table, run_perf
 
-    result = run_perf(quick=quick, show_progress=not as_json, only=only)
+    result = run_perf(quick=quick, show_progress=not (as_json or markdown), only=only)
     if as_json:
         print(json.dumps(result, indent=2))
+    elif markdown:
+        print(format_markdown(result))
     else:
         out.print(render_table(result))
     if not result["checks_ok"]:

@@ -72,3 +72,13 @@ def test_replay_lines(quick_result):
 def test_compare_line_not_invented(quick_result):
     line = next(ln for ln in quick_result["lines"] if ln["id"] == "compare")
     assert line["status"] == "not available" and "--quick" in line["note"]
+
+
+def test_markdown_has_one_row_per_line(quick_result):
+    """`--markdown` (the docs/performance.md table): a header, then one row per line in order."""
+    from pipelines.bench.perf import format_markdown
+
+    rows = [r for r in format_markdown(quick_result).splitlines() if r.startswith("| ") and not r.startswith("| line ")]
+    assert len(rows) == len(quick_result["lines"])
+    for row, ln in zip(rows, quick_result["lines"]):
+        assert row.startswith(f"| {ln['title']} |") and row.replace("\\|", "").count("|") == 9
