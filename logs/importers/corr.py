@@ -261,8 +261,11 @@ def _read_frame(folder: Path, log: WarningLog) -> CorrFrame:
     x, y = cols["field_x"] - 1.0, cols["field_y"] - 1.0  # FITS 1-based pixel centres -> ours (0-based)
     w, h = meta.image_size.x, meta.image_size.y
     outside = (x < -0.5) | (y < -0.5) | (x > w - 0.5) | (y > h - 0.5)
-    if outside.any():
-        log(f"{fits_files[0]}: {int(outside.sum())} star(s) outside the {w}x{h} image of {json_path.name}")
+    if outside.any():  # a damaged table: a star the image cannot hold is no measurement
+        log(f"{fits_files[0]}: {int(outside.sum())} star(s) outside the {w}x{h} image of {json_path.name} dropped "
+            f"(rows {', '.join(map(str, np.flatnonzero(outside)[:10]))})")
+        cols = {k: v[~outside] for k, v in cols.items()}
+        x, y, n = x[~outside], y[~outside], int((~outside).sum())
     ids = cols.get("index_id", np.arange(n, dtype=np.int64))
     if (ids < 0).any():
         raise ImportDataError(f"{fits_files[0]}: index_id has negative values; catalogue ids must be >= 0")
@@ -329,7 +332,12 @@ def import_corr(folder: str | Path, out: str | Path) -> Path:
     cam, fov = camera_for(frames, root)
     resid = np.concatenate([f.residual_px for f in frames])
     resid = resid[np.isfinite(resid).all(axis=1)]
-    sigma = float(np.sqrt(np.mean(resid**2))) if resid.size else None
+    with np.errstate(over="ignore"):  # damaged index_xy overflow to inf, refused just below
+        sigma = float(np.sqrt(np.mean(resid**2))) if resid.size else None
+    if sigma is not None and not (np.isfinite(sigma) and sigma < math.hypot(cam.width_px, cam.height_px)):
+        log(f"{root}: field_xy - index_xy residuals of {sigma:.3g} px RMS are not a centroid noise (damaged "
+            f"index_x/index_y?); the recording declares the default centroid noise instead")
+        sigma = None
     first = frames[0].meta.center
     prior = AttitudeConfig(ra_deg=first.ra_degrees, dec_deg=first.dec_degrees, roll_deg=0.0)
     scenario = scenario_for(cam, name=f"import:{root.name}", level="centroid", frames=len(frames),

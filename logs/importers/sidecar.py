@@ -14,7 +14,8 @@ import math
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt, model_validator
+from pydantic import (BaseModel, ConfigDict, Field, NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt, ValidationError,
+                      model_validator)
 
 from pipelines.config import (
     AttitudeConfig,
@@ -28,6 +29,8 @@ from pipelines.config import (
     read_yaml,
 )
 from pipelines.errors import ConfigError
+
+from logs.importers.common import ImportDataError
 
 DEFAULT_EXPOSURE_MS = 100.0
 """Exposure assumed when a camera file does not state one (it only sets the stars' times)."""
@@ -178,6 +181,16 @@ def scenario_for(camera: CameraSpec, *, name: str, description: str, level: Lite
     Only the sensor, shutter, bit depth, centroid noise and an optional prior attitude carry
     information; the motion has no rates (the truth, if any, is in the log's truth topics).
     """
+    try:
+        return _scenario(camera, name, description, level, frames, bit_depth, centroid_sigma_px, initial_attitude,
+                         frame_period_ms)
+    except ValidationError as exc:  # a value derived from the data that the sensor model cannot hold
+        raise ImportDataError(f"the sensor model derived from the imported data is invalid:\n"
+                              f"{format_validation_error(description, exc)}") from None
+
+
+def _scenario(camera, name, description, level, frames, bit_depth, centroid_sigma_px, initial_attitude,
+              frame_period_ms) -> ScenarioConfig:
     sh = camera.shutter
     shutter = ShutterConfig(mode=sh.mode, exposure_ms=sh.exposure_ms, line_delay_us=sh.line_delay_us,
                             frame_period_ms=frame_period_ms)

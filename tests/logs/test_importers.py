@@ -259,6 +259,29 @@ def test_corr_round_trip_quest_recovers_the_attitude(tmp_path):
     assert max(o["offset_deg"] for o in offsets) < 1e-6
 
 
+def test_corr_damaged_rows_dropped_and_overflowing_residuals_not_taken_as_noise(tmp_path):
+    """Found by fuzzing (tests/reliability/test_fuzz.py): a star outside the image and an index_x of 1e300
+    (residual overflow: the RMS was inf and the sensor model invalid, a raw pydantic error)."""
+    from astropy.io import fits
+
+    R = attitude_from_radec_roll(10.0, 20.0, 30.0)
+    table = write_corr(tmp_path / "sky" / "scene", R, n=12)
+    path = tmp_path / "sky" / "scene" / "corr.fits"
+    with fits.open(path, mode="update") as hdul:
+        hdul[1].data["field_x"][3] = 5.0 * W  # outside the 808 px wide image
+        hdul[1].data["index_x"][5] = 1e300
+    with pytest.warns(UserWarning) as caught:
+        rec = import_corr(tmp_path / "sky", tmp_path / "rec.mcap")
+    text = " ".join(str(w.message) for w in caught)
+    assert "1 star(s) outside the 808x608 image of log.json dropped (rows 3)" in text
+    assert "not a centroid noise" in text
+    s = stars_to_arrays(next(iter(iter_frames(LogReader(rec), "/camera/centroids"))).frame.data)
+    np.testing.assert_array_equal(s["catalog_id"], np.delete(table["ids"], 3))
+    scenario = scenario_from_yaml(LogReader(rec).metadata()["scenario"]["yaml"])
+    from pipelines.config import NoiseConfig
+    assert scenario.noise.centroid_sigma_px == NoiseConfig().centroid_sigma_px  # the default, not inf
+
+
 def test_corr_log_json_missing_comma_is_recovered_with_a_warning(tmp_path):
     R = attitude_from_radec_roll(284.811, -28.299, 10.0)
     text = ('{\n "fov_deg": 17.9,\n "image_size": {"x": 808, "y": 608},\n'

@@ -21,7 +21,7 @@ from logs.importers.sidecar import load_camera, load_sidecar
 from logs.reader import STANDARD_SCHEMAS, LogReader
 from logs.records import TOPIC_RECORDS
 from logs.replay import image_from_raw
-from pipelines.config import PipelineConfig, ScenarioConfig, parse_yaml, validate
+from pipelines.config import PipelineConfig, ScenarioConfig, parse_yaml, scenario_from_yaml, validate
 from pipelines.errors import UserError
 
 from ..logs.helpers import write_recording
@@ -70,11 +70,14 @@ def _read_all(path):
     return msgs
 
 
+# positions as a fraction of the file length, drawn on a uniform grid (hypothesis' floats favour a
+# few "nice" values such as 0, 0.5 and 1, which left most of a file's bytes unvisited)
+position = st.integers(0, 2**20).map(lambda v: v / 2**20)
 mutation = st.one_of(
-    st.tuples(st.just("flip"), st.floats(0, 1), st.integers(1, 255)),
-    st.tuples(st.just("cut"), st.floats(0, 1), st.just(0)),
-    st.tuples(st.just("insert"), st.floats(0, 1), st.integers(0, 255)),
-    st.tuples(st.just("zero"), st.floats(0, 1), st.integers(1, 64)),
+    st.tuples(st.just("flip"), position, st.integers(1, 255)),
+    st.tuples(st.just("cut"), position, st.just(0)),
+    st.tuples(st.just("insert"), position, st.integers(0, 255)),
+    st.tuples(st.just("zero"), position, st.integers(1, 64)),
 )
 
 
@@ -164,3 +167,113 @@ def test_config_loader(cut, edits, pipeline):
             validate(model, parse_yaml(source, "<fuzz>"), "<fuzz>")
         except UserError as exc:  # ConfigError: names the source
             assert "<fuzz>" in str(exc)
+
+
+def _mutate(data: bytes, mutations) -> bytes:
+    data = bytearray(data)
+    for kind, where, value in mutations:
+        i = int(where * max(len(data) - 1, 0))
+        if kind == "flip" and data:
+            data[i] ^= value
+        elif kind == "cut":
+            del data[i:]
+        elif kind == "insert":
+            data[i:i] = bytes([value])
+        elif kind == "zero":
+            data[i:i + value] = bytes(len(data[i:i + value]))
+    return bytes(data)
+
+
+_IMAGES: dict[str, bytes] = {}
+
+
+def _image_bytes(suffix: str) -> bytes:
+    """A valid 16-bit 40 x 30 frame as PNG or TIFF bytes (made once per format)."""
+    if suffix not in _IMAGES:
+        import io
+
+        from PIL import Image
+
+        img = np.random.default_rng(1).integers(0, 4096, (30, 40)).astype(np.uint16)
+        buf = io.BytesIO()
+        Image.fromarray(img).save(buf, format={".png": "PNG", ".tiff": "TIFF"}[suffix])
+        _IMAGES[suffix] = buf.getvalue()
+    return _IMAGES[suffix]
+
+
+IMAGE_SIDECAR = ("camera: {width_px: 40, height_px: 30, focal_length_mm: 10.0, pixel_size_um: 5.0,\n"
+                 "         shutter: {mode: rolling, exposure_ms: 2.0, line_delay_us: 20.0}}\n"
+                 "timestamps: {frame_rate_hz: 10.0}\n")
+
+
+@FUZZ
+@given(suffix=st.sampled_from([".png", ".tiff"]), mutations=st.lists(mutation, min_size=1, max_size=4))
+def test_image_importer_on_damaged_files(tmp_path, suffix, mutations):
+    """A damaged image file fails with an error naming it, or imports as a readable frame of the declared size."""
+    from logs.importers import import_images
+
+    folder = tmp_path / "imgs"
+    folder.mkdir(exist_ok=True)
+    for old in folder.iterdir():
+        old.unlink()
+    (folder / f"f00{suffix}").write_bytes(_image_bytes(suffix))
+    (folder / f"f01{suffix}").write_bytes(_mutate(_image_bytes(suffix), mutations))
+    (folder / "recording.yaml").write_text(IMAGE_SIDECAR)
+    out = tmp_path / "r.mcap"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            import_images(folder, out)
+        except UserError as exc:
+            assert "f01" in str(exc) or "recording.yaml" in str(exc), str(exc)
+            return
+    images = [image_from_raw(m) for m in _read_all(out) if m.topic == "/camera/image"]
+    assert len(images) == 2 and all(img.shape == (30, 40) for img in images)
+
+
+_CORR: dict[str, bytes] = {}
+
+
+def _corr_files(tmp_path) -> tuple[bytes, str]:
+    """A valid astrometry.net corr table and log.json (tests/logs/test_importers.write_corr)."""
+    if not _CORR:
+        from scipy.spatial.transform import Rotation
+
+        from ..logs.test_importers import write_corr
+
+        write_corr(tmp_path / "corr-template", Rotation.from_rotvec([0.3, -0.2, 1.0]), n=12)
+        _CORR["fits"] = (tmp_path / "corr-template" / "corr.fits").read_bytes()
+        _CORR["json"] = (tmp_path / "corr-template" / "log.json").read_text()
+    return _CORR["fits"], _CORR["json"]
+
+
+@FUZZ
+@given(fits_mutations=st.lists(mutation, max_size=3),
+       json_edits=st.lists(st.tuples(st.floats(0, 1), st.text(max_size=3)), max_size=2))
+def test_corr_importer_on_damaged_tables(tmp_path, fits_mutations, json_edits):
+    """Damaged corr FITS / log.json: an error naming the file, or one frame whose stars are finite and inside the image."""
+    from logs.importers import import_corr
+
+    fits_bytes, log_json = _corr_files(tmp_path)
+    for where, insert in json_edits:
+        i = int(where * len(log_json))
+        log_json = log_json[:i] + insert + log_json[i + 1:]
+    folder = tmp_path / "sky" / "scene"
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "corr.fits").write_bytes(_mutate(fits_bytes, fits_mutations))
+    (folder / "log.json").write_text(log_json)
+    out = tmp_path / "r.mcap"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            import_corr(tmp_path / "sky", out)
+        except UserError as exc:
+            assert "corr.fits" in str(exc) or "log.json" in str(exc) or "sky" in str(exc), str(exc)
+            return
+    msgs = _read_all(out)
+    frames = [m for m in msgs if m.topic == "/camera/centroids"]
+    assert len(frames) == 1  # (possibly without stars: damaged rows are dropped with a warning)
+    sensor = scenario_from_yaml(LogReader(out).metadata()["scenario"]["yaml"]).sensor
+    x, y = (np.array(frames[0].data[k], dtype=float) for k in ("x", "y"))
+    assert np.isfinite(x).all() and np.isfinite(y).all()
+    assert ((x >= -0.5) & (x <= sensor.width_px - 0.5) & (y >= -0.5) & (y <= sensor.height_px - 0.5)).all()
