@@ -48,14 +48,18 @@ def test_quaternion_product_matches_scipy():
         np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-15)
 
 
-def test_kf_predict_update_match_matrix_forms():
-    rng = np.random.default_rng(0)
-    n, q, r = 30, 0.3, 0.05
+def _kf_inputs(seed: int, n: int):
+    """Random states, symmetric positive-definite covariances, steps and measurements of ``n`` tracks."""
+    rng = np.random.default_rng(seed)
     X = rng.normal(size=(n, 4)) * 100
     M = rng.normal(size=(n, 4, 4))
     P = M @ np.swapaxes(M, 1, 2) + np.eye(4)
-    dt = rng.uniform(0.01, 1.0, n)
-    z = rng.normal(size=(n, 2)) * 100
+    return X, P, rng.uniform(0.01, 1.0, n), rng.normal(size=(n, 2)) * 100
+
+
+def test_kf_predict_update_match_matrix_forms():
+    q, r = 0.3, 0.05
+    X, P, dt, z = _kf_inputs(seed=0, n=30)
     F, _ = cv_transition(dt)
     Xp, Pp = kf_cv_predict(X, P, dt, q)
     np.testing.assert_allclose(Xp, np.einsum("nij,nj->ni", F, X), rtol=1e-14, atol=1e-12)
@@ -66,18 +70,13 @@ def test_kf_predict_update_match_matrix_forms():
     IKH = np.eye(4) - K @ H
     np.testing.assert_allclose(Xu, X + np.einsum("nij,nj->ni", K, z - X @ H.T), rtol=1e-12, atol=1e-10)
     np.testing.assert_allclose(Pu, IKH @ P @ np.swapaxes(IKH, 1, 2) + r * K @ np.swapaxes(K, 1, 2), rtol=1e-10, atol=1e-12)
-    assert np.array_equal(P, M @ np.swapaxes(M, 1, 2) + np.eye(4))  # inputs not mutated
+    assert np.array_equal(P, _kf_inputs(seed=0, n=30)[1])  # inputs not mutated
 
 
 def test_kf_kernel_step_matches_numpy_reference():
     """The compiled predict + update equals kf_cv_predict then kf_cv_update (the filter's path)."""
-    rng = np.random.default_rng(3)
-    n, q, r = 25, 0.7, 0.02
-    X = rng.normal(size=(n, 4)) * 100
-    M = rng.normal(size=(n, 4, 4))
-    P = M @ np.swapaxes(M, 1, 2) + np.eye(4)
-    dt = rng.uniform(0.01, 1.0, n)
-    z = rng.normal(size=(n, 2)) * 100
+    q, r = 0.7, 0.02
+    X, P, dt, z = _kf_inputs(seed=3, n=25)
     Xr, Pr = kf_cv_update(*kf_cv_predict(X, P, dt, q), z, r)
     Xk, Pk = np.empty_like(X), np.empty_like(P)
     kf_cv_step_kernel(X, P, z, dt, q, r, Xk, Pk)

@@ -81,10 +81,8 @@ mutation = st.one_of(
 )
 
 
-@FUZZ
-@given(mutations=st.lists(mutation, min_size=1, max_size=4))
-def test_reader_on_mutated_logs(tmp_path, mutations):
-    data = bytearray(_log_bytes(tmp_path))
+def _mutate(data: bytes, mutations) -> bytes:
+    data = bytearray(data)
     for kind, where, value in mutations:
         i = int(where * max(len(data) - 1, 0))
         if kind == "flip" and data:
@@ -95,8 +93,14 @@ def test_reader_on_mutated_logs(tmp_path, mutations):
             data[i:i] = bytes([value])
         elif kind == "zero":
             data[i:i + value] = bytes(len(data[i:i + value]))
+    return bytes(data)
+
+
+@FUZZ
+@given(mutations=st.lists(mutation, min_size=1, max_size=4))
+def test_reader_on_mutated_logs(tmp_path, mutations):
     path = tmp_path / "m.mcap"
-    path.write_bytes(bytes(data))
+    path.write_bytes(_mutate(_log_bytes(tmp_path), mutations))
     _read_all(path)
 
 
@@ -167,21 +171,6 @@ def test_config_loader(cut, edits, pipeline):
             validate(model, parse_yaml(source, "<fuzz>"), "<fuzz>")
         except UserError as exc:  # ConfigError: names the source
             assert "<fuzz>" in str(exc)
-
-
-def _mutate(data: bytes, mutations) -> bytes:
-    data = bytearray(data)
-    for kind, where, value in mutations:
-        i = int(where * max(len(data) - 1, 0))
-        if kind == "flip" and data:
-            data[i] ^= value
-        elif kind == "cut":
-            del data[i:]
-        elif kind == "insert":
-            data[i:i] = bytes([value])
-        elif kind == "zero":
-            data[i:i + value] = bytes(len(data[i:i + value]))
-    return bytes(data)
 
 
 _IMAGES: dict[str, bytes] = {}
