@@ -264,8 +264,23 @@ def _update_priors(stages: list[Plugin], frame: FrameData) -> None:
 
 
 def _finish_frame(frame: FrameData) -> FrameData:
+    """Frame flags that need every stage's output.
+
+    - ``too_few_stars``: fewer than 2 identified stars and no valid attitude;
+    - ``saturated_stars:N``: N detections (identified or not) reached the saturation level;
+    - ``attitude_degraded:all_stars_saturated``: a valid attitude made from saturated stars only
+      (it is kept: the centroider's ``sigma_px`` of clipped spots, and so the covariance, is inflated
+      for them, but the user should know the frame is not a normal one).
+    """
     if frame.stars is not None and frame.stars.identified.sum() < 2 and not any(a.valid for a in frame.attitudes):
         frame = frame.flagged("too_few_stars")
+    if frame.stars is not None:
+        n_sat = int(frame.stars.saturated.sum()) + (int(frame.unmatched.saturated.sum()) if frame.unmatched is not None else 0)
+        if n_sat:
+            frame = frame.flagged(f"saturated_stars:{n_sat}")
+        used = frame.stars.identified
+        if used.any() and frame.stars.saturated[used].all() and any(a.valid for a in frame.attitudes):
+            frame = frame.flagged("attitude_degraded:all_stars_saturated")
     return frame
 
 

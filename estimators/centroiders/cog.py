@@ -10,6 +10,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from estimators.centroiders.base import Centroider
+from estimators.centroiders.saturation import clipped_cog_sigma_px
 from estimators.centroiders.window_cog import _grow as grow_stack
 from estimators.data import FrameData, StarTable
 
@@ -69,7 +70,11 @@ class CogCentroider(Centroider):
        is still usable but their flux is a lower bound), ``snr = flux / sqrt(npix s^2 + flux / g)``
        (``g = gain_e_per_adu``; without it the shot-noise term is left out),
        ``sigma_px = s sqrt(sum (x_i - x)^2 + (y_i - y)^2) / (sqrt(2) flux)`` (background-noise
-       propagation through the CoG, per axis; shot noise and PSF-sampling bias not included).
+       propagation through the CoG, per axis; shot noise and PSF-sampling bias not included). A
+       saturated spot's clipped, noise-free flat top carries no sub-pixel information: its
+       ``sigma_px`` adds in quadrature the RMS sampling error of a clipped spot's CoG,
+       :func:`estimators.centroiders.saturation.clipped_cog_sigma_px` (from its flux, its number of
+       pixels at the saturation level and the saturation level above background).
     5. Times: ``row_time_ns = timing.row_start_ns(t0, y)`` and ``t_ns = timing.row_mid_exposure_ns(t0, y)``
        (the time a static-PSF centroid refers to).
 
@@ -194,7 +199,8 @@ class CogCentroider(Centroider):
         n_above = np.bincount(lab_core, minlength=size)[1:]
         raw_core = raw_flat[flat].astype(float)
         raw_max = _label_max(raw_core, lab_core, size)
-        saturated = raw_max >= self._saturation(raw)
+        sat_level = self._saturation(raw)
+        saturated = raw_max >= sat_level
         keep = n_above >= p.min_pixels
         if p.max_pixels is not None:
             keep &= n_above <= p.max_pixels
@@ -213,7 +219,8 @@ class CogCentroider(Centroider):
             flat, lab_core = _grow(flat, lab_core, self._shape, p.connectivity == 8)
 
         lab_on = lab_core
-        d = raw_flat[flat].astype(float) - bg_flat(flat)
+        bg_on = np.broadcast_to(bg_flat(flat), flat.shape)
+        d = raw_flat[flat].astype(float) - bg_on
         rows, cols = np.divmod(flat, W)
         rows = rows.astype(float)
         cols = cols.astype(float)
@@ -238,6 +245,10 @@ class CogCentroider(Centroider):
             yc = np.concatenate([[0.0], y])[lab_on]
             m2 = np.bincount(lab_on, weights=(cols - xc) ** 2 + (rows - yc) ** 2, minlength=size)[1:]
             sigma_px = noise * np.sqrt(m2 / 2.0) / flux
+            if saturated.any():  # clipped spots: add the CoG sampling error of the flat top (saturation.py)
+                n_sat = np.bincount(lab_on, weights=raw_flat[flat] >= sat_level, minlength=size)[1:]
+                s_d = sat_level - np.bincount(lab_on, weights=bg_on, minlength=size)[1:] / npix
+                sigma_px = np.hypot(sigma_px, clipped_cog_sigma_px(np.where(saturated, flux, 0.0), n_sat, s_d))
             var = npix * noise**2
             if p.gain_e_per_adu is not None:
                 var = var + np.maximum(flux, 0.0) / p.gain_e_per_adu
