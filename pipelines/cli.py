@@ -81,13 +81,19 @@ def run(pipeline: Path = typer.Argument(..., help="pipeline YAML"),
         recording: Path = typer.Argument(..., help="input MCAP recording"),
         output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write"),
         resume: bool = typer.Option(False, "--resume", help="continue from a partial output (killed or interrupted run)"),
+        checkpoint_every: int = typer.Option(500, "--checkpoint-every", min=0,
+                                             help="save the stages' state every N frames for --resume (0: never)"),
         quiet: bool = typer.Option(False, "--quiet", "-q")):
     """Run a pipeline over a recording."""
     from pipelines.config import load_pipeline
     from pipelines.runner import run_pipeline
 
     cfg = load_pipeline(pipeline)
-    s = run_pipeline(recording, cfg, output, pipeline_source=str(pipeline), show_progress=not quiet, resume=resume)
+    s = run_pipeline(recording, cfg, output, pipeline_source=str(pipeline), show_progress=not quiet, resume=resume,
+                     checkpoint_every=checkpoint_every)
+    if resume:
+        out.print(f"resumed from a checkpoint after {s.resumed_after_frames} frames" if s.resumed_after_frames else
+                  "resumed: no usable checkpoint, every frame re-run (frames already written were not written again)")
     out.print(f"wrote {s.output}: {s.frames} frames, {s.valid_estimates}/{s.attitude_estimates} valid attitude "
               f"estimates, {s.flagged_frames} flagged frames")
 

@@ -13,6 +13,8 @@
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import warnings
 
 import numpy as np
@@ -33,8 +35,8 @@ class FrameChecker:
         self.height = int(context.camera.height)
         self.bit_depth = getattr(context, "bit_depth", None)
         self.period_ns = getattr(context.timing, "frame_period_ns", None)
-        self._prev: FrameData | None = None
-        self._prev_payload = None
+        self._prev: tuple[int, int] | None = None  # (index, t0_ns) of the previous frame
+        self._prev_payload = None  # its content (a digest after a checkpoint round trip, __getstate__)
         self.skipped = 0
 
     def _where(self, frame: FrameData) -> str:
@@ -44,24 +46,32 @@ class FrameChecker:
         if frame.image is not None:
             self._check_image(frame)
         prev = self._prev
-        if prev is not None and frame.t0_ns <= prev.t0_ns:
-            if frame.t0_ns == prev.t0_ns and _same(payload, self._prev_payload):
+        if prev is not None and frame.t0_ns <= prev[1]:
+            if frame.t0_ns == prev[1] and _digest(payload) == _digest(self._prev_payload):
                 self.skipped += 1
                 warnings.warn(f"{self._where(frame)}: duplicate of the previous frame (same time and content) skipped")
                 return None
             raise LogFormatError(
-                f"{self._where(frame)}: frame time does not increase (previous frame {prev.index} at t0 = "
-                f"{prev.t0_ns} ns); frames must be in time order with distinct times")
+                f"{self._where(frame)}: frame time does not increase (previous frame {prev[0]} at t0 = "
+                f"{prev[1]} ns); frames must be in time order with distinct times")
         if prev is not None and self.period_ns:
-            gap = frame.t0_ns - prev.t0_ns
+            gap = frame.t0_ns - prev[1]
             if gap > GAP_FACTOR * self.period_ns:
                 ms = gap * 1e-6
                 warnings.warn(f"{self._where(frame)}: {ms:.1f} ms after the previous frame, expected "
                               f"{self.period_ns * 1e-6:.1f} ms (the declared frame period): frames lost or a clock "
                               "jump; frame flagged time_gap")
                 frame = frame.flagged(f"time_gap:{ms:.0f}ms")
-        self._prev, self._prev_payload = frame, payload
+        self._prev, self._prev_payload = (frame.index, frame.t0_ns), payload
         return frame
+
+    def __getstate__(self) -> dict:
+        """For run checkpoints: the previous frame's content as its digest (protobuf messages do not
+        pickle; hashing only here keeps the per-frame cost at zero)."""
+        state = dict(self.__dict__)
+        if state["_prev_payload"] is not None:
+            state["_prev_payload"] = _digest(state["_prev_payload"])
+        return state
 
     def _check_image(self, frame: FrameData) -> None:
         img = frame.image
@@ -76,7 +86,13 @@ class FrameChecker:
                 "(image.bit_depth); expected mono16")
 
 
-def _same(a, b) -> bool:
-    if hasattr(a, "SerializeToString") and hasattr(b, "SerializeToString"):
-        return a.SerializeToString(deterministic=True) == b.SerializeToString(deterministic=True)
-    return a == b
+def _digest(payload) -> bytes:
+    """SHA-256 of a frame message's content (protobuf bytes, or the record's canonical JSON); a
+    digest (bytes) is returned unchanged."""
+    if isinstance(payload, bytes):
+        return payload
+    if hasattr(payload, "SerializeToString"):
+        data = payload.SerializeToString(deterministic=True)
+    else:
+        data = json.dumps(payload, sort_keys=True, default=repr).encode()
+    return hashlib.sha256(data).digest()

@@ -6,9 +6,11 @@ The resumed run writes a new log beside the output (``<output>.resume-tmp``) and
 output at the end (so a resume killed in turn leaves the old partial output to resume from):
 
 1. the partial output's truth messages and every message of its complete frames are copied;
-2. the pipeline runs again from the first frame of the recording, because its stages carry state
-   (tracking priors, filters, smoothers) that only the frames before can rebuild; a frame already
-   complete is processed but not written again, a truth message already copied is not written again.
+2. the stages carry state (tracking priors, filters, smoothers) that only the frames before can
+   rebuild: the run restores it from the newest usable checkpoint (:mod:`pipelines.checkpoint`)
+   and reads on from the frame after it, or, without one, runs again from the first frame of the
+   recording; a frame already complete is processed but not written again, a truth message
+   already copied is not written again.
 
 *Equivalent* (what the tests check): the resumed log and an uninterrupted run's log hold the same
 messages — topic, log time and decoded content, in log-time order — and the same metadata apart

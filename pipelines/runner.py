@@ -23,6 +23,7 @@ from logs.records import FrameStatus, RateEstimate as RateRecord, arrays_to_star
 from logs.replay import iter_frames, image_from_raw
 from logs.writer import LogWriter
 from pipelines import build
+from pipelines.checkpoint import DEFAULT_EVERY, CheckpointWriter, RunState, add_index, load_checkpoint, run_key
 from pipelines.config import PipelineConfig, format_validation_error, scenario_from_yaml, to_yaml
 from pipelines.errors import ConfigError, PipelineError, UserError
 from pipelines.frame_checks import FrameChecker
@@ -50,6 +51,7 @@ class RunSummary:
     valid_estimates: int
     flagged_frames: int
     stage_seconds: dict[str, float]
+    resumed_after_frames: int = 0  # --resume: frames restored from a checkpoint instead of re-run
 
 
 def build_stages(config: PipelineConfig, source: str = "<pipeline>") -> list[Plugin]:
@@ -96,11 +98,14 @@ def _truth_from_messages(messages) -> TruthSamples | None:
 
 
 def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | Path, pipeline_source: str = "<pipeline>",
-                 show_progress: bool = True, max_frames: int | None = None, resume: bool = False) -> RunSummary:
+                 show_progress: bool = True, max_frames: int | None = None, resume: bool = False,
+                 checkpoint_every: int = DEFAULT_EVERY) -> RunSummary:
     """Run ``pipeline`` over ``recording`` and write estimates (plus truth and metadata) to ``output``.
 
-    ``resume``: continue from a partial ``output`` (see :mod:`pipelines.resume`). On SIGINT the frame
-    in hand is finished, the log finalised and :class:`pipelines.interrupt.Interrupted` raised.
+    ``resume``: continue from a partial ``output`` (see :mod:`pipelines.resume`), from the newest
+    usable checkpoint if there is one (:mod:`pipelines.checkpoint`, saved every
+    ``checkpoint_every`` frames and on SIGINT; 0: none). On SIGINT the frame in hand is finished,
+    the log finalised and :class:`pipelines.interrupt.Interrupted` raised.
     """
     stages = build_stages(pipeline, pipeline_source)
     reader = LogReader(recording)
@@ -131,17 +136,30 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
     metadata = {"scenario": meta["scenario"], "pipeline": {"yaml": to_yaml(pipeline), "source": str(pipeline_source)}}
     checker = FrameChecker(recording, frame_topic, context)  # sizes, bit depth, time order, gaps
     output = Path(output)
-    # --resume: keep the partial output's complete frames, re-run every stage from the start (pipelines/resume.py)
+    # --resume: keep the partial output's complete frames; continue from a checkpoint or from the start (pipelines/resume.py)
     partial = load_partial(output, metadata) if resume else Partial()
     target = temp_path(output) if resume else output
     counts_ = {"att": 0, "valid": 0, "flagged": 0}
+    key = run_key(Path(recording), metadata)
+    state = load_checkpoint(output, key, partial.done, context) if resume else None
+    saver = CheckpointWriter(output, context, checkpoint_every, keep=state.frames_read if state else None)
+    if not resume:
+        saver.remove()  # a fresh run: an earlier run's checkpoints do not describe this output
+    skip, frames_read, written = 0, 0, []
+    if state is not None:  # continue after the checkpoint's last frame (pipelines/checkpoint.py)
+        stages, checker, n_frames, skip = state.stages, state.checker, state.n_frames, state.frames_read
+        counts_, stage_seconds, written = dict(state.counts), dict(state.stage_seconds), list(state.written)
 
     def emit(out: FrameData) -> None:
         if out.index not in partial.done:
             _write_frame(writer, out)
+        add_index(written, out.index)
         counts_["att"] += len(out.attitudes)
         counts_["valid"] += sum(a.valid for a in out.attitudes)
         counts_["flagged"] += bool(out.flags)
+
+    def save_state() -> None:
+        saver.save(RunState(key, frames_read, n_frames, stages, checker, counts_, stage_seconds, written))
 
     with stop_on_sigint() as stop, LogWriter(target, kind="run", metadata=metadata) as writer, \
             progress_bar(f"run {pipeline.name}", total, show_progress) as advance:
@@ -150,10 +168,14 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
         for group in iter_frames(reader, frame_topic, [TOPIC_GYRO, *TRUTH_TOPICS], tolerate_bad_side=True):
             if (max_frames is not None and n_frames >= max_frames) or stop.requested:
                 break
+            frames_read += 1
             for topic in TRUTH_TOPICS:
                 for m in group.side.get(topic, []):
                     if (topic, m.log_time_ns) not in partial.truth_keys:
                         writer.write_json(topic, m.data, m.log_time_ns)
+            if frames_read <= skip:  # processed before the checkpoint
+                advance()
+                continue
             msg = group.frame
             try:
                 frame = _frame_from_message(msg, frame_topic, n_frames)
@@ -171,6 +193,8 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
             for out in _run_stages(stages, frame, skip_centroiders, stage_seconds):
                 emit(out)
             advance()
+            if saver.due(frames_read):
+                save_state()
         # Frames still held back (smoothers) flow on through the later stages, stage by stage.
         # Not after SIGINT: they would be estimates of a cut recording, not the ones a full run writes.
         for i, stage in enumerate(stages if not stop.requested else []):
@@ -188,11 +212,15 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
                     emit(out)
     if resume:
         os.replace(target, output)
+    if stop.requested:
+        save_state()  # the state after the last frame written: a resume continues right there
+    else:
+        saver.remove()
     n_att, n_valid, n_flagged = counts_["att"], counts_["valid"], counts_["flagged"]
     if stop.requested:
         raise Interrupted(f"interrupted: {output} is finalised and holds the {n_frames} frame(s) processed before "
                           f"SIGINT; continue with `rollingstar run ... -o {output} --resume`")
-    return RunSummary(str(output), n_frames, n_att, n_valid, n_flagged, stage_seconds)
+    return RunSummary(str(output), n_frames, n_att, n_valid, n_flagged, stage_seconds, skip)
 
 
 def _frame_from_message(msg, frame_topic: str, ordinal: int) -> FrameData:

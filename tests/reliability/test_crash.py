@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -76,11 +77,14 @@ def _start(args, out, min_bytes):
     return proc
 
 
-@pytest.mark.parametrize("sig", ["SIGKILL", "SIGINT"])
-def test_killed_run_keeps_complete_messages_and_resumes_to_an_equivalent_output(tmp_path, recording, sig):
+@pytest.mark.parametrize("sig,every", [("SIGKILL", 500), ("SIGKILL", 20), ("SIGINT", 500)])
+def test_killed_run_keeps_complete_messages_and_resumes_to_an_equivalent_output(tmp_path, recording, sig, every):
+    """``every``: checkpoint interval (frames). 500 > the 250 frames: a SIGKILLed run leaves no
+    checkpoint and the resume re-runs every frame; 20: it continues from the newest checkpoint the
+    partial output covers; SIGINT saves one after the last frame written and continues right there."""
     rec, ref = recording
     out = tmp_path / "out.mcap"
-    proc = _start(["run", PIPELINE, rec, "-o", out, "-q"], out, 520_000)
+    proc = _start(["run", PIPELINE, rec, "-o", out, "-q", "--checkpoint-every", every], out, 520_000)
     proc.send_signal(getattr(signal, sig))
     _, err = proc.communicate(timeout=60)
     partial, _, truncated = _read(out)
@@ -96,10 +100,18 @@ def test_killed_run_keeps_complete_messages_and_resumes_to_an_equivalent_output(
         assert len(partial) == sum(1 for k in full if k[1] <= max(k2[1] for k2 in partial))
     else:
         assert proc.returncode == -signal.SIGKILL and truncated
-    res = subprocess.run([sys.executable, "-m", "pipelines.cli", "run", PIPELINE, rec, "-o", out, "--resume", "-q"],
-                         cwd=ROOT, capture_output=True, text=True, timeout=120)
+    res = subprocess.run([sys.executable, "-m", "pipelines.cli", "run", PIPELINE, rec, "-o", out, "--resume", "-q",
+                          "--checkpoint-every", str(every)], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     _assert_equivalent(out, ref)
+    resumed = re.search(r"resumed from a checkpoint after (\d+) frames", res.stdout)
+    if sig == "SIGINT":
+        assert resumed and int(resumed.group(1)) == len(frames), res.stdout
+    elif every < FRAMES:
+        assert resumed and 0 < int(resumed.group(1)) <= len(frames) and int(resumed.group(1)) % every == 0, res.stdout
+    else:
+        assert not resumed and "every frame re-run" in res.stdout, res.stdout
+    assert not (tmp_path / "out.mcap.checkpoints").exists()  # removed once the run completes
 
 
 def test_interrupted_simulate_exits_130_with_a_finalised_log(tmp_path):
