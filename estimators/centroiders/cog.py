@@ -10,7 +10,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from estimators.centroiders.base import Centroider
-from estimators.centroiders.saturation import clipped_cog_sigma_px
+from estimators.centroiders.saturation import with_clipping
 from estimators.centroiders.window_cog import _grow as grow_stack
 from estimators.data import FrameData, StarTable
 
@@ -248,7 +248,7 @@ class CogCentroider(Centroider):
             if saturated.any():  # clipped spots: add the CoG sampling error of the flat top (saturation.py)
                 n_sat = np.bincount(lab_on, weights=raw_flat[flat] >= sat_level, minlength=size)[1:]
                 s_d = sat_level - np.bincount(lab_on, weights=bg_on, minlength=size)[1:] / npix
-                sigma_px = np.hypot(sigma_px, clipped_cog_sigma_px(np.where(saturated, flux, 0.0), n_sat, s_d))
+                sigma_px = with_clipping(sigma_px, flux, n_sat, saturated, s_d)
             var = npix * noise**2
             if p.gain_e_per_adu is not None:
                 var = var + np.maximum(flux, 0.0) / p.gain_e_per_adu

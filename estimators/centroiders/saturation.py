@@ -80,3 +80,14 @@ def clipped_cog_sigma_px(flux: np.ndarray, n_saturated: np.ndarray, saturation_a
     var = np.mean(np.sum(_AXIS_WEIGHT * dC**2, axis=2), axis=1) / (2.0 * np.pi * F) ** 2
     out[sat] = np.sqrt(var)
     return out
+
+
+def with_clipping(sigma_px: np.ndarray, flux: np.ndarray, n_saturated: np.ndarray, saturated: np.ndarray,
+                  saturation_above_bg) -> np.ndarray:
+    """``sigma_px`` with the clipped-spot term added in quadrature for the ``saturated`` spots (the
+    centroiders' reported per-axis sigma; :func:`clipped_cog_sigma_px` for the arguments)."""
+    saturated = np.asarray(saturated, dtype=bool)
+    if not saturated.any():
+        return sigma_px
+    clip = clipped_cog_sigma_px(np.where(saturated, flux, 0.0), np.where(saturated, n_saturated, 0), saturation_above_bg)
+    return np.hypot(sigma_px, clip)

@@ -21,7 +21,8 @@ into one ``(n, h, w)`` array and every step runs once for the stack:
 4. each component grows by ``grow_px`` rings of below-threshold pixels inside its window (the
    higher label wins where rings meet), then per component (``np.bincount``) with ``d = I - b``:
    ``flux = sum d``, ``x = sum d x / flux``, ``y = sum d y / flux``, ``peak``, ``npix``,
-   ``saturated``, ``snr = flux / sqrt(npix s^2 + flux / g)`` (no shot term without a gain ``g``), ``sigma_px = s sqrt(sum r^2) / (sqrt(2) flux)``;
+   ``saturated``, ``snr = flux / sqrt(npix s^2 + flux / g)`` (no shot term without a gain ``g``), ``sigma_px = s sqrt(sum r^2) / (sqrt(2) flux)``
+   (saturated spots: plus the clipped-spot term in quadrature, :mod:`estimators.centroiders.saturation`);
 5. per window the kept component nearest to the window's predicted position is returned.
 
 This is the ``cog`` centroider's definition (Liebe 2002; see ``estimators/centroiders/cog.py``)
@@ -33,6 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
+
+from estimators.centroiders.saturation import with_clipping
 
 _MAD_TO_SIGMA = 1.482602218505602
 _TRUNC3 = 0.98658  # std of a unit normal truncated to +-3
@@ -169,6 +172,10 @@ def centroid_windows(stack: np.ndarray, px: np.ndarray, py: np.ndarray, *, thres
         yc = np.concatenate([[0.0], y])[lab]
         m2 = np.bincount(lab, weights=(cols - xc) ** 2 + (rows - yc) ** 2, minlength=size)[1:]
         sigma_px = s * np.sqrt(m2 / 2.0) / flux
+        saturated = raw_max[1:] >= saturation_adu
+        if saturated.any():  # clipped spots: the CoG sampling error of the flat top, as in cog
+            n_sat = np.bincount(lab, weights=raw.ravel()[flat] >= saturation_adu, minlength=size)[1:]
+            sigma_px = with_clipping(sigma_px, flux, n_sat, saturated, saturation_adu - bg[win])
         shot = 0.0 if gain_e_per_adu is None else np.maximum(flux, 0.0) / gain_e_per_adu
         snr = flux / np.sqrt(npix * s**2 + shot)
     # per window, the kept spot nearest to the prediction (ties: the brighter, as cog orders by flux)
@@ -187,5 +194,5 @@ def centroid_windows(stack: np.ndarray, px: np.ndarray, py: np.ndarray, *, thres
         return out
 
     return WindowSpots(found, per_window(x), per_window(y), per_window(flux), per_window(peak[1:]),
-                       per_window(npix, 0, int), per_window(raw_max[1:] >= saturation_adu, False, bool),
+                       per_window(npix, 0, int), per_window(saturated, False, bool),
                        per_window(snr), per_window(sigma_px))

@@ -14,7 +14,9 @@ background ``b_k`` and noise ``s_k``:
    its labelled neighbours (``cog``'s rule);
 3. per component: ``flux = sum d``, ``x = sum d x / flux``, ``y = sum d y / flux``, ``peak = max d``,
    ``npix``, ``saturated = max I >= saturation`` (over the pixels above threshold),
-   ``snr = flux / sqrt(npix s^2 + flux / g)``, ``sigma_px = s sqrt(sum r^2) / (sqrt(2) flux)``;
+   ``snr = flux / sqrt(npix s^2 + flux / g)``, ``sigma_px = s sqrt(sum r^2) / (sqrt(2) flux)`` and the
+   number of pixels at the saturation level (the callers add the clipped-spot term to a saturated
+   spot's ``sigma_px``, :func:`estimators.centroiders.saturation.with_clipping`: its Bessel sums are scipy's);
    components with ``flux <= 0`` (or, with ``reject_border``, touching the window edge) are dropped;
 4. per window the component whose centroid is nearest to the predicted position ``(px_k, py_k)``
    (window coordinates) is returned, ties to the brighter.
@@ -37,6 +39,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from estimators.centroiders.saturation import with_clipping
 from estimators.centroiders.window_gyro import gyro_increment
 
 BG_STEP = 4  # background sums over every 4th row (all columns, contiguous): 1024 of a 64 x 64 window's pixels
@@ -56,13 +59,13 @@ def centroid_windows_kernel(image, integer, r0, c0, h, w, px, py, bg, noise, thr
     to ``+-clip_sigma``). ``iwork``, ``fwork`` and ``bwork`` are scratch buffers from
     :func:`workspace` (allocated once: zeroing fresh buffers costs more than the windows).
 
-    Returns ``found (n,) bool, vals (6, n) float64 [x, y, flux, peak, snr, sigma_px],
+    Returns ``found (n,) bool, vals (7, n) float64 [x, y, flux, peak, snr, sigma_px, n_saturated],
     npix (n,) int64, saturated (n,) bool, bgsum (n, 3) float64 [count, sum d, sum d^2]``
     (compiled; the tests call it with and without numba's JIT through the wrapper)."""
     n = r0.shape[0]
     m = h * w
     found = np.zeros(n, dtype=np.bool_)
-    vals = np.full((6, n), np.nan)
+    vals = np.full((7, n), np.nan)
     npix_out = np.zeros(n, dtype=np.int64)
     sat_out = np.zeros(n, dtype=np.bool_)
     bgsum = np.zeros((n, 3))
@@ -77,6 +80,7 @@ def centroid_windows_kernel(image, integer, r0, c0, h, w, px, py, bg, noise, thr
     n_above = iwork[6 * m:7 * m + 1]
     start = iwork[7 * m + 1:8 * m + 3]
     cnt = iwork[8 * m + 3:9 * m + 4]
+    nsat = iwork[9 * m + 4:10 * m + 5]  # per component: pixels at the saturation level
     above = bwork[:m]  # marks the pixels above threshold (reset after labelling)
     keep = bwork[m:2 * m + 1]
     border = bwork[2 * m + 1:3 * m + 2]
@@ -144,6 +148,7 @@ def centroid_windows_kernel(image, integer, r0, c0, h, w, px, py, bg, noise, thr
                 start[ncomp] = npx
                 n_above[ncomp] = 0
                 raw_max[ncomp] = -np.inf
+                nsat[ncomp] = 0
                 lab[p] = ncomp
                 top = 0
                 stack[0] = p
@@ -159,6 +164,8 @@ def centroid_windows_kernel(image, integer, r0, c0, h, w, px, py, bg, noise, thr
                     v = float(image[rk + qi, ck + qj])
                     if v > raw_max[ncomp]:
                         raw_max[ncomp] = v
+                    if v >= saturation:
+                        nsat[ncomp] += 1
                     for a in range(nn):
                         ii = qi + dr[a]
                         jj = qj + dc[a]
@@ -273,6 +280,7 @@ def centroid_windows_kernel(image, integer, r0, c0, h, w, px, py, bg, noise, thr
             vals[5, k] = s * np.sqrt(m2[c] / 2.0) / flux[c]
             npix_out[k] = cnt[c]
             sat_out[k] = raw_max[c] >= saturation
+            vals[6, k] = nsat[c]
         # background sums: without the ring pixels (below threshold, inside a grown spot)
         for e in range(nk, f1):
             q = pix[e]
@@ -360,7 +368,7 @@ def predict_windows(x, y, dtheta, cx, cy, f, height, width, h, w):  # pragma: no
 def workspace(m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Zeroed scratch buffers ``(iwork, fwork, bwork)`` of :func:`centroid_windows_kernel` for
     windows of ``m`` pixels."""
-    return np.zeros(9 * m + 4, dtype=np.int64), np.zeros(7 * m + 6), np.zeros(3 * m + 2, dtype=bool)
+    return np.zeros(10 * m + 5, dtype=np.int64), np.zeros(7 * m + 6), np.zeros(3 * m + 2, dtype=bool)
 
 
 def truncated_normal_std(c: float) -> float:
@@ -393,7 +401,8 @@ def centroid_windows_at(image: np.ndarray, r0: np.ndarray, c0: np.ndarray, h: in
         connectivity == 8, int(grow_px), float(saturation_adu), bool(reject_border),
         0.0 if gain_e_per_adu is None else float(gain_e_per_adu), 0.0, 0.0, clip, truncated_normal_std(clip),
         *workspace(int(h) * int(w)))
-    spots = WindowSpots(found, vals[0], vals[1], vals[2], vals[3], npix, sat, vals[4], vals[5])
+    sigma = with_clipping(vals[5], vals[2], vals[6], sat, float(saturation_adu) - np.asarray(bg, dtype=float))
+    spots = WindowSpots(found, vals[0], vals[1], vals[2], vals[3], npix, sat, vals[4], sigma)
     return spots, bgsum
 
 

@@ -11,6 +11,7 @@ from estimators.centroiders.base import Centroider
 from estimators.centroiders.cog import CogCentroider, CogParams
 from estimators.centroiders.window_cog import centroid_windows, cut_windows, median_rows, robust_sigma_rows
 from estimators.centroiders.window_gyro import FastGyroIntegrator
+from estimators.centroiders.saturation import with_clipping
 from estimators.centroiders.window_kernel import (any_coincident, centroid_windows_kernel, predict_step, track_windows,
                                                   truncated_normal_std, workspace)
 from estimators.data import FrameData, SensorContext, StarTable
@@ -206,7 +207,7 @@ class WindowedCentroider(Centroider):
                 self._bg, self._noise, *self._kernel_args, self._saturation_of(image), *self._kernel_args2)
             if status:
                 return self._full_frame(frame)  # a star lost, or two on one spot: re-acquire
-            return self._table(frame, *vals, npix, saturated, times)
+            return self._table(frame, *self._with_clipping(vals, saturated, image), npix, saturated, times)
         px, py, r0, c0, _, _ = self._predict_windows(frame.t0_ns)
         if not (np.isfinite(px.sum()) and np.isfinite(py.sum())):
             return self._full_frame(frame)
@@ -227,12 +228,20 @@ class WindowedCentroider(Centroider):
             found, vals, npix, saturated, _ = centroid_windows_kernel(
                 image, image.dtype.kind in "iu", r0, c0, self._wh, self._ww, px, py, self._bg, self._noise,
                 *self._kernel_args, self._saturation_of(image), *self._kernel_args2)
-            cols = (*vals, npix, saturated)
+            cols = (*self._with_clipping(vals, saturated, image), npix, saturated)
         if not found.all():
             return self._full_frame(frame)
         if found.size > 1 and any_coincident(cols[0], cols[1], 1e-6):
             return self._full_frame(frame)  # two guide stars took the same spot: re-acquire
         return self._table(frame, *cols)
+
+    def _with_clipping(self, vals: np.ndarray, saturated: np.ndarray, image: np.ndarray) -> tuple:
+        """The kernel's ``x, y, flux, peak, snr, sigma_px`` with a saturated spot's clipped-spot term
+        added to ``sigma_px`` (``vals[6]``: its pixels at the saturation level; as ``cog`` does)."""
+        if not saturated.any():  # the usual case: skip the rest (a tracking frame costs ~70 us)
+            return vals[0], vals[1], vals[2], vals[3], vals[4], vals[5]
+        sigma = with_clipping(vals[5], vals[2], vals[6], saturated, self._saturation_of(image) - self._bg)
+        return vals[0], vals[1], vals[2], vals[3], vals[4], sigma
 
     def _table(self, frame: FrameData, x, y, flux, peak, snr, sigma, npix, saturated, times=None) -> FrameData:
         """The guide stars' spots as the frame's stars (they become the tracks); ``times``: their

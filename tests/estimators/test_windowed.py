@@ -157,7 +157,8 @@ def test_window_cog_known_answer_and_windows_do_not_join():
 def test_compiled_kernel_equals_numpy_window_pass_on_many_windows():
     """centroid_windows_at (compiled, in place in the frame) equals centroid_windows (numpy, stacked
     windows) given the same per-window background and noise: every column, 40 random windows with
-    0-3 noisy spots each (edges, blends, hot pixels), 4- and 8-connectivity, grow 0-2 rings."""
+    0-3 noisy spots each (edges, blends, hot pixels, saturated spots: their sigma_px carries the
+    clipped-spot term), 4- and 8-connectivity, grow 0-2 rings."""
     from estimators.centroiders.window_cog import centroid_windows, cut_windows, median_rows, robust_sigma_rows
     from estimators.centroiders.window_kernel import centroid_windows_at
 
@@ -183,6 +184,7 @@ def test_compiled_kernel_equals_numpy_window_pass_on_many_windows():
             ref = centroid_windows(cut_windows(img, r0, c0, h, w), px - c0, py - r0, noise_floor_adu=0.3, **kw)
             got, bgsum = centroid_windows_at(img, r0, c0, h, w, px, py, bg, noise, **kw)
             assert 3 < ref.found.sum() < n  # found and empty windows both occur
+            assert 0 < (ref.found & ref.saturated).sum() < ref.found.sum()  # with and without the clipped-spot sigma
             np.testing.assert_array_equal(got.found, ref.found)
             np.testing.assert_allclose(got.x, ref.x + c0, rtol=1e-12, equal_nan=True)
             np.testing.assert_allclose(got.y, ref.y + r0, rtol=1e-12, equal_nan=True)
