@@ -85,3 +85,28 @@ def test_kf_kernel_step_matches_numpy_reference():
     kf_cv_step_kernel(X, P, z, dt, q, r, X, P)  # in place (aliased output) gives the same
     np.testing.assert_array_equal(X, Xk)
     np.testing.assert_array_equal(P, Pk)
+
+
+def test_flip_gammas_equal_each_variants_own_gamma():
+    """The four sequential-rotation gammas computed from variant 0 (adjugate diagonal) equal each
+    variant's own ``(lambda + sigma) alpha - Delta``, on random attitudes including ones near
+    180 degrees about each axis (where variant 0's gamma vanishes)."""
+    from estimators.attitude.wahba import _FLIPS, _flip_gammas, _quest_terms
+
+    rng = np.random.default_rng(8)
+    F, N = 400, 6
+    rots = Rotation.random(F, random_state=3)
+    rots = Rotation.from_rotvec(np.concatenate([rots.as_rotvec()[:100],
+                                                np.pi * np.eye(3)[rng.integers(0, 3, 300)] + rng.normal(0, 1e-3, (300, 3))]))
+    obs = rng.normal(size=(F, N, 3)) + [0.0, 0.0, 5.0]
+    obs /= np.linalg.norm(obs, axis=-1, keepdims=True)
+    ref = np.einsum("fij,fnj->fni", rots.as_matrix(), obs)
+    B0 = np.einsum("fni,fnj->fij", obs, ref) / N
+    lam = np.ones(F)  # noise-free: lambda_max = sum a_i = 1
+    S0, Z0, s0, d0, k0, _, _ = _quest_terms(B0)
+    g = _flip_gammas(S0, Z0, s0, d0, k0, lam)
+    for v in range(4):
+        _, _, sv, dv, kv, _, _ = _quest_terms(B0 * _FLIPS[v])
+        own = (lam + sv) * (lam**2 - sv**2 + kv) - dv
+        np.testing.assert_allclose(g[:, v], own, rtol=1e-9, atol=1e-12)
+    assert (np.argmax(np.abs(g), axis=1) != 0).sum() >= 250  # the near-180 frames pick another variant
