@@ -63,8 +63,9 @@ def truth_sample_times(t0_ns: int, period_ns: int, rate_hz: float) -> np.ndarray
 
 
 def simulate_to_log(cfg: ScenarioConfig, output: str | Path, frames: int | None = None, seed: int | None = None,
-                    show_progress: bool = True) -> SimulationSummary:
-    """Simulate ``frames`` frames of ``cfg`` into the MCAP file ``output``."""
+                    show_progress: bool = True, compression: str = "zstd") -> SimulationSummary:
+    """Simulate ``frames`` frames of ``cfg`` into the MCAP file ``output`` (chunks compressed with
+    ``compression``: zstd, lz4 or none; the content does not depend on it)."""
     if frames is not None or seed is not None:
         cfg = cfg.model_copy(update={k: v for k, v in (("frames", frames), ("seed", seed)) if v is not None})
     sim = build_simulator(cfg)
@@ -79,7 +80,8 @@ def simulate_to_log(cfg: ScenarioConfig, output: str | Path, frames: int | None 
         gyro = dataclasses.replace(gyro, omega_rad_s=sim.apply_gyro(gyro.t_ns, gyro.omega_rad_s))  # gyro effects
     star_counts = []
     with stop_on_sigint() as stop, \
-            LogWriter(output, kind="simulation", metadata={"scenario": {"yaml": to_yaml(cfg)}}) as writer, \
+            LogWriter(output, kind="simulation", metadata={"scenario": {"yaml": to_yaml(cfg)}},
+                      compression=compression) as writer, \
             progress_bar(f"simulate {cfg.name}", n_frames, show_progress) as advance:
         for frame in sim.frames(n_frames):
             if stop.requested:  # SIGINT: end at a frame boundary with a finalised log

@@ -47,7 +47,9 @@ def _run(task: Task) -> dict:
         warnings.simplefilter("ignore")  # per-frame warnings (e.g. dropped centroids) stay out of the bar
         rec, res = Path(tmp) / "rec.mcap", Path(tmp) / "out.mcap"
         try:
-            simulate_to_log(scenario, rec, frames=task.frames, seed=task.seed, show_progress=False)
+            # uncompressed: the recording is temporary and read once (run_pipeline below); zstd cost a
+            # 30-frame image-level task 22 % more CPU (simulate 1.5 vs 1.2 s, run 0.50 vs 0.37 s)
+            simulate_to_log(scenario, rec, frames=task.frames, seed=task.seed, show_progress=False, compression="none")
             build_stages(pipeline, task.pipeline)  # plugin modules imported before the clock starts
             cpu, wall = time.process_time(), time.perf_counter()
             summary = run_pipeline(rec, pipeline, res, pipeline_source=task.pipeline, show_progress=False)
