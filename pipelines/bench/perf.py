@@ -569,6 +569,13 @@ def _fmt_value(v: dict | None) -> str:
     return f"{val:.4g} {unit}"
 
 
+def _ratio_text(ln: dict) -> str:
+    """The ratio to 3 significant digits, 4 within 1 % of the target (so that 1.698x does not print
+    as a failing "1.7x" next to a 1.7x target)."""
+    near = ln["target"] is not None and abs(ln["ratio"] / ln["target"]["value"] - 1.0) < 0.01
+    return f"{ln['ratio']:.4g}x" if near else f"{ln['ratio']:.3g}x"
+
+
 def render_table(result: dict):
     """A rich table: measured, floor/peer, ratio, target, pass/fail, equality checks."""
     from rich.table import Table
@@ -582,7 +589,7 @@ def render_table(result: dict):
             table.add_row(ln["title"], "", "not available", "", "", "", "-", ln["note"])
             continue
         m, p = ln["measured"], ln["peer"]
-        ratio = "-" if ln["ratio"] is None else (f"{ln['ratio']:.3g}x" + (" speed-up" if ln["ratio_kind"] == "speedup" else " floor"))
+        ratio = "-" if ln["ratio"] is None else (_ratio_text(ln) + (" speed-up" if ln["ratio_kind"] == "speedup" else " floor"))
         tgt = "-" if ln["target"] is None else f"{ln['target']['op']} {ln['target']['value']:g}x"
         ok = {True: "[green]pass[/]", False: "[red]fail[/]", None: "-"}[ln["pass"]]
         checks = "; ".join(f"{c['name']} = {c['value']:.3g}{(' ' + c['unit']) if c['unit'] else ''} "
@@ -606,7 +613,7 @@ def format_markdown(result: dict) -> str:
         if ln["status"] != "measured":
             out.append(f"| {esc(ln['title'])} | | not available | | | | | {esc(ln['note'])} |")
             continue
-        ratio = f"{ln['ratio']:.3g}x" + (" faster" if ln["ratio_kind"] == "speedup" else "")
+        ratio = _ratio_text(ln) + (" faster" if ln["ratio_kind"] == "speedup" else "")
         tgt = "-" if ln["target"] is None else f"{ln['target']['op']} {ln['target']['value']:g}x"
         ok = {True: "pass", False: "**fail**", None: "-"}[ln["pass"]]
         checks = "; ".join(f"{c['name']} {c['value']:.3g}{(' ' + c['unit']) if c['unit'] else ''} "
