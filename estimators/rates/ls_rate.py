@@ -388,6 +388,19 @@ def _levenberg_marquardt(evaluate, p0: np.ndarray, max_nfev: int, step_tol: floa
             lam = max(10.0 * lam, 1e-6)
 
 
+def _checked_stars(x, y, dt_s) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``x, y, dt_s`` as float arrays; ``ValueError`` with the flag reason when the rate cannot be
+    estimated from them (fewer than 3 stars, or every star at one time)."""
+    x = np.asarray(x, dtype=float)
+    y = np.asarray(y, dtype=float)
+    dt_s = np.asarray(dt_s, dtype=float)
+    if x.shape[0] < 3:
+        raise ValueError(f"too_few_stars: {x.shape[0]} identified, the rate needs >= 3")
+    if not dt_s.max() > dt_s.min():
+        raise ValueError("rate_unobservable: every star refers to the same time (global shutter or already corrected)")
+    return x, y, dt_s
+
+
 def solve_rate(camera, x, y, dt_s, ref_icrs, sigma_px, estimate_z: bool = True, max_nfev: int = 50,
                x0: np.ndarray | None = None, max_condition: float = 1e12, step_tol: float = 1e-6) -> LsRateResult:
     """Least-squares rate (rad/s, camera frame) from ``n >= 3`` identified stars (eqs 1-3, GLS weighted).
@@ -398,14 +411,7 @@ def solve_rate(camera, x, y, dt_s, ref_icrs, sigma_px, estimate_z: bool = True, 
     estimate (:func:`_levenberg_marquardt`). Raises ``ValueError`` with a reason when the rate is not
     observable (all stars at one time, or a singular normal matrix).
     """
-    x = np.asarray(x, dtype=float)
-    y = np.asarray(y, dtype=float)
-    dt_s = np.asarray(dt_s, dtype=float)
-    n = x.shape[0]
-    if n < 3:
-        raise ValueError(f"too_few_stars: {n} identified, the rate needs >= 3")
-    if not dt_s.max() > dt_s.min():
-        raise ValueError("rate_unobservable: every star refers to the same time (global shutter or already corrected)")
+    x, y, dt_s = _checked_stars(x, y, dt_s)
     k = 3 if estimate_z else 2
     prob = _Problem(camera, x, y, dt_s, ref_icrs, sigma_px, k)
     full = np.zeros(3)
@@ -440,16 +446,9 @@ def solve_rate_least_squares(camera, x, y, dt_s, ref_icrs, sigma_px, estimate_z:
     """
     from scipy.optimize import least_squares
 
-    x = np.asarray(x, dtype=float)
-    y = np.asarray(y, dtype=float)
-    dt_s = np.asarray(dt_s, dtype=float)
-    n = x.shape[0]
-    if n < 3:
-        raise ValueError(f"too_few_stars: {n} identified, the rate needs >= 3")
-    if np.ptp(dt_s) <= 0.0:
-        raise ValueError("rate_unobservable: every star refers to the same time (global shutter or already corrected)")
+    x, y, dt_s = _checked_stars(x, y, dt_s)
     w = camera.unproject(x, y)
-    i, j = np.triu_indices(n, k=1)
+    i, j = np.triu_indices(x.shape[0], k=1)
     ref = np.asarray(ref_icrs, dtype=float)
     cat = _angles(ref[i], ref[j])[0]
     Wh = whitening(pixel_sensitivity(camera, w, i, j), sigma_px)
