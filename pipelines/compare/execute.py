@@ -13,7 +13,7 @@ adaptive mmap threshold, which cost a third more CPU per image-level task).
 The fixed costs are the cluster start (~1-3 s: a scheduler and, per worker, a nanny and a fresh
 interpreter) and each worker's first task importing the project (~0.5 s CPU); per task, dask adds
 only the task's (small, plain-data) arguments and result. Workers are started by ``spawn`` (dask's
-default): ``fork`` saved ~1.1 s on configs/compare/ci.yaml (8.7 -> 7.7 s, two runs each) because the
+default): ``fork`` saved 0.9-1.1 s on configs/compare/ci.yaml (benchmarks/compare_overheads.py --only start) because the
 children inherit the parent's imports, but forking a process that already runs threads (dask's
 event loop, the progress bar) can deadlock on a lock held at the fork; not worth 1 s.
 """

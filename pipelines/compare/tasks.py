@@ -47,8 +47,8 @@ def _run(task: Task) -> dict:
         warnings.simplefilter("ignore")  # per-frame warnings (e.g. dropped centroids) stay out of the bar
         rec, res = Path(tmp) / "rec.mcap", Path(tmp) / "out.mcap"
         try:
-            # uncompressed: the recording is temporary and read once (run_pipeline below); zstd cost a
-            # 30-frame image-level task 22 % more CPU (simulate 1.5 vs 1.2 s, run 0.50 vs 0.37 s)
+            # uncompressed: the recording is temporary and read once (run_pipeline below); zstd took 19-22 %
+            # of a 30-frame image-level task's CPU (benchmarks/compare_overheads.py --only compression)
             simulate_to_log(scenario, rec, frames=task.frames, seed=task.seed, show_progress=False, compression="none")
             build_stages(pipeline, task.pipeline)  # plugin modules imported before the clock starts
             cpu, wall = time.process_time(), time.perf_counter()
