@@ -1,4 +1,4 @@
-"""Two measurements behind choices in ``pipelines/compare`` (docs/performance.md, compare line):
+"""Three measurements behind choices in ``pipelines/compare`` (docs/performance.md, compare line):
 
 1. ``compression``: one compare task's work (simulate 30 frames of the he2021a image-level scenario
    into a temporary recording, run the baseline pipeline on it) with the recording zstd-compressed
@@ -6,8 +6,12 @@
 2. ``start``: ``rollingstar compare configs/compare/ci.yaml`` on a 2-worker dask cluster whose
    workers are started by ``spawn`` (used) vs ``fork`` (not used: forking a process that already
    runs threads can deadlock), wall time of the whole comparison.
+3. ``housekeeping``: the first 24 tasks of configs/compare/scaling.yaml on a 2-worker dask cluster
+   with dask's housekeeping timers at their defaults vs ``LOCAL_CLUSTER_CONFIG``
+   (pipelines/compare/execute.py): executor wall time, this process's CPU time while the tasks run
+   (scheduler, nannies, client) and, per worker, the wall time of its tasks not spent on their CPU.
 
-    .venv/bin/python benchmarks/compare_overheads.py [--repeats 2] [--only compression|start] [--json]
+    .venv/bin/python benchmarks/compare_overheads.py [--repeats 2] [--only compression|start|housekeeping] [--json]
 """
 from __future__ import annotations
 
@@ -70,10 +74,37 @@ def start(repeats: int) -> dict:
     return out
 
 
+def housekeeping(repeats: int) -> dict:
+    import pipelines.compare.execute as ex
+    from pipelines.compare.config import load_compare
+    from pipelines.compare.tasks import run_task
+
+    tasks = load_compare(ROOT / "configs" / "compare" / "scaling.yaml").tasks()[:24]
+    settings = {"defaults": {"distributed.nanny.pre-spawn-environ": ex.WORKER_ENVIRON},
+                "LOCAL_CLUSTER_CONFIG": ex.LOCAL_CLUSTER_CONFIG}
+    tuned = ex.LOCAL_CLUSTER_CONFIG
+    out: dict = {name: [] for name in settings}
+    try:
+        for _ in range(repeats):
+            for name, config in settings.items():
+                ex.LOCAL_CLUSTER_CONFIG = config
+                cpu, wall = time.process_time(), time.perf_counter()
+                results = ex.run_dask(run_task, tasks, lambda n: None, workers=2)
+                cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
+                idle: dict[int, float] = {}
+                for r in results:
+                    idle[r["task"]["process"]] = idle.get(r["task"]["process"], 0.0) + r["task"]["wall_s"] - r["task"]["cpu_s"]
+                out[name].append({"wall_s": wall, "main_process_cpu_s": cpu,
+                                  "worker_task_wall_minus_cpu_s": sorted(idle.values())})
+    finally:
+        ex.LOCAL_CLUSTER_CONFIG = tuned
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=2)
-    ap.add_argument("--only", choices=["compression", "start"])
+    ap.add_argument("--only", choices=["compression", "start", "housekeeping"])
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     result = {}
@@ -81,6 +112,8 @@ def main() -> None:
         result["compression"] = compression(args.repeats)
     if args.only in (None, "start"):
         result["start"] = start(args.repeats)
+    if args.only in (None, "housekeeping"):
+        result["housekeeping"] = housekeeping(args.repeats)
     if args.json:
         print(json.dumps(result, indent=1))
         return
@@ -94,6 +127,11 @@ def main() -> None:
         s = result["start"]
         print(f"compare ci.yaml on dask-2: spawn {', '.join(f'{v:.2f}' for v in s['spawn'])} s, "
               f"fork {', '.join(f'{v:.2f}' for v in s['fork'])} s; fork saves {s['fork_saves_s']:.2f} s (best of each)")
+    for name, runs in result.get("housekeeping", {}).items():
+        for r in runs:
+            print(f"24 scaling tasks on dask-2, housekeeping {name:20s}: wall {r['wall_s']:.2f} s, this process "
+                  f"{r['main_process_cpu_s']:.2f} CPU s, workers' task wall - task CPU "
+                  f"{', '.join(f'{v:.2f}' for v in r['worker_task_wall_minus_cpu_s'])} s")
 
 
 if __name__ == "__main__":

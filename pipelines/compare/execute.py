@@ -6,9 +6,8 @@ existing cluster at ``scheduler`` (``tcp://host:8786``; its workers need rolling
 
 Local cluster choices (measured with ``rollingstar compare configs/compare/rate_sweep.yaml``, see
 docs/comparison.md "Scaling"): processes, not threads (the tasks are many small numpy calls: the
-GIL would serialise threads); one thread per worker; the workers' statistical profiler off (it
-samples every worker's stack every 10 ms; nobody reads it without the dashboard, which is off);
-glibc's default memory trimming (``WORKER_ENVIRON``: dask's default environment disabled glibc's
+GIL would serialise threads); one thread per worker; the housekeeping timers slowed
+(``LOCAL_CLUSTER_CONFIG``); glibc's default memory trimming (``WORKER_ENVIRON``: dask's default environment disabled glibc's
 adaptive mmap threshold, which cost a third more CPU per image-level task).
 The fixed costs are the cluster start (~1-3 s: a scheduler and, per worker, a nanny and a fresh
 interpreter) and each worker's first task importing the project (~0.5 s CPU); per task, dask adds
@@ -30,6 +29,25 @@ from pipelines.errors import UserError
 # +33% CPU per task, most of it system time, on configs/compare/he2021a_sweep.yaml. The tasks free
 # what they allocate, so nothing is gained by trimming; the one-thread BLAS settings stay.
 WORKER_ENVIRON = {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1}
+
+# dask's housekeeping timers, which run in every process of a local cluster (the scheduler and the
+# two nannies share this process's event loop; each worker has its own) on the same cores as the
+# tasks. On 24 image-level tasks (benchmarks/compare_overheads.py --only housekeeping), with the
+# defaults each worker's tasks lost 1.3-1.7 s of wall time to other threads (task wall - task CPU)
+# and this process used 1.0-1.1 CPU s; with these, 0.2-0.5 s and 0.3 s, and the executor's wall
+# time fell from 22.0-22.6 s to 20.0 s. None of them changes what runs or where.
+LOCAL_CLUSTER_CONFIG = {
+    # the statistical profiler samples every worker's stack every 10 ms for the dashboard (off here)
+    "distributed.worker.profile.enabled": False,
+    # the event-loop health check wakes every loop every 20 ms only to warn when one was blocked > 3 s
+    "distributed.admin.tick.interval": "1s",
+    # CPU / memory / network time series for the dashboard, every 500 ms by default
+    "distributed.admin.system-monitor.interval": "2s",
+    # RSS polled every 100 ms by each worker and nanny; spill / pause / terminate still act, <= 1 s later
+    "distributed.worker.memory.monitor-interval": "1s",
+    # the nannies hand this environment to their worker processes
+    "distributed.nanny.pre-spawn-environ": WORKER_ENVIRON,
+}
 
 
 def run_serial(fn: Callable, tasks: Sequence, advance: Callable[[int], None]) -> list:
@@ -56,8 +74,7 @@ def run_dask(fn: Callable, tasks: Sequence, advance: Callable[[int], None], work
                 raise UserError(f"--scheduler {scheduler}: cannot connect to a dask scheduler: {exc}") from None
         else:
             # the nannies hand the config to their worker processes
-            with dask.config.set({"distributed.worker.profile.enabled": False,
-                                  "distributed.nanny.pre-spawn-environ": WORKER_ENVIRON}):
+            with dask.config.set(LOCAL_CLUSTER_CONFIG):
                 cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                        dashboard_address=None, silence_logs=40)
             client = Client(cluster)

@@ -82,3 +82,32 @@ def test_markdown_has_one_row_per_line(quick_result):
     assert len(rows) == len(quick_result["lines"])
     for row, ln in zip(rows, quick_result["lines"]):
         assert row.startswith(f"| {ln['title']} |") and row.replace("\\|", "").count("|") == 9
+
+
+def test_compare_line_takes_the_faster_of_interleaved_runs(monkeypatch):
+    """The compare line runs serial and dask alternately, quotes the faster run of each, and checks
+    every run's results against the first serial one (a stand-in ``run_compare`` whose wall times
+    are scripted: no dask cluster, no timing assertion)."""
+    import pipelines.bench.perf as perf
+    import pipelines.compare as compare_pkg
+
+    clock = iter([0.0, 10.0, 10.0, 16.0, 16.0, 25.0, 25.0, 30.0])  # serial 10, dask 6, serial 9, dask 5
+    calls = []
+
+    def fake_run_compare(config, output, executor, workers, show_progress):
+        calls.append(executor)
+        metric = 1.0 + (1e-3 if executor == "dask" and len(calls) == 4 else 0.0)  # last dask run differs
+        results = {"run": {"executor": executor, "tasks": 3, "wall_time_s": 1.0,
+                           "profile": {"task_cpu_s": 2.0, "busiest_process_cpu_s": 1.0, "cpu_bound_speedup": 2.0}},
+                   "comparison": {"name": "fake"}, "results": [{"metrics": {"x": metric}, "timing": {"cpu_s": 1.0}}]}
+        return type("Outcome", (), {"results": results})()
+
+    monkeypatch.setattr(compare_pkg, "run_compare", fake_run_compare)
+    monkeypatch.setattr(perf.time, "perf_counter", lambda: next(clock))
+    line = perf.bench_compare(quick=False)
+    assert calls == ["serial", "dask", "serial", "dask"]
+    assert line["measured"]["value"] == 5.0 and line["peer"]["value"] == 9.0
+    assert line["ratio"] == pytest.approx(9.0 / 5.0) and line["pass"] is True
+    assert line["runs_s"] == {"serial": [10.0, 9.0], "dask": [6.0, 5.0]}
+    rel = next(c for c in line["checks"] if "relative" in c["name"])
+    assert rel["value"] == pytest.approx(1e-3 / 1.001) and rel["ok"] is False  # relative to the larger
