@@ -356,8 +356,8 @@ def compare(config: Path = typer.Argument(..., help="comparison YAML (configs/co
     command = "rollingstar " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["compare"] else ""
     res = run_compare(config, output, executor, workers, scheduler, baseline, show_progress=not quiet, command=command)
     run = res.results["run"]
-    out.print(f"wrote {res.output}/results.json, results.md, report.html: {run['tasks']} tasks, "
-              f"{run['executor']}, {run['wall_time_s']:.1f} s wall", highlight=False)
+    out.print(f"wrote {res.output}/results.json, results.md, report.html: {run['tasks']} simulations, "
+              f"{run['pipeline_runs']} pipeline runs, {run['executor']}, {run['wall_time_s']:.1f} s wall", highlight=False)
     if baseline is not None:
         if res.regressions:
             err.print(f"[bold red]{len(res.regressions)} metric(s) worse than {baseline}:[/]", highlight=False)

@@ -1,7 +1,7 @@
 """``rollingstar compare``: scenarios x pipelines x seeds, run serially or on dask, aggregated and gated.
 
 One module per job: :mod:`.config` (the comparison config and its expansion into tasks),
-:mod:`.tasks` (one task: simulate -> run -> evaluate), :mod:`.execute` (serial / dask executors),
+:mod:`.tasks` (one task: simulate once -> run and evaluate each pipeline), :mod:`.execute` (serial / dask executors),
 :mod:`.aggregate` (results.json), :mod:`.report` (results.md, report.html, PNGs),
 :mod:`.regression` (the baseline gate), :mod:`.run` (the command's orchestration).
 """

@@ -7,7 +7,10 @@ Layout::
                   "metrics": {"attitude_error_arcsec.x_rmse": {"mean", "std", "min", "max", "n"}, ...},
                   "per_seed": [{"seed", "metrics": {...flat...}} | {"seed", "error"}],
                   "timing": {"cpu_s_per_frame": {...}, "wall_s_per_frame": {...}, "stage_s_per_frame": {...}}}],
-     "run": {"executor", "workers", "wall_time_s", "tasks"}}
+     "run": {"executor", "workers", "wall_time_s", "tasks", "pipeline_runs", "profile", ...}}
+
+A task is one (variant, seed) simulation with every pipeline run on it; ``aggregate`` takes the
+pipeline runs (rows of :func:`pipelines.compare.tasks.run_task`) in any order.
 
 Metrics are the flattened (dotted) numbers of ``evaluate_log`` (efficiency = RMSE / Cramér-Rao bound
 included); ``std`` is the sample standard deviation over seeds (0 with one seed). Everything but
@@ -42,9 +45,9 @@ def spread(values: list[float | None]) -> dict:
             "min": float(v.min()), "max": float(v.max()), "n": int(v.size)}
 
 
-def aggregate(comp: Comparison, task_results: list[dict], run_info: dict) -> dict:
+def aggregate(comp: Comparison, pipeline_runs: list[dict], run_info: dict) -> dict:
     by_key: dict[tuple[str, str], list[dict]] = {}
-    for r in task_results:
+    for r in pipeline_runs:
         by_key.setdefault((r["variant"], r["pipeline"]), []).append(r)
     rows = []
     for v in comp.variants:

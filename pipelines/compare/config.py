@@ -95,15 +95,16 @@ class Variant:
 
 @dataclass(frozen=True)
 class Task:
-    """One unit of work: (scenario variant, pipeline, seed); plain data so it pickles to any worker."""
+    """One unit of work: one scenario variant simulated once with one seed, then every pipeline chosen
+    for the variant run on that recording (the recording depends on the variant and the seed only).
+    Plain data, so it pickles to any worker."""
 
     index: int
     variant: str
-    pipeline: str
     seed: int
     frames: int
     scenario_yaml: str
-    pipeline_yaml: str
+    pipelines: tuple[tuple[str, str], ...]  # (name, pipeline YAML) in the config's order
 
 
 @dataclass(frozen=True)
@@ -115,13 +116,13 @@ class Comparison:
     pipeline_paths: dict[str, str]
 
     def tasks(self) -> list[Task]:
-        """Every (variant, pipeline, seed) in config order (the order of results.json)."""
+        """One task per (variant, seed), in config order; each runs the variant's pipelines."""
         out = []
         for v in self.variants:
-            frames = v.config.frames
-            for p in v.pipelines:
-                for seed in self.config.seed_list():
-                    out.append(Task(len(out), v.label, p, seed, frames, to_yaml(v.config), to_yaml(self.pipelines[p])))
+            scenario_yaml = to_yaml(v.config)
+            pipelines = tuple((p, to_yaml(self.pipelines[p])) for p in v.pipelines)
+            for seed in self.config.seed_list():
+                out.append(Task(len(out), v.label, seed, v.config.frames, scenario_yaml, pipelines))
         return out
 
 

@@ -44,11 +44,12 @@ def run_compare(config: str | Path, output: str | Path, executor: str | None = N
     with progress_bar(f"compare {comp.config.name} ({executor})", len(tasks), show_progress) as advance:
         task_results = execute(run_task, tasks, advance, executor, workers, scheduler)
     wall = time.perf_counter() - start
+    rows = [row for result in task_results for row in result["rows"]]
     run_info = {"executor": executor, "workers": workers if not scheduler else None, "scheduler": scheduler,
-                "tasks": len(tasks), "wall_time_s": wall,
+                "tasks": len(tasks), "pipeline_runs": len(rows), "wall_time_s": wall,
                 "load_average_1min": {"before": load_before, "after": os.getloadavg()[0]},
                 "profile": executor_profile(task_results, wall)}
-    results = aggregate(comp, task_results, run_info)
+    results = aggregate(comp, rows, run_info)
     command = command or f"rollingstar compare {config} -o {output}"
     (out / "results.json").write_text(json.dumps(results, indent=1) + "\n")
     images = figures(results, out / "img")

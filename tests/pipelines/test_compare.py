@@ -71,10 +71,12 @@ def test_expansion_product_of_sweeps_and_subsets(tmp_path):
     assert v.params == {"noise.centroid_sigma_px": 0.03, "motion.rate_deg_s": [1.0, 0.0, 2.0]}
     assert v.config.noise.centroid_sigma_px == 0.03 and v.config.motion.rate_deg_s == (1.0, 0.0, 2.0)
     assert v.config.frames == 3 and v.config.sensor.focal_length_mm == 42.0  # the rest is the file's
-    tasks = comp.tasks()
-    assert len(tasks) == (4 * 2 + 1) * 2 and [t.index for t in tasks] == list(range(len(tasks)))
-    assert {(t.variant, t.pipeline) for t in tasks if t.variant.startswith("he2021b")} == {("he2021b", "ls")}
-    assert sorted({t.seed for t in tasks}) == [3, 4]
+    tasks = comp.tasks()  # one per (variant, seed); each runs the variant's pipelines on one simulation
+    assert len(tasks) == (4 + 1) * 2 and [t.index for t in tasks] == list(range(len(tasks)))
+    assert {tuple(name for name, _ in t.pipelines) for t in tasks if t.variant.startswith("he2021b")} == {("ls",)}
+    assert {tuple(name for name, _ in t.pipelines) for t in tasks if t.variant.startswith("fu2022")} == {("baseline", "ls")}
+    assert [(t.variant, t.seed) for t in tasks][:2] == [(labels[0], 3), (labels[0], 4)]
+    assert sum(len(t.pipelines) for t in tasks) == (4 * 2 + 1) * 2
 
 
 @pytest.mark.parametrize("edit, needles", [
@@ -189,3 +191,27 @@ def test_executor_profile_known_answer():
     prof = executor_profile(tasks + [{"error": "stage failed"}], wall_s=13.0)
     assert prof["task_cpu_s"] == 6.5 and prof["processes"] == 2 and prof["busiest_process_cpu_s"] == 4.0
     assert prof["cpu_bound_speedup"] == 6.5 / 4.0 and prof["wall_over_task_cpu"] == 2.0
+
+
+def test_task_simulates_once_and_keeps_each_pipelines_failure_to_its_row():
+    """A task runs every pipeline of its variant on one simulation: a pipeline that fails gets an
+    ``error`` in its own row while the others are evaluated; a scenario that cannot be simulated
+    gives every row the simulation's error."""
+    from pipelines.compare.config import Task
+    from pipelines.compare.tasks import run_task
+    from pipelines.config import to_yaml
+
+    scenario = to_yaml(load_scenario(CONFIGS / "scenarios" / "fu2022.yaml"))
+    good = to_yaml(load_pipeline(CONFIGS / "pipelines" / "baseline.yaml"))
+    broken = "name: broken\nstages:\n  - {kind: no_such_stage}\n"
+    out = run_task(Task(7, "fu2022", 3, 3, scenario, (("baseline", good), ("broken", broken), ("again", good))))
+    assert (out["index"], out["variant"], out["seed"]) == (7, "fu2022", 3)
+    rows = out["rows"]
+    assert [r["pipeline"] for r in rows] == ["baseline", "broken", "again"] and {r["seed"] for r in rows} == {3}
+    assert "error" not in rows[0] and "no_such_stage" in rows[1]["error"] and "metrics" not in rows[1]
+    assert rows[0]["metrics"] == rows[2]["metrics"]  # same recording, same deterministic pipeline
+    assert out["task"]["cpu_s"] > 0
+
+    unsimulatable = scenario.replace("width_px: ", "width_px: -")
+    rows = run_task(Task(0, "bad", 3, 3, unsimulatable, (("baseline", good), ("again", good))))["rows"]
+    assert all(r["error"].startswith("simulate: ") and "width_px" in r["error"] for r in rows)
