@@ -6,7 +6,7 @@
 2. ``start``: ``rollingstar compare configs/compare/ci.yaml`` on a 2-worker dask cluster whose
    workers are started by ``spawn`` (used) vs ``fork`` (not used: forking a process that already
    runs threads can deadlock), wall time of the whole comparison.
-3. ``housekeeping``: the first 24 tasks of configs/compare/scaling.yaml on a 2-worker dask cluster
+3. ``housekeeping``: the first 16 tasks of configs/compare/scaling.yaml on a 2-worker dask cluster
    with dask's housekeeping timers at their defaults vs ``LOCAL_CLUSTER_CONFIG``
    (pipelines/compare/execute.py): executor wall time, this process's CPU time while the tasks run
    (scheduler, nannies, client) and, per worker, the wall time of its tasks not spent on their CPU.
@@ -79,7 +79,7 @@ def housekeeping(repeats: int) -> dict:
     from pipelines.compare.config import load_compare
     from pipelines.compare.tasks import run_task
 
-    tasks = load_compare(ROOT / "configs" / "compare" / "scaling.yaml").tasks()[:24]
+    tasks = load_compare(ROOT / "configs" / "compare" / "scaling.yaml").tasks()[:16]
     settings = {"defaults": {"distributed.nanny.pre-spawn-environ": ex.WORKER_ENVIRON},
                 "LOCAL_CLUSTER_CONFIG": ex.LOCAL_CLUSTER_CONFIG}
     tuned = ex.LOCAL_CLUSTER_CONFIG
@@ -129,7 +129,7 @@ def main() -> None:
               f"fork {', '.join(f'{v:.2f}' for v in s['fork'])} s; fork saves {s['fork_saves_s']:.2f} s (best of each)")
     for name, runs in result.get("housekeeping", {}).items():
         for r in runs:
-            print(f"24 scaling tasks on dask-2, housekeeping {name:20s}: wall {r['wall_s']:.2f} s, this process "
+            print(f"16 scaling tasks on dask-2, housekeeping {name:20s}: wall {r['wall_s']:.2f} s, this process "
                   f"{r['main_process_cpu_s']:.2f} CPU s, workers' task wall - task CPU "
                   f"{', '.join(f'{v:.2f}' for v in r['worker_task_wall_minus_cpu_s'])} s")
 

@@ -12,7 +12,7 @@ adaptive mmap threshold, which cost a third more CPU per image-level task).
 The fixed costs are the cluster start (~1-3 s: a scheduler and, per worker, a nanny and a fresh
 interpreter) and each worker's first task importing the project (~0.5 s CPU); per task, dask adds
 only the task's (small, plain-data) arguments and result. Workers are started by ``spawn`` (dask's
-default): ``fork`` saved 0.9-1.1 s on configs/compare/ci.yaml (benchmarks/compare_overheads.py --only start) because the
+default): ``fork`` saved 0.8-1.1 s on configs/compare/ci.yaml (benchmarks/compare_overheads.py --only start) because the
 children inherit the parent's imports, but forking a process that already runs threads (dask's
 event loop, the progress bar) can deadlock on a lock held at the fork; not worth 1 s.
 """
@@ -32,10 +32,10 @@ WORKER_ENVIRON = {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THRE
 
 # dask's housekeeping timers, which run in every process of a local cluster (the scheduler and the
 # two nannies share this process's event loop; each worker has its own) on the same cores as the
-# tasks. On 24 image-level tasks (benchmarks/compare_overheads.py --only housekeeping), with the
-# defaults each worker's tasks lost 1.3-1.7 s of wall time to other threads (task wall - task CPU)
-# and this process used 1.0-1.1 CPU s; with these, 0.2-0.5 s and 0.3 s, and the executor's wall
-# time fell from 22.0-22.6 s to 20.0 s. None of them changes what runs or where.
+# tasks. On 16 image-level tasks (benchmarks/compare_overheads.py --only housekeeping), with the
+# defaults each worker's tasks lost 1.0-1.6 s of wall time to other threads (task wall - task CPU)
+# and this process used 0.8-1.0 CPU s; with these, 0.2-0.4 s and 0.25 s, and the executor's wall
+# time fell from 21.7-23.2 s to 20.1-20.7 s. None of them changes what runs or where.
 LOCAL_CLUSTER_CONFIG = {
     # the statistical profiler samples every worker's stack every 10 ms for the dashboard (off here)
     "distributed.worker.profile.enabled": False,
