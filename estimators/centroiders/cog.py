@@ -10,6 +10,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from estimators.centroiders.base import Centroider
+from estimators.centroiders.edge import with_edge_bias
 from estimators.centroiders.saturation import with_clipping
 from estimators.centroiders.window_cog import _grow as grow_stack
 from estimators.data import FrameData, StarTable
@@ -37,6 +38,8 @@ class CogParams(BaseModel):
         default=None, gt=0, description="Conversion gain for the shot-noise term of snr; None: background noise only.")
     connectivity: Literal[4, 8] = Field(default=8, description="Pixel connectivity of a spot.")
     reject_border: bool = Field(default=False, description="Drop spots with a pixel on the detector's outermost rows/columns.")
+    edge_sigma: bool = Field(default=True, description="Add to sigma_px the CoG bias of spots cut by the detector edge "
+                             "and flag the frame edge_truncated_stars:N (estimators/centroiders/edge.py).")
     grow_px: int = Field(default=1, ge=0, description="Grow each spot by this many pixel rings (below threshold) before the CoG.")
     noise_floor_adu: float = Field(default=float(1.0 / np.sqrt(12.0)), gt=0,
                                    description="Smallest noise sigma used (ADU): the quantisation noise of integer pixels.")
@@ -74,7 +77,10 @@ class CogCentroider(Centroider):
        saturated spot's clipped, noise-free flat top carries no sub-pixel information: its
        ``sigma_px`` adds in quadrature the RMS sampling error of a clipped spot's CoG,
        :func:`estimators.centroiders.saturation.clipped_cog_sigma_px` (from its flux, its number of
-       pixels at the saturation level and the saturation level above background).
+       pixels at the saturation level and the saturation level above background). A spot with a
+       pixel on the detector's outermost rows or columns whose profile is cut by the edge adds in
+       quadrature the CoG bias of the cut, :func:`estimators.centroiders.edge.edge_bias_px`, and
+       the frame is flagged ``edge_truncated_stars:N`` (``reject_border`` drops such spots instead).
     5. Times: ``row_time_ns = timing.row_start_ns(t0, y)`` and ``t_ns = timing.row_mid_exposure_ns(t0, y)``
        (the time a static-PSF centroid refers to).
 
@@ -231,11 +237,11 @@ class CogCentroider(Centroider):
         peak = _label_max(d, lab_on, size)
 
         keep &= flux > 0
+        border = np.zeros(size, dtype=bool)  # spots with a pixel on the outermost rows / columns
+        border[lab_on[(rows == 0) | (rows == H - 1) | (cols == 0) | (cols == W - 1)]] = True
+        border = border[1:]
         if p.reject_border:
-            border = np.zeros(size, dtype=bool)
-            on_edge = (rows == 0) | (rows == H - 1) | (cols == 0) | (cols == W - 1)
-            border[lab_on[on_edge]] = True
-            keep &= ~border[1:]
+            keep &= ~border
 
         with np.errstate(invalid="ignore", divide="ignore"):
             x = sx / flux
@@ -249,6 +255,9 @@ class CogCentroider(Centroider):
                 n_sat = np.bincount(lab_on, weights=raw_flat[flat] >= sat_level, minlength=size)[1:]
                 s_d = sat_level - np.bincount(lab_on, weights=bg_on, minlength=size)[1:] / npix
                 sigma_px = with_clipping(sigma_px, flux, n_sat, saturated, s_d)
+            edge = p.edge_sigma and border.any()
+            if edge:  # spots cut by the detector edge: add the CoG bias of the cut (edge.py)
+                sigma_px, edge_cut = with_edge_bias(sigma_px, x, y, flux, peak, self._shape, only=border)
             var = npix * noise**2
             if p.gain_e_per_adu is not None:
                 var = var + np.maximum(flux, 0.0) / p.gain_e_per_adu
@@ -266,7 +275,9 @@ class CogCentroider(Centroider):
             saturated=saturated[order],
             snr=snr[order], sigma_px=sigma_px[order],
         )
-        return frame.evolve(stars=stars)
+        out = frame.evolve(stars=stars)
+        n_cut = int(edge_cut[order].sum()) if edge else 0
+        return out.flagged(f"edge_truncated_stars:{n_cut}") if n_cut else out
 
 
 def _robust_sigma(resid: np.ndarray) -> float:

@@ -11,6 +11,7 @@ from estimators.centroiders.base import Centroider
 from estimators.centroiders.cog import CogCentroider, CogParams
 from estimators.centroiders.window_cog import centroid_windows, cut_windows, median_rows, robust_sigma_rows
 from estimators.centroiders.window_gyro import FastGyroIntegrator
+from estimators.centroiders.edge import any_near_edge, with_edge_bias
 from estimators.centroiders.saturation import with_clipping
 from estimators.centroiders.window_kernel import (any_coincident, centroid_windows_kernel, predict_step, track_windows,
                                                   truncated_normal_std, workspace)
@@ -119,7 +120,9 @@ class WindowedCentroider(Centroider):
             raise ValueError("windowed: cog.max_sharpness is not implemented for batched windows; set batch=False")
         bit_depth = getattr(context, "bit_depth", None)
         wcam = replace(cam, width=self._ww, height=self._wh, cx=None, cy=None)
-        self._win = CogCentroider(**p.cog.model_dump())  # the per-window reference (batch=False)
+        # the per-window reference (batch=False); a window's border is not the detector's edge, which
+        # is handled in full-frame coordinates (_edge_cut) as on the batched paths
+        self._win = CogCentroider(**(p.cog.model_dump() | {"edge_sigma": False}))
         self._win.setup(SensorContext(camera=wcam, timing=context.timing, catalog=None, bit_depth=bit_depth))
         self._saturation = (float(p.cog.saturation_adu) if p.cog.saturation_adu is not None
                             else float(2 ** int(bit_depth) - 1) if bit_depth else None)  # None: the image dtype's max
@@ -180,7 +183,7 @@ class WindowedCentroider(Centroider):
         self._tracks = stars if stars.n else None
         self._bg = self._noise = None
         self.last_mode = "full"
-        return frame.evolve(stars=stars)
+        return out.evolve(stars=stars)  # with cog's flags (edge_truncated_stars:N counts its detections)
 
     def process(self, frame: FrameData) -> FrameData:
         self._gyro.add(frame.gyro)
@@ -249,6 +252,7 @@ class WindowedCentroider(Centroider):
         if times is None:
             timing = self.context.timing
             times = timing.row_mid_exposure_ns(frame.t0_ns, y), timing.row_start_ns(frame.t0_ns, y)
+        sigma, cut = self._edge_cut(x, y, flux, peak, sigma)
         n = x.size
         unknown = np.full(5 * n, np.nan)  # vx, vy, ref_icrs: one allocation, contiguous views
         # the table directly (StarTable.build's checks and broadcasts cost more than the kernel here)
@@ -257,7 +261,22 @@ class WindowedCentroider(Centroider):
                           catalog_id=np.full(n, -1, dtype=np.int64), ref_icrs=unknown[2 * n:].reshape(n, 3))
         self._tracks = stars
         self.last_mode = "window"
-        return frame.evolve(stars=stars)
+        return self._edge_flag(frame.evolve(stars=stars), cut)
+
+    def _edge_cut(self, x, y, flux, peak, sigma) -> tuple[np.ndarray, np.ndarray | None]:
+        """``sigma`` with the CoG bias of stars cut by the detector edge added (edge.py, as ``cog``
+        does on full frames) and the mask of those stars (None: none near the edge, the usual
+        case, decided by one compiled call). A window does not say which spots reach the outermost
+        rows/columns, so the model alone decides (an upper estimate for a spot that stops short)."""
+        H, W = self._full._shape
+        if not self.params.cog.edge_sigma or not any_near_edge(x, y, flux, peak, W, H):
+            return sigma, None
+        return with_edge_bias(sigma, x, y, flux, peak, (H, W))
+
+    @staticmethod
+    def _edge_flag(frame: FrameData, cut: np.ndarray | None) -> FrameData:
+        n = 0 if cut is None else int(cut.sum())
+        return frame.flagged(f"edge_truncated_stars:{n}") if n else frame
 
     def _window_background(self, image: np.ndarray, r0: np.ndarray, c0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each window's median and robust sigma (floored): the ``cog`` definition per window."""
@@ -270,9 +289,12 @@ class WindowedCentroider(Centroider):
     def _accept(self, frame: FrameData, stars: StarTable) -> FrameData:
         if stars.n > 1 and any_coincident(stars.x, stars.y, 1e-6):
             return self._full_frame(frame)  # two guide stars took the same spot: re-acquire
+        sigma, cut = self._edge_cut(stars.x, stars.y, stars.flux, stars.peak, stars.sigma_px)
+        if cut is not None:
+            stars = stars.with_columns(sigma_px=sigma)
         self._tracks = stars
         self.last_mode = "window"
-        return frame.evolve(stars=stars)
+        return self._edge_flag(frame.evolve(stars=stars), cut)
 
     def _windows_loop(self, frame, image, px, py, r0, c0) -> FrameData:
         """The original per-window path: one ``cog`` call per window (reference for ``batch``)."""
