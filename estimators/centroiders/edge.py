@@ -18,7 +18,7 @@ width comes from the spot itself: a pixel-sampled Gaussian spot of flux ``F`` ha
 about ``F / (2 pi s^2)`` (its centre pixel: 8 % less for ``s`` = 1 px, so ``s`` comes out a little
 large, which enlarges the bias: the safe side), and a cut spot has ``F`` times ``T_x T_y`` of the
 whole, so ``s^2 = F / (2 pi peak T_x T_y)``; ``s`` and ``mu`` are solved together by fixed-point
-iteration (``_ITERATIONS``; each step is a few vectorised array operations over the edge spots).
+iteration (``_ITERATIONS``, compiled, spot by spot).
 
 Reported: ``sigma_px`` with ``max(|bias_x|, |bias_y|)`` added in quadrature (``sigma_px`` is one
 isotropic per-axis sigma; the larger axis keeps the cut axis from being under-reported). The
@@ -29,15 +29,15 @@ Spots with more than ``1 - ON_DETECTOR`` of their profile on the detector are re
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
-from scipy.special import ndtr
 
 ON_DETECTOR = 0.999  # spots with T_x T_y above this are not cut (their sigma_px is returned as is)
 _ITERATIONS = 20
-_INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
-
-
+_INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
+_INV_SQRT_2 = 1.0 / math.sqrt(2.0)
 _MARGIN_SIGMAS = 3.3  # Phi(-3.3) = 5e-4 per side: an uncut spot this far inside has T_x T_y > 0.998
 
 
@@ -50,57 +50,55 @@ def any_near_edge(x, y, flux, peak, width, height) -> bool:
     for i in range(x.size):
         if not (flux[i] > 0.0 and peak[i] > 0.0):
             continue
-        m = _MARGIN_SIGMAS * np.sqrt(flux[i] / (2.0 * np.pi * peak[i]))
+        m = _MARGIN_SIGMAS * math.sqrt(flux[i] / (2.0 * math.pi * peak[i]))
         if x[i] < m or y[i] < m or x[i] > width - 1 - m or y[i] > height - 1 - m:
             return True
     return False
 
 
-def _truncated_shift(mu: np.ndarray, s: np.ndarray, n: float) -> tuple[np.ndarray, np.ndarray]:
+@njit(cache=True, nogil=True)
+def _truncated_shift(mu: float, s: float, n: float) -> tuple[float, float]:
     """(``m(mu) - mu``, ``T``) of a Gaussian of sigma ``s`` at ``mu`` cut to ``[-0.5, n - 0.5]``."""
     a = (-0.5 - mu) / s
     b = (n - 0.5 - mu) / s
-    T = np.maximum(ndtr(b) - ndtr(a), 1e-300)
-    shift = s * _INV_SQRT_2PI * (np.exp(-0.5 * a * a) - np.exp(-0.5 * b * b)) / T
-    return shift, T
+    T = max(0.5 * (math.erfc(-b * _INV_SQRT_2) - math.erfc(-a * _INV_SQRT_2)), 1e-300)  # Phi(b) - Phi(a)
+    return s * _INV_SQRT_2PI * (math.exp(-0.5 * a * a) - math.exp(-0.5 * b * b)) / T, T
+
+
+@njit(cache=True, nogil=True)
+def _solve(x, y, flux, peak, width, height, bx, by, cut) -> None:
+    """The module docstring's fixed point, spot by spot (compiled: scalar maths over a handful of
+    spots, where numpy's per-call cost made it ~0.5 ms per frame with cut spots)."""
+    for i in range(x.size):
+        if not (flux[i] > 0.0 and peak[i] > 0.0 and math.isfinite(x[i]) and math.isfinite(y[i])):
+            continue
+        s = math.sqrt(flux[i] / (2.0 * math.pi * peak[i]))
+        m = _MARGIN_SIGMAS * s
+        if not (x[i] < m or y[i] < m or x[i] > width - 1 - m or y[i] > height - 1 - m):
+            continue  # the uncut width puts the whole profile on the detector (the usual case)
+        mx, my = x[i], y[i]
+        for _ in range(_ITERATIONS):
+            dx, tx = _truncated_shift(mx, s, width)
+            dy, ty = _truncated_shift(my, s, height)
+            mx, my = x[i] - dx, y[i] - dy  # fixed point of m(mu) = measured (|dm/dmu - 1| < 1)
+            s = math.sqrt(flux[i] / (2.0 * math.pi * peak[i] * tx * ty))
+        dx, tx = _truncated_shift(mx, s, width)
+        dy, ty = _truncated_shift(my, s, height)
+        if tx * ty < ON_DETECTOR:
+            bx[i], by[i], cut[i] = dx, dy, True
 
 
 def edge_bias_px(x, y, flux, peak, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per spot: the model's CoG bias along x and y (px, pointing inwards) and whether it is cut.
 
     ``x, y``: measured centroids (column, row); ``flux``, ``peak``: above background, same units;
-    ``shape``: the detector's (rows, columns). Vectorised over spots; spots whose flux or peak is
-    not positive get no bias (nothing to estimate a width from) and are not reported cut.
+    ``shape``: the detector's (rows, columns). Spots whose flux or peak is not positive get no
+    bias (nothing to estimate a width from) and are not reported cut.
     """
     H, W = shape
-    x = np.asarray(x, dtype=float)
-    y = np.asarray(y, dtype=float)
-    flux = np.asarray(flux, dtype=float)
-    peak = np.asarray(peak, dtype=float)
-    bx, by = np.zeros(x.shape), np.zeros(x.shape)
-    ok = (flux > 0) & (peak > 0) & np.isfinite(x) & np.isfinite(y)
-    s0 = np.sqrt(np.where(ok, flux, 1.0) / (2.0 * np.pi * np.where(ok, peak, 1.0)))
-    # a spot whose uncut width already puts the whole profile on the detector is not cut: skip it
-    # (the usual case; the cut makes s grow, so this is checked again after the iteration)
-    margin = _MARGIN_SIGMAS * s0
-    near = ok & ((x < margin) | (y < margin) | (x > W - 1 - margin) | (y > H - 1 - margin))
-    cut = np.zeros(x.shape, dtype=bool)
-    if not near.any():
-        return bx, by, cut
-    xm, ym, F, P = x[near], y[near], flux[near], peak[near]
-    s = s0[near]
-    mx, my = xm.copy(), ym.copy()
-    for _ in range(_ITERATIONS):
-        dx, tx = _truncated_shift(mx, s, W)
-        dy, ty = _truncated_shift(my, s, H)
-        mx, my = xm - dx, ym - dy  # fixed point of m(mu) = measured (the shift varies slowly with mu)
-        s = np.sqrt(F / (2.0 * np.pi * P * tx * ty))
-    dx, tx = _truncated_shift(mx, s, W)
-    dy, ty = _truncated_shift(my, s, H)
-    is_cut = tx * ty < ON_DETECTOR
-    bx[near] = np.where(is_cut, dx, 0.0)
-    by[near] = np.where(is_cut, dy, 0.0)
-    cut[near] = is_cut
+    x, y, flux, peak = (np.ascontiguousarray(v, dtype=float).reshape(-1) for v in (x, y, flux, peak))
+    bx, by, cut = np.zeros(x.size), np.zeros(x.size), np.zeros(x.size, dtype=bool)
+    _solve(x, y, flux, peak, float(W), float(H), bx, by, cut)
     return bx, by, cut
 
 
