@@ -5,7 +5,9 @@
 Frames: a 1024 x 1024 uint16 frame rendered by the he2021a scenario's image simulator, and (when
 the shared real data is present: ROLLINGSTAR_REAL_DATA, default ../shared/data/real) the eight
 1024 x 768 16-bit tetra3 sky images. Each timing is the minimum over ``--repeats`` calls (the
-least disturbed run on a shared machine); ratios are to ``frame.sum()`` of the same frame.
+least disturbed run on a shared machine); ratios are to ``frame.sum()`` of the same frame. The
+cost of the edge term (estimators/centroiders/edge.py: spots cut by the detector edge) is ``cog``
+median with ``edge_sigma`` on minus off, interleaved call by call, with the number of cut spots.
 tetra3rs runs single-threaded (``threads=1``) so that the comparison is per core.
 """
 from __future__ import annotations
@@ -67,6 +69,15 @@ def measure(name: str, img: np.ndarray, repeats: int) -> dict:
         c.setup(ctx)
         row[f"cog_{bg}_ms"] = best_ms(lambda: c.process(frame), repeats)
         row[f"cog_{bg}_spots"] = c.process(frame).stars.n
+    on, off = CogCentroider(), CogCentroider(edge_sigma=False)
+    on.setup(ctx)
+    off.setup(ctx)
+    t_on, t_off = np.inf, np.inf
+    for _ in range(repeats):  # interleaved: the same machine state for both
+        t_on = min(t_on, best_ms(lambda: on.process(frame), 1))
+        t_off = min(t_off, best_ms(lambda: off.process(frame), 1))
+    row["edge_term_ms"] = t_on - t_off
+    row["cut_spots"] = sum(int(f.split(":")[1]) for f in on.process(frame).flags if f.startswith("edge_truncated_stars:"))
     ext = tetra3rs.CentroidExtractor()
     row["tetra3rs_ms"] = best_ms(lambda: ext.extract(img, threads=1), repeats)
     row["tetra3rs_spots"] = len(ext.extract(img, threads=1).centroids)
@@ -86,10 +97,12 @@ def main() -> None:
         print(json.dumps({"machine": platform.processor() or platform.machine(), "rows": rows}, indent=1))
         return
     print(f"machine: {platform.machine()} {os.cpu_count()} cpu(s); min of {args.repeats} calls, ms (x frame.sum())")
-    print(f"{'frame':34s} {'sum':>6s} {'cog median':>17s} {'cog tiles':>17s} {'cog map':>17s} {'tetra3rs':>17s}")
+    print(f"{'frame':34s} {'sum':>6s} {'cog median':>17s} {'cog tiles':>17s} {'cog map':>17s} {'tetra3rs':>17s} "
+          f"{'edge term (cut spots)':>22s}")
     for r in rows:
         cells = [f"{r[k + '_ms']:6.2f} ({r[k + '_over_sum']:4.1f}x)" for k in ("cog_median", "cog_tiles", "cog_map", "tetra3rs")]
-        print(f"{r['frame'][:34]:34s} {r['sum_ms']:6.2f} " + " ".join(f"{c:>17s}" for c in cells))
+        print(f"{r['frame'][:34]:34s} {r['sum_ms']:6.2f} " + " ".join(f"{c:>17s}" for c in cells)
+              + f" {r['edge_term_ms']:+8.3f} ms ({r['cut_spots']:2d})")
 
 
 if __name__ == "__main__":

@@ -9,11 +9,11 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from estimators.centroiders.base import Centroider
 from estimators.centroiders.cog import CogCentroider, CogParams
+from estimators.centroiders.edge import with_edge_bias
+from estimators.centroiders.saturation import with_clipping
 from estimators.centroiders.window_cog import centroid_windows, cut_windows, median_rows, robust_sigma_rows
 from estimators.centroiders.window_gyro import FastGyroIntegrator
-from estimators.centroiders.edge import any_near_edge, with_edge_bias
-from estimators.centroiders.saturation import with_clipping
-from estimators.centroiders.window_kernel import (any_coincident, centroid_windows_kernel, predict_step, track_windows,
+from estimators.centroiders.window_kernel import (any_coincident, any_near_edge, centroid_windows_kernel, predict_step, track_windows,
                                                   truncated_normal_std, workspace)
 from estimators.data import FrameData, SensorContext, StarTable
 

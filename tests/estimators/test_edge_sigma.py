@@ -6,10 +6,13 @@ import re
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.special import erf
 
 from estimators.centroiders.cog import CogCentroider
-from estimators.centroiders.edge import any_near_edge, edge_bias_px, with_edge_bias
+from estimators.centroiders.edge import edge_bias_px, near_edge, with_edge_bias
+from estimators.centroiders.window_kernel import any_near_edge
 from estimators.centroiders.windowed import WindowedCentroider
 from estimators.data import FrameData
 from tests.conformance.scene import make_scene, render
@@ -66,6 +69,21 @@ def test_uncut_spots_are_returned_unchanged():
     assert cut.tolist() == [False, True, False] and out[1] > 0.3 and out[[0, 2]].tolist() == [0.03, 0.05]
     assert any_near_edge(x, y, flux, peak, SHAPE[1], SHAPE[0])
     assert not with_edge_bias(sigma, x, y, flux, peak, SHAPE, only=np.zeros(3, bool))[1].any()
+
+
+@given(x=st.floats(-3.0, 6.0), y=st.floats(-3.0, 70.0), s=st.floats(0.3, 6.0), extra=st.floats(1.0, 50.0))
+@settings(max_examples=200, deadline=None)
+def test_corner_and_off_detector_centres_give_a_finite_bounded_bias(x, y, s, extra):
+    """Any measured centroid (corners, beyond the edge), any width and any flux / peak ratio
+    (``extra``: flux / peak above a Gaussian's 2 pi s^2, as when the peak pixel sits off the
+    profile's centre): the bias is finite and at most a few widths, never an exception."""
+    flux = 1e4
+    peak = flux / (2 * np.pi * s**2 * extra)
+    bx, by, cut = edge_bias_px([x], [y], [flux], [peak], SHAPE)
+    s_max = 2.0 * np.sqrt(flux / (2 * np.pi * peak))  # the width stays within 2x its uncut value
+    assert np.isfinite(bx[0]) and np.isfinite(by[0])
+    assert abs(bx[0]) <= 0.8 * s_max + 3.0 + abs(x) and abs(by[0]) <= 0.8 * s_max + 3.0 + max(0.0, -y)
+    assert cut[0] == near_edge(np.array([x]), np.array([y]), np.array([flux]), np.array([peak]), SHAPE)[0] or not cut[0]
 
 
 def _edge_scene(rng, n_edge=8):
