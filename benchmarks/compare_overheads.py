@@ -9,7 +9,8 @@
 3. ``housekeeping``: the first 16 tasks of configs/compare/scaling.yaml on a 2-worker dask cluster
    with dask's housekeeping timers at their defaults vs ``LOCAL_CLUSTER_CONFIG``
    (pipelines/compare/execute.py): executor wall time, this process's CPU time while the tasks run
-   (scheduler, nannies, client) and, per worker, the wall time of its tasks not spent on their CPU.
+   (scheduler, nannies, client) and, per worker, the wall time of its tasks not spent on their CPU;
+   and, apart from them, the cluster start alone (``LocalCluster`` until both workers are connected).
 
     .venv/bin/python benchmarks/compare_overheads.py [--repeats 2] [--only compression|start|housekeeping] [--json]
 """
@@ -74,6 +75,18 @@ def start(repeats: int) -> dict:
     return out
 
 
+def _cluster_start(config: dict) -> float:
+    """Seconds from creating a 2-worker ``LocalCluster`` with ``config`` until both workers are connected."""
+    import dask
+    from dask.distributed import Client, LocalCluster
+
+    t = time.perf_counter()
+    with dask.config.set(config), LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                                                silence_logs=40) as cluster, Client(cluster) as client:
+        client.wait_for_workers(2)
+        return time.perf_counter() - t
+
+
 def housekeeping(repeats: int) -> dict:
     import pipelines.compare.execute as ex
     from pipelines.compare.config import load_compare
@@ -98,6 +111,7 @@ def housekeeping(repeats: int) -> dict:
                                   "worker_task_wall_minus_cpu_s": sorted(idle.values())})
     finally:
         ex.LOCAL_CLUSTER_CONFIG = tuned
+    out["cluster_start_s"] = [_cluster_start(tuned) for _ in range(repeats)]
     return out
 
 
@@ -128,6 +142,9 @@ def main() -> None:
         print(f"compare ci.yaml on dask-2: spawn {', '.join(f'{v:.2f}' for v in s['spawn'])} s, "
               f"fork {', '.join(f'{v:.2f}' for v in s['fork'])} s; fork saves {s['fork_saves_s']:.2f} s (best of each)")
     for name, runs in result.get("housekeeping", {}).items():
+        if name == "cluster_start_s":
+            print(f"2-worker LocalCluster start (until both workers are connected): {', '.join(f'{v:.2f}' for v in runs)} s")
+            continue
         for r in runs:
             print(f"16 scaling tasks on dask-2, housekeeping {name:20s}: wall {r['wall_s']:.2f} s, this process "
                   f"{r['main_process_cpu_s']:.2f} CPU s, workers' task wall - task CPU "

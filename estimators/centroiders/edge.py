@@ -70,10 +70,12 @@ def edge_bias_px(x, y, flux, peak, shape: tuple[int, int],
     there or just beyond it, and outside the peak pixel is no longer the profile's peak, so the
     width relation would let ``s`` and ``mu`` run away together. On the detector ``T >= 1/2`` per
     axis, so ``s`` stays within 2x its uncut value. For a fixed width the centre's update contracts
-    by ``1 - Var/s^2`` of the truncated normal (<= 0.64 with the centre on the detector); with the
-    width updated alongside, 12 steps left the model 10 % lower for a 2 px PSF centred at the edge
-    than 20 (tests/estimators/test_edge_sigma.py), so 20 are taken (a Newton step on the
-    centre converged no faster in the coupled iteration).
+    by ``1 - Var/s^2`` of the truncated normal (<= 0.64 with the centre on the detector); the width
+    is updated alongside, which slows it, and the iterates approach the fixed point from below.
+    ``_ITERATIONS`` = 20 steps give 87-100 % of the 200-step bias for spots from 0.4 px outside to
+    4 px inside the edge (the slowest: a 2 px PSF centred at the edge, whose centre ends on the
+    clamp; tests/estimators/test_edge_sigma.py::test_the_fixed_point_has_converged). What counts,
+    the 20-step bias against the true CoG bias, is tested directly (0.92-3.1x).
     """
     H, W = shape
     x, y, flux, peak = (np.asarray(v, dtype=float).reshape(-1) for v in (x, y, flux, peak))
