@@ -18,8 +18,10 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/rollingstar demo
 
-# pytest exit code 5 (no tests collected) must fail the run.
+# Lint and import order first (ruff, configured in pyproject.toml); pytest exit code 5 (no tests
+# collected) must fail the run.
 test: $(STAMP)
+	$(PY) -m ruff check --no-cache .
 	@$(PY) -m pytest -q -p no:cacheprovider; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; exit 1; fi; exit $$rc
 

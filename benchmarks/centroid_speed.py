@@ -21,10 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from estimators.centroiders.cog import CogCentroider
-from estimators.data import FrameData, SensorContext
-from sensors.camera import PinholeCamera
-from sensors.timing import DetectorTiming
+from rollingstar.estimators.centroiders.cog import CogCentroider
+from rollingstar.estimators.data import FrameData, SensorContext
+from rollingstar.sensors.camera import PinholeCamera
+from rollingstar.sensors.timing import DetectorTiming
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -40,8 +40,8 @@ def best_ms(fn, repeats: int) -> float:
 
 
 def simulated_frame() -> np.ndarray:
-    from pipelines.config import load_scenario
-    from pipelines.simulate import build_simulator
+    from rollingstar.pipelines.simulate import build_simulator
+    from rollingstar.sensors.scenario import load_scenario
 
     cfg = load_scenario(ROOT / "configs" / "scenarios" / "he2021a.yaml")
     sim = build_simulator(cfg)

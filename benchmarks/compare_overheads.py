@@ -30,9 +30,10 @@ sys.path.insert(0, str(ROOT))
 def compression(repeats: int) -> dict:
     from threadpoolctl import threadpool_limits
 
-    from pipelines.config import load_pipeline, load_scenario
-    from pipelines.runner import run_pipeline
-    from pipelines.simulate import simulate_to_log
+    from rollingstar.pipelines.config import load_pipeline
+    from rollingstar.pipelines.runner import run_pipeline
+    from rollingstar.pipelines.simulate import simulate_to_log
+    from rollingstar.sensors.scenario import load_scenario
 
     scenario = load_scenario(ROOT / "configs" / "scenarios" / "he2021a.yaml")
     pipeline = load_pipeline(ROOT / "configs" / "pipelines" / "baseline.yaml")
@@ -60,7 +61,7 @@ def start(repeats: int) -> dict:
     import dask
     import distributed  # noqa: F401  (registers its config defaults before we set one of its keys)
 
-    from pipelines.compare import run_compare
+    from rollingstar.pipelines.compare import run_compare
 
     config = ROOT / "configs" / "compare" / "ci.yaml"
     out: dict = {}
@@ -88,9 +89,9 @@ def _cluster_start(config: dict) -> float:
 
 
 def housekeeping(repeats: int) -> dict:
-    import pipelines.compare.execute as ex
-    from pipelines.compare.config import load_compare
-    from pipelines.compare.tasks import run_task
+    import rollingstar.pipelines.compare.execute as ex
+    from rollingstar.pipelines.compare.config import load_compare
+    from rollingstar.pipelines.compare.tasks import run_task
 
     tasks = load_compare(ROOT / "configs" / "compare" / "scaling.yaml").tasks()[:16]
     settings = {"defaults": {"distributed.nanny.pre-spawn-environ": ex.WORKER_ENVIRON},

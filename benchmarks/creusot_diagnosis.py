@@ -16,8 +16,8 @@ import os
 import tempfile
 from pathlib import Path
 
-from logs.importers.corr import find_corr_folders, import_corr
-from pipelines.diagnose import DiagnoseOptions, diagnose
+from rollingstar.logs.importers.corr import find_corr_folders, import_corr
+from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose
 
 ROOT = Path(__file__).resolve().parents[1]
 GROUPS = ("16mm_checker_2", "16mm_checker_calib/distorted", "16mm_checker_calib/undistorted",

@@ -14,9 +14,10 @@ import json
 import time
 from pathlib import Path
 
-from pipelines.config import ScenarioConfig, load_scenario, validate
-from pipelines.simulate import build_simulator
-from sensors.effects import EFFECTS
+from rollingstar.config import validate
+from rollingstar.pipelines.simulate import build_simulator
+from rollingstar.sensors.effects import EFFECTS
+from rollingstar.sensors.scenario import ScenarioConfig, load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -17,7 +17,7 @@ recording per seed (seeds ``1 .. --seeds``):
 Printed per pipeline: RMSE per axis (arcsec, pooled over the seeds' valid estimates; mean over
 seeds), updates per frame, the mean single-frame Cramér-Rao bound (``rollingstar evaluate``), the
 ratio of the paper's per-star row to our RMSE (paper values from
-``pipelines/reproduce/data/he2021b.yaml``, labelled as the paper's), and the CPU time per frame of
+``rollingstar.studies/reproduce/data/he2021b.yaml``, labelled as the paper's), and the CPU time per frame of
 the attitude stage and of the whole run (process CPU time, this machine; compare side by side).
 """
 from __future__ import annotations
@@ -32,12 +32,13 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.config import load_pipeline, load_scenario
-from pipelines.evaluate import evaluate_log
-from pipelines.progress import progress_bar
-from pipelines.reproduce import paper_values
-from pipelines.runner import run_pipeline
-from pipelines.simulate import simulate_to_log
+from rollingstar.pipelines.config import load_pipeline
+from rollingstar.pipelines.evaluate import evaluate_log
+from rollingstar.pipelines.runner import run_pipeline
+from rollingstar.pipelines.simulate import simulate_to_log
+from rollingstar.progress import progress_bar
+from rollingstar.sensors.scenario import load_scenario
+from rollingstar.studies.reproduce import paper_values
 
 ROOT = Path(__file__).resolve().parents[1]
 PIPELINES = ("he2021b_request1", "he2021b_mekf", "he2021b_gtsam_batch", "he2021b_gtsam_fixedlag",

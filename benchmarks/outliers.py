@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/outliers.py [--frames 30] [--seed 1] [--json out.json] [--markdown out.md]
 
-Scene and planting: :mod:`pipelines.outlier_bench` (he2021b Table 2 stars, 0.05 deg/s, 0.05 px).
+Scene and planting: :mod:`rollingstar.studies.outlier_bench` (he2021b Table 2 stars, 0.05 deg/s, 0.05 px).
 Printed: RMS attitude error (arcsec, rotation angle of truth^-1 * estimate) per solver, gate
 (``robust: none | ransac | huber``, threshold 3 px) and number of false matches, and the ratio of
 each error to the same solver's clean (0 false matches, no gate) error. The table is in
@@ -45,8 +45,8 @@ def main() -> None:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--markdown", type=Path)
     args = ap.parse_args()
-    from pipelines.outlier_bench import SOLVERS, measure
-    from pipelines.progress import progress_bar
+    from rollingstar.progress import progress_bar
+    from rollingstar.studies.outlier_bench import SOLVERS, measure
 
     command = f".venv/bin/python benchmarks/outliers.py --frames {args.frames} --seed {args.seed}"
     with progress_bar("outliers", 4 * len(SOLVERS) * 3, True) as advance:

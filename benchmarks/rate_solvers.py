@@ -30,11 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-from estimators.data import FrameData, StarTable
-from pipelines import build
-from pipelines.config import load_scenario
-from pipelines.registry import get_plugin_class
-from pipelines.simulate import build_simulator
+from rollingstar.estimators.data import FrameData, SensorContext, StarTable
+from rollingstar.pipelines.registry import get_plugin_class
+from rollingstar.pipelines.simulate import build_simulator
+from rollingstar.sensors.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 DEG = np.pi / 180.0
@@ -66,7 +65,7 @@ def frames_for(rate_deg_s, n_frames: int):
         stars = StarTable.build(c["x"], c["y"], c["t_ns"], c["row_time_ns"], flux=c.get("flux"),
                                 sigma_px=np.full(len(c["x"]), cfg.noise.centroid_sigma_px), catalog_id=ids, ref_icrs=ref)
         out.append(FrameData(index=f.index, t0_ns=f.t0_ns, stars=stars))
-    return out, build.build_context(cfg), sim.motion
+    return out, SensorContext.from_scenario(cfg), sim.motion
 
 
 def run(rates, wz: float, n_frames: int) -> dict:

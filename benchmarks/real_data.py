@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/real_data.py [--out docs] [--repeats 3] [--json]
 
 Needs the shared real data (ROLLINGSTAR_REAL_DATA, default ../shared/data/real). See
-pipelines/real_data.py for what is measured.
+rollingstar.studies/real_data.py for what is measured.
 """
 from __future__ import annotations
 
@@ -11,8 +11,12 @@ import argparse
 import json
 import sys
 
-from pipelines.errors import UserError
-from pipelines.real_data import real_data_markdown, run_real_data, write_real_data_docs
+from rollingstar.errors import UserError
+from rollingstar.studies.real_data import (
+    real_data_markdown,
+    run_real_data,
+    write_real_data_docs,
+)
 
 
 def main() -> int:

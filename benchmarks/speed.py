@@ -16,10 +16,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from pipelines.config import load_pipeline, load_scenario
-from pipelines.evaluate import evaluate_log
-from pipelines.runner import run_pipeline
-from pipelines.simulate import simulate_to_log
+from rollingstar.pipelines.config import load_pipeline
+from rollingstar.pipelines.evaluate import evaluate_log
+from rollingstar.pipelines.runner import run_pipeline
+from rollingstar.pipelines.simulate import simulate_to_log
+from rollingstar.sensors.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,8 +1,9 @@
+
 """Windowed vs full-frame centroiding on the liu2013 frames, side by side in one run (issue 7, issue 3).
 
     .venv/bin/python benchmarks/windowed_speed.py [--frames 200] [--rounds 3] [--seed 1] [--json]
 
-Frames: the liu2013 reproduction's (``pipelines/reproduce/liu2013.py``: 1000 x 1000 px, 12-bit,
+Frames: the liu2013 reproduction's (``rollingstar.studies/reproduce/liu2013.py``: 1000 x 1000 px, 12-bit,
 two guide stars, 100 Hz, gyro-driven residual motion), rendered once. Centroiders, each set up
 fresh per round and fed the frames in order with their gyro samples, exactly as
 ``configs/pipelines/liu2013_*.yaml`` configure them:
@@ -33,17 +34,19 @@ import time
 
 import numpy as np
 
+from rollingstar.estimators.data import SensorContext
+
 NAMES = ("cog", "windowed", "windowed kernel=numpy", "windowed batch=false")
 
 
 def liu2013_frames(seed: int, frames: int):
     """The liu2013 reproduction's context and frames (FrameData with image and gyro samples)."""
-    from estimators.data import FrameData, GyroSamples
-    from pipelines import build
-    from pipelines.config import load_scenario
-    from pipelines.reproduce import liu2013 as L
-    from sensors.gyro import simulate_gyro
-    from sensors.simulate import StarTrackerSimulator
+    from rollingstar.estimators.data import FrameData, GyroSamples
+    from rollingstar.sensors import build
+    from rollingstar.sensors.gyro import simulate_gyro
+    from rollingstar.sensors.scenario import load_scenario
+    from rollingstar.sensors.simulate import StarTrackerSimulator
+    from rollingstar.studies.reproduce import liu2013 as L
 
     cfg = load_scenario(L.SCENARIO)
     camera, timing = build.build_camera(cfg), build.build_timing(cfg)
@@ -57,7 +60,7 @@ def liu2013_frames(seed: int, frames: int):
     sim = StarTrackerSimulator(camera, sim_timing, catalog, motion, effects=[L.AberrationJitter(offsets, nominal, 0, period)],
                                image_model=model, level="image", seed=seed)
     gyro = simulate_gyro(build.build_gyro(cfg), motion, -period, frames * period, seed)
-    ctx = build.build_context(cfg, catalog)
+    ctx = SensorContext.from_scenario(cfg, catalog)
     ctx = type(ctx)(camera=camera, timing=sim_timing, catalog=catalog, initial_attitude=ctx.initial_attitude,
                     bit_depth=model.bit_depth)
     out = []
@@ -70,9 +73,9 @@ def liu2013_frames(seed: int, frames: int):
 
 
 def centroiders(ctx):
-    from pipelines.config import load_pipeline
-    from pipelines.reproduce import liu2013 as L
-    from pipelines.runner import build_stages
+    from rollingstar.pipelines.config import load_pipeline
+    from rollingstar.pipelines.runner import build_stages
+    from rollingstar.studies.reproduce import liu2013 as L
 
     full = build_stages(load_pipeline(L.PIPE_FULL), str(L.PIPE_FULL))[0]
     win = build_stages(load_pipeline(L.PIPE_WIN), str(L.PIPE_WIN))[0]

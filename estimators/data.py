@@ -11,6 +11,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from rollingstar.sensors import build
+
 _FLOAT_COLUMNS = ("x", "y", "flux", "peak", "snr", "sigma_px", "vx", "vy")
 _INT_COLUMNS = ("t_ns", "row_time_ns", "catalog_id", "npix")
 
@@ -212,13 +214,28 @@ class SensorContext:
     """What a stage may know about the sensor, given once before the first frame.
 
     Built by the runner from the recording's declared sensor model (metadata). ``catalog`` is a
-    :class:`sensors.catalog.StarCatalog`; ``initial_attitude`` a prior (camera-to-ICRS) when the
+    :class:`rollingstar.sensors.catalog.StarCatalog`; ``initial_attitude`` a prior (camera-to-ICRS) when the
     recording or config declares one.
     """
 
-    camera: Any  # sensors.camera.PinholeCamera
-    timing: Any  # sensors.timing.DetectorTiming
-    catalog: Any  # sensors.catalog.StarCatalog
+    camera: Any  # rollingstar.sensors.camera.PinholeCamera
+    timing: Any  # rollingstar.sensors.timing.DetectorTiming
+    catalog: Any  # rollingstar.sensors.catalog.StarCatalog
     initial_attitude: Rotation | None = None
     centroid_sigma_px: float | None = None
     bit_depth: int | None = None
+
+    @classmethod
+    def from_scenario(cls, cfg, catalog=None) -> SensorContext:
+        """The context the stages receive for a recording made with scenario ``cfg``
+        (a :class:`rollingstar.sensors.scenario.ScenarioConfig`); ``catalog`` defaults to the
+        scenario's own."""
+        camera = build.build_camera(cfg)
+        return cls(
+            camera=camera,
+            timing=build.build_timing(cfg),
+            catalog=catalog if catalog is not None else build.build_catalog(cfg, camera),
+            initial_attitude=build.initial_attitude(cfg),
+            centroid_sigma_px=cfg.noise.centroid_sigma_px if cfg.level == "centroid" else None,
+            bit_depth=cfg.image.bit_depth if cfg.level == "image" else None,
+        )

@@ -2,8 +2,8 @@
 
 Modelled on scikit-learn: the constructor only validates and stores parameters (a pydantic model,
 ``Params``, with unknown keys rejected); state is created in :meth:`Plugin.setup`, called by the
-runner once before the first frame with the :class:`~estimators.data.SensorContext`;
-:meth:`Plugin.process` maps one :class:`~estimators.data.FrameData` to a new one without mutating
+runner once before the first frame with the :class:`~rollingstar.estimators.data.SensorContext`;
+:meth:`Plugin.process` maps one :class:`~rollingstar.estimators.data.FrameData` to a new one without mutating
 its input. Third-party plugins subclass the role base class and register under the entry-point
 group ``rollingstar.plugins``.
 """
@@ -13,7 +13,7 @@ from typing import ClassVar
 
 from pydantic import BaseModel, ConfigDict
 
-from estimators.data import FrameData, SensorContext
+from rollingstar.estimators.data import FrameData, SensorContext
 
 
 class NoParams(BaseModel):

@@ -2,9 +2,9 @@
 from .errors import LogFormatError, TruncatedLogWarning
 from .reader import LogInfo, LogReader, Message, TopicInfo
 from .records import (
-    TOPIC_RECORDS,
     FORMAT_VERSION,
     RECORD_TYPES,
+    TOPIC_RECORDS,
     AttitudeEstimateRecord,
     AttitudeSamplesRecord,
     FrameStatusRecord,

@@ -1,4 +1,4 @@
-"""Errors and warnings raised when reading or writing rollingstar MCAP logs."""
+"""Errors and warnings raised when reading or writing rollingstar MCAP rollingstar.logs."""
 from __future__ import annotations
 
 

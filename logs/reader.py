@@ -21,7 +21,8 @@ from typing import Any, Iterable, Iterator
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.reader import FOOTER_SIZE, SeekingReader
-from mcap.records import Channel, Chunk, ChunkIndex, Message as McapMessage, Metadata, Schema
+from mcap.records import Channel, Chunk, ChunkIndex, Metadata, Schema
+from mcap.records import Message as McapMessage
 from mcap.stream_reader import MAGIC_SIZE, breakup_chunk
 from mcap_protobuf.decoder import DecoderFactory
 from pydantic import ValidationError

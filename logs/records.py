@@ -380,7 +380,7 @@ def stars_to_arrays(record: StarsRecord | dict) -> dict[str, np.ndarray]:
     Only the columns present in the record are returned: ``x, y`` float, ``t_ns``,
     ``row_time_ns``, ``npix``, ``catalog_id`` int64, ``saturated`` bool, ``ref_icrs`` (n, 3) with
     NaN rows, the rest float. Apart from ``magnitude`` the names match
-    ``estimators.data.StarTable.build``.
+    ``rollingstar.estimators.data.StarTable.build``.
     """
     rec = _as_record(record, StarsRecord)
     out: dict[str, np.ndarray] = {}

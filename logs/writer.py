@@ -216,7 +216,7 @@ class LogWriter:
         self._mcap.add_metadata(name, _check_metadata(name, data))
 
     def write_json(self, topic: str, record: _Record | Mapping[str, Any], log_time_ns: int | None = None) -> None:
-        """Write a JSON record (a model from :mod:`logs.records`).
+        """Write a JSON record (a model from :mod:`rollingstar.logs.records`).
 
         A plain dict is accepted on the standard topics (``TOPIC_RECORDS``, e.g. copying
         ``Message.data`` from one log to another) and validated against the topic's model.
@@ -228,10 +228,10 @@ class LogWriter:
             model = TOPIC_RECORDS.get(topic)
             if model is None:
                 raise TypeError(f"write_json({topic!r}): a dict is only accepted on the standard topics "
-                                f"{sorted(TOPIC_RECORDS)}; pass a logs.records model")
+                                f"{sorted(TOPIC_RECORDS)}; pass a rollingstar.logs.records model")
             record = model.model_validate(dict(record))
         if not isinstance(record, _Record):
-            raise TypeError(f"write_json({topic!r}) needs a logs.records model, got {type(record).__name__}")
+            raise TypeError(f"write_json({topic!r}) needs a rollingstar.logs.records model, got {type(record).__name__}")
         cls = type(record)
 
         def register() -> int:
@@ -243,7 +243,7 @@ class LogWriter:
         self._add(channel_id, t, record.model_dump_json().encode())
 
     def write_message(self, message) -> None:
-        """Copy a message read by :class:`logs.reader.LogReader` (JSON record or protobuf) into this log."""
+        """Copy a message read by :class:`rollingstar.logs.reader.LogReader` (JSON record or protobuf) into this log."""
         if hasattr(message.data, "SerializeToString"):
             self._write_proto(message.topic, message.data, message.log_time_ns)
         else:

@@ -2,7 +2,7 @@
 
 Without a checkpoint a resumed run re-runs every stage from the recording's first frame (the stages
 carry state -- tracking priors, filters -- that only the frames before can rebuild; see
-:mod:`pipelines.resume`). With one, it restores that state and reads on from the frame after it.
+:mod:`rollingstar.pipelines.resume`). With one, it restores that state and reads on from the frame after it.
 
 What is saved, every ``every`` frames read (and once more on SIGINT): the stages, the frame checker
 (previous frame, for the time-order and duplicate checks), the run's counters and the frame indices

@@ -1,23 +1,23 @@
 """``rollingstar diagnose``: locate a simulation/recording mismatch, name it, model it, show the fit improve.
 
-Orchestrates :mod:`estimators.diagnosis` (see docs/diagnosis.md for the method):
+Orchestrates :mod:`rollingstar.estimators.diagnosis` (see docs/diagnosis.md for the method):
 
 0. Run the pipeline on the recording (identified stars, a first attitude per frame) and split off
    held-out frames (single images: held-out stars) *before* any fit.
 1. Locate: predict every training observation with the simulation scenario at the refitted
    attitude and rate, chi-square per dof against the recording's noise, residual structure by
-   covariate, channel, field region and time span (:mod:`estimators.diagnosis.residuals`).
+   covariate, channel, field region and time span (:mod:`rollingstar.estimators.diagnosis.residuals`).
 2. Name: project the attitude out of the residuals and of every library effect's signature,
-   screen, forward-stepwise BIC, bootstrap inclusion, aliases (:mod:`estimators.diagnosis.selection`).
-3. Model: nonlinear refit with uncertainties and stability (:mod:`estimators.diagnosis.refit`);
-   test what is left against generic bases (:mod:`estimators.diagnosis.catchall`).
+   screen, forward-stepwise BIC, bootstrap inclusion, aliases (:mod:`rollingstar.estimators.diagnosis.selection`).
+3. Model: nonlinear refit with uncertainties and stability (:mod:`rollingstar.estimators.diagnosis.refit`);
+   test what is left against generic bases (:mod:`rollingstar.estimators.diagnosis.catchall`).
 4. Show the fit improve: residual RMS and chi2/dof before and after on training and held-out data;
    re-simulate with the input and the updated model and compare residual distributions
-   (:mod:`estimators.diagnosis.resimulate`).
+   (:mod:`rollingstar.estimators.diagnosis.resimulate`).
 
 With ``/gyro`` in the recording, attitude increments against the gyro are a second residual
-channel throughout (:mod:`estimators.diagnosis.gyro_channel`); the final parameters and sigmas
-come from a joint fit with the rates tied to the attitudes (:func:`estimators.diagnosis.refit.joint_refit`).
+channel throughout (:mod:`rollingstar.estimators.diagnosis.gyro_channel`); the final parameters and sigmas
+come from a joint fit with the rates tied to the attitudes (:func:`rollingstar.estimators.diagnosis.refit.joint_refit`).
 """
 from __future__ import annotations
 
@@ -28,14 +28,36 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from estimators.diagnosis import catchall, gyro_channel, refit as refit_mod, resimulate, residuals, selection
-from estimators.diagnosis.library import Candidate, library, separating_experiment
-from estimators.diagnosis.observations import Observations, fit_attitudes, fit_nuisance, frame_reference_times
-from logs.reader import LogReader
-from logs.records import stars_to_arrays
-from pipelines import build
-from pipelines.config import PipelineConfig, ScenarioConfig, load_pipeline, load_scenario, parse_yaml, scenario_from_yaml, to_yaml, validate
-from pipelines.errors import UserError
+from rollingstar.config import parse_yaml, to_yaml, validate
+from rollingstar.errors import UserError
+from rollingstar.estimators.diagnosis import (
+    catchall,
+    gyro_channel,
+    residuals,
+    resimulate,
+    selection,
+)
+from rollingstar.estimators.diagnosis import refit as refit_mod
+from rollingstar.estimators.diagnosis.library import (
+    Candidate,
+    library,
+    separating_experiment,
+)
+from rollingstar.estimators.diagnosis.observations import (
+    Observations,
+    fit_attitudes,
+    fit_nuisance,
+    frame_reference_times,
+)
+from rollingstar.logs.reader import LogReader
+from rollingstar.logs.records import stars_to_arrays
+from rollingstar.pipelines.config import PipelineConfig, load_pipeline
+from rollingstar.sensors import build
+from rollingstar.sensors.scenario import (
+    ScenarioConfig,
+    load_scenario,
+    scenario_from_yaml,
+)
 
 # Tracking gate 30 px: the second frame is predicted without a rate (the identifier extrapolates
 # from two estimates), and 2 deg/s over a 130 ms frame period moves stars ~20 px on a 4380 px focal
@@ -94,7 +116,11 @@ def fallback_pipeline() -> PipelineConfig:
 
 def run_and_read(recording: Path, pipeline: PipelineConfig, source: str, show_progress: bool):
     """Run ``pipeline`` on the recording; per frame the identified stars and the first valid attitude."""
-    from pipelines.runner import TOPIC_EST_ATTITUDE, TOPIC_EST_STARS, run_pipeline
+    from rollingstar.pipelines.runner import (
+        TOPIC_EST_ATTITUDE,
+        TOPIC_EST_STARS,
+        run_pipeline,
+    )
 
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "diagnose_run.mcap"
@@ -189,7 +215,7 @@ def read_gyro(recording: Path, scenario: ScenarioConfig):
 
     The angle random walk comes from the scenario's gyro model (0 when it declares none: the
     increment noise is then the attitude error of the image fit alone)."""
-    from pipelines.simulate import TOPIC_GYRO
+    from rollingstar.pipelines.simulate import TOPIC_GYRO
 
     reader = LogReader(recording)
     if TOPIC_GYRO not in reader.topics():
@@ -731,7 +757,7 @@ def run_diagnose(recording: Path, sim: Path | None, pipeline: Path | None, out_d
                                  pipeline_source=str(pipeline) if pipeline else "<diagnose default pipeline>",
                                  sim_source=str(sim) if sim else None)
     if out_dir is not None:
-        from estimators.diagnosis.report import write_report
+        from rollingstar.estimators.diagnosis.report import write_report
 
         upd = updated_scenario(internals["scenario"], internals["chosen"], internals["thetas"])
         out_dir.mkdir(parents=True, exist_ok=True)

@@ -9,7 +9,7 @@ the two claimed times). Rate error: norm of the estimated minus the true body ra
 ``max``) and its RMSE per camera axis (``x_rmse`` ...).
 
 Bounds: the single-frame Cramér–Rao bounds on attitude (``attitude_crb_arcsec``) and, when the log
-holds rate estimates, on the rate (``rate_crb_deg_s``, :func:`pipelines.truth.rate_crb_rad2`), both
+holds rate estimates, on the rate (``rate_crb_deg_s``, :func:`rollingstar.pipelines.truth.rate_crb_rad2`), both
 for each frame's identified stars and the scenario's centroid noise (centroid-level recordings);
 ``efficiency`` is RMSE / bound per axis (1 = efficient; below 1 is possible only for estimators
 that combine frames, which the single-frame bound does not cover).
@@ -17,21 +17,30 @@ that combine frames, which the single-frame bound does not cover).
 from __future__ import annotations
 
 import math
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from logs.reader import LogReader
-from logs.records import stars_to_arrays
-from pipelines import build
-from pipelines.config import scenario_from_yaml
-from pipelines.errors import UserError
-from pipelines.runner import TOPIC_EST_ATTITUDE, TOPIC_EST_FRAME, TOPIC_EST_RATE, TOPIC_EST_STARS
-from pipelines.simulate import TOPIC_TRUTH_ATTITUDE, TOPIC_TRUTH_STARS
-from pipelines.truth import TruthTrajectory, attitude_crb_rad2, rate_crb_rad2, true_positions
-from sensors.conventions import RAD_TO_ARCSEC, attitude_error_body_arcsec
+from rollingstar.errors import UserError
+from rollingstar.logs.reader import LogReader
+from rollingstar.logs.records import stars_to_arrays
+from rollingstar.pipelines.runner import (
+    TOPIC_EST_ATTITUDE,
+    TOPIC_EST_FRAME,
+    TOPIC_EST_RATE,
+    TOPIC_EST_STARS,
+)
+from rollingstar.pipelines.simulate import TOPIC_TRUTH_ATTITUDE, TOPIC_TRUTH_STARS
+from rollingstar.pipelines.truth import (
+    TruthTrajectory,
+    attitude_crb_rad2,
+    rate_crb_rad2,
+    true_positions,
+)
+from rollingstar.sensors import build
+from rollingstar.sensors.conventions import RAD_TO_ARCSEC, attitude_error_body_arcsec
+from rollingstar.sensors.scenario import scenario_from_yaml
 
 PAIR_MATCH_RADIUS_PX = 3.0
 
@@ -168,7 +177,7 @@ def _matched_frames(est_stars, truth_stars, min_matches: int):
 
 
 class _EffectEnvironment:
-    """What the scenario's effects need besides the truth (sensors.effects.base.EffectContext fields):
+    """What the scenario's effects need besides the truth (rollingstar.sensors.effects.base.EffectContext fields):
     timing, ground-site zenith, covariates and, only when an effect needs it, catalogue proper motions."""
 
     def __init__(self, scenario, timing, effects):

@@ -2,11 +2,11 @@
 
 - an image whose size differs from the declared sensor (``sensor.width_px`` x ``height_px``,
   zero-size included), or an 8-bit image where the sensor model declares more bits
-  (``image.bit_depth``): :class:`~logs.errors.LogFormatError` naming the file, topic, frame,
+  (``image.bit_depth``): :class:`~rollingstar.logs.errors.LogFormatError` naming the file, topic, frame,
   what was found and what was expected;
 - a frame whose time ``t0`` does not increase: an exact repeat of the previous frame (same time,
   same content) is skipped with a warning; otherwise the recording is out of time order:
-  :class:`~logs.errors.LogFormatError`;
+  :class:`~rollingstar.logs.errors.LogFormatError`;
 - a gap between frames longer than 1.5 declared frame periods (frames lost or a clock jump): the
   frame is processed and flagged ``time_gap:<ms>`` with a warning, so stages and readers of the
   output know its predecessor is not the previous frame.
@@ -19,8 +19,8 @@ import warnings
 
 import numpy as np
 
-from estimators.data import FrameData
-from logs.errors import LogFormatError
+from rollingstar.estimators.data import FrameData
+from rollingstar.logs.errors import LogFormatError
 
 GAP_FACTOR = 1.5
 

@@ -14,35 +14,35 @@ import importlib
 from functools import lru_cache
 from importlib.metadata import entry_points
 
-from estimators.plugin import Plugin
+from rollingstar.estimators.plugin import Plugin
 
 ENTRY_POINT_GROUP = "rollingstar.plugins"
 ROLES = ("centroider", "identifier", "filter", "correction", "attitude", "rate")
 
 # kind -> "module:Class". Imported lazily so that listing plugins stays cheap.
 BUILTIN: dict[str, str] = {
-    "cog": "estimators.centroiders.cog:CogCentroider",
-    "tracking": "estimators.identifiers.tracking:TrackingIdentifier",
-    "lost-in-space": "estimators.identifiers.lost_in_space:LostInSpaceIdentifier",
-    "none": "estimators.corrections.none:NoCorrection",
-    "quest": "estimators.attitude.quest:QuestSolver",
+    "cog": "rollingstar.estimators.centroiders.cog:CogCentroider",
+    "tracking": "rollingstar.estimators.identifiers.tracking:TrackingIdentifier",
+    "lost-in-space": "rollingstar.estimators.identifiers.lost_in_space:LostInSpaceIdentifier",
+    "none": "rollingstar.estimators.corrections.none:NoCorrection",
+    "quest": "rollingstar.estimators.attitude.quest:QuestSolver",
     # he2021a plugins:
-    "kf-cv": "estimators.filters.kf_cv:KfCvFilter",
-    "time-domain": "estimators.corrections.time_domain:TimeDomainCorrection",
+    "kf-cv": "rollingstar.estimators.filters.kf_cv:KfCvFilter",
+    "time-domain": "rollingstar.estimators.corrections.time_domain:TimeDomainCorrection",
     # he2021b plugins:
-    "request": "estimators.attitude.request:RequestSolver",
+    "request": "rollingstar.estimators.attitude.request:RequestSolver",
     # fu2022 plugins:
-    "pso-rate": "estimators.rates.pso:PsoRateEstimator",
-    "pso-correction": "estimators.rates.pso:PsoCorrection",
+    "pso-rate": "rollingstar.estimators.rates.pso:PsoRateEstimator",
+    "pso-correction": "rollingstar.estimators.rates.pso:PsoCorrection",
     # issue 5: least-squares 3-axis single-frame rate (and the correction with it):
-    "ls-rate": "estimators.rates.ls_rate:LsRateEstimator",
-    "ls-correction": "estimators.rates.ls_rate:LsRateCorrection",
+    "ls-rate": "rollingstar.estimators.rates.ls_rate:LsRateEstimator",
+    "ls-correction": "rollingstar.estimators.rates.ls_rate:LsRateCorrection",
     # liu2013 plugins:
-    "windowed": "estimators.centroiders.windowed:WindowedCentroider",
-    "gyro-kf": "estimators.filters.gyro_kf:GyroKalmanFilter",
+    "windowed": "rollingstar.estimators.centroiders.windowed:WindowedCentroider",
+    "gyro-kf": "rollingstar.estimators.filters.gyro_kf:GyroKalmanFilter",
     # issue 5 attitude estimators:
-    "mekf": "estimators.attitude.mekf:MekfFilter",
-    "gtsam": "estimators.attitude.gtsam_smoother:GtsamSmoother",
+    "mekf": "rollingstar.estimators.attitude.mekf:MekfFilter",
+    "gtsam": "rollingstar.estimators.attitude.gtsam_smoother:GtsamSmoother",
 }
 
 

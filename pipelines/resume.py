@@ -7,7 +7,7 @@ output at the end (so a resume killed in turn leaves the old partial output to r
 
 1. the partial output's truth messages and every message of its complete frames are copied;
 2. the stages carry state (tracking priors, filters, smoothers) that only the frames before can
-   rebuild: the run restores it from the newest usable checkpoint (:mod:`pipelines.checkpoint`)
+   rebuild: the run restores it from the newest usable checkpoint (:mod:`rollingstar.pipelines.checkpoint`)
    and reads on from the frame after it, or, without one, runs again from the first frame of the
    recording; a frame already complete is processed but not written again, a truth message
    already copied is not written again.
@@ -22,9 +22,9 @@ import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from logs.errors import LogFormatError, TruncatedLogWarning
-from logs.reader import LogReader, Message
-from pipelines.errors import UserError
+from rollingstar.errors import UserError
+from rollingstar.logs.errors import LogFormatError, TruncatedLogWarning
+from rollingstar.logs.reader import LogReader, Message
 
 TRUTH_TOPICS = ("/truth/attitude", "/truth/stars")
 

@@ -14,25 +14,46 @@ from pathlib import Path
 
 import numpy as np
 
-from estimators.data import FrameData, GyroSamples, StarTable, TruthSamples
-from estimators.plugin import Plugin
-from logs.errors import LogFormatError
-from logs.reader import LogReader
-from logs.records import AttitudeEstimate as AttitudeRecord
-from logs.records import FrameStatus, RateEstimate as RateRecord, arrays_to_stars, stars_to_arrays
-from logs.replay import iter_frames, image_from_raw
-from logs.writer import LogWriter
-from pipelines import build
-from pipelines.checkpoint import DEFAULT_EVERY, CheckpointWriter, RunState, add_index, load_checkpoint, run_key
-from pipelines.config import PipelineConfig, format_validation_error, scenario_from_yaml, to_yaml
-from pipelines.errors import ConfigError, PipelineError, UserError
-from pipelines.frame_checks import FrameChecker
-from pipelines.interrupt import Interrupted, stop_on_sigint
-from pipelines.resume import Partial, load_partial, temp_path
-from pipelines.progress import progress_bar
-from pipelines.registry import UnknownPluginError, get_plugin_class
-from pipelines.simulate import TOPIC_CENTROIDS, TOPIC_GYRO, TOPIC_IMAGE, TOPIC_TRUTH_ATTITUDE, TOPIC_TRUTH_STARS
-from sensors.conventions import quat_to_fields
+from rollingstar.config import format_validation_error, to_yaml
+from rollingstar.errors import ConfigError, PipelineError, UserError
+from rollingstar.estimators.data import (
+    FrameData,
+    GyroSamples,
+    SensorContext,
+    StarTable,
+    TruthSamples,
+)
+from rollingstar.estimators.plugin import Plugin
+from rollingstar.logs.errors import LogFormatError
+from rollingstar.logs.reader import LogReader
+from rollingstar.logs.records import AttitudeEstimate as AttitudeRecord
+from rollingstar.logs.records import FrameStatus, arrays_to_stars, stars_to_arrays
+from rollingstar.logs.records import RateEstimate as RateRecord
+from rollingstar.logs.replay import image_from_raw, iter_frames
+from rollingstar.logs.writer import LogWriter
+from rollingstar.pipelines.checkpoint import (
+    DEFAULT_EVERY,
+    CheckpointWriter,
+    RunState,
+    add_index,
+    load_checkpoint,
+    run_key,
+)
+from rollingstar.pipelines.config import PipelineConfig
+from rollingstar.pipelines.frame_checks import FrameChecker
+from rollingstar.pipelines.interrupt import Interrupted, stop_on_sigint
+from rollingstar.pipelines.registry import UnknownPluginError, get_plugin_class
+from rollingstar.pipelines.resume import Partial, load_partial, temp_path
+from rollingstar.pipelines.simulate import (
+    TOPIC_CENTROIDS,
+    TOPIC_GYRO,
+    TOPIC_IMAGE,
+    TOPIC_TRUTH_ATTITUDE,
+    TOPIC_TRUTH_STARS,
+)
+from rollingstar.progress import progress_bar
+from rollingstar.sensors.conventions import quat_to_fields
+from rollingstar.sensors.scenario import scenario_from_yaml
 
 TOPIC_EST_STARS = "/estimate/stars"
 TOPIC_EST_SPOTS = "/estimate/spots"
@@ -102,10 +123,10 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
                  checkpoint_every: int = DEFAULT_EVERY) -> RunSummary:
     """Run ``pipeline`` over ``recording`` and write estimates (plus truth and metadata) to ``output``.
 
-    ``resume``: continue from a partial ``output`` (see :mod:`pipelines.resume`), from the newest
-    usable checkpoint if there is one (:mod:`pipelines.checkpoint`, saved every
+    ``resume``: continue from a partial ``output`` (see :mod:`rollingstar.pipelines.resume`), from the newest
+    usable checkpoint if there is one (:mod:`rollingstar.pipelines.checkpoint`, saved every
     ``checkpoint_every`` frames and on SIGINT; 0: none). On SIGINT the frame in hand is finished,
-    the log finalised and :class:`pipelines.interrupt.Interrupted` raised.
+    the log finalised and :class:`rollingstar.pipelines.interrupt.Interrupted` raised.
     """
     stages = build_stages(pipeline, pipeline_source)
     reader = LogReader(recording)
@@ -114,7 +135,7 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
         raise UserError(f"{recording}: the recording declares no sensor model (metadata record 'scenario' with key 'yaml'); "
                         "import real data with `rollingstar import` so that it does")
     scenario = scenario_from_yaml(meta["scenario"]["yaml"], f"{recording} (metadata 'scenario')")
-    context = build.build_context(scenario)
+    context = SensorContext.from_scenario(scenario)
     info = reader.summary_info()
     topics = set(info.topics) if hasattr(info, "topics") else set(info)
     frame_topic = TOPIC_IMAGE if TOPIC_IMAGE in topics else TOPIC_CENTROIDS

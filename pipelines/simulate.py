@@ -12,15 +12,15 @@ from pathlib import Path
 
 import numpy as np
 
-from logs.records import AttitudeSamples, GyroSamples
-from logs.records import arrays_to_stars
-from logs.writer import LogWriter
-from pipelines import build
-from pipelines.config import ScenarioConfig, to_yaml
-from pipelines.interrupt import Interrupted, stop_on_sigint
-from pipelines.progress import progress_bar
-from sensors.gyro import simulate_gyro
-from sensors.simulate import ImageModel, StarTrackerSimulator
+from rollingstar.config import to_yaml
+from rollingstar.logs.records import AttitudeSamples, GyroSamples, arrays_to_stars
+from rollingstar.logs.writer import LogWriter
+from rollingstar.pipelines.interrupt import Interrupted, stop_on_sigint
+from rollingstar.progress import progress_bar
+from rollingstar.sensors import build
+from rollingstar.sensors.gyro import simulate_gyro
+from rollingstar.sensors.scenario import ScenarioConfig
+from rollingstar.sensors.simulate import ImageModel, StarTrackerSimulator
 
 TOPIC_IMAGE = "/camera/image"
 TOPIC_CENTROIDS = "/camera/centroids"

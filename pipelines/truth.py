@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from sensors.effects.chain import predict
-from sensors.effects.context import context_from_attitude
+from rollingstar.sensors.effects.chain import predict
+from rollingstar.sensors.effects.context import context_from_attitude
 
 
 class TruthTrajectory:
@@ -47,8 +47,8 @@ def true_positions(camera, effects, attitude: Rotation, unit_icrs: np.ndarray, t
                    omega_rad_s=None, **context):
     """Where catalogue directions image at ``t_ns`` (one attitude per star), effects included.
 
-    The effects are applied by :func:`sensors.effects.chain.predict` on the context built from the
-    attitude (:func:`sensors.effects.context.context_from_attitude`): pass the body rate
+    The effects are applied by :func:`rollingstar.sensors.effects.chain.predict` on the context built from the
+    attitude (:func:`rollingstar.sensors.effects.context.context_from_attitude`): pass the body rate
     ``omega_rad_s`` (n, 3) for time effects and any other context field they need in ``context``.
     """
     if not effects:

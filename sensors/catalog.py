@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from sensors.conventions import radec_to_unit
+from rollingstar.sensors.conventions import radec_to_unit
 
 HIPPARCOS_EPOCH_YEAR = 1991.25
 MAS_TO_RAD = np.pi / (180.0 * 3600.0 * 1000.0)

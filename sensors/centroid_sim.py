@@ -4,8 +4,8 @@ A star with ICRS direction ``u`` is seen in the camera frame as ``w(t) = R(t)^T 
 camera-to-ICRS attitude), projected by the pinhole model (he2021b eq 2) and then displaced by the
 chain of sensor effects: ``(X(t), Y(t)) = effects(project(w(t + dt)), t)`` where ``dt`` is the
 total time shift of the chain's time-stage effects (rolling-shutter line-delay error, clock
-offset, smear bias; :func:`sensors.effects.chain.time_shift_s`), evaluated on the *true* motion,
-and the image-stage effects get an :class:`~sensors.effects.base.EffectContext` built from the
+offset, smear bias; :func:`rollingstar.sensors.effects.chain.time_shift_s`), evaluated on the *true* motion,
+and the image-stage effects get an :class:`~rollingstar.sensors.effects.base.EffectContext` built from the
 attitude, body rate and the per-star :class:`ObservationInfo` (magnitude, proper motion, frame,
 covariates...).
 
@@ -30,7 +30,7 @@ those stars converge too and are then discarded).
 
 Times are integer ns; ``t0 + y ld + T/2`` is not, so the attitude at a fractional ns ``t + d``
 (``0 <= d < 1`` ns) is ``R(t) Exp(omega(t) d)`` (body-frame rate, the kinematics convention of
-:mod:`sensors.motion`); the neglected term ``alpha d^2 / 2`` is below 1e-18 rad.
+:mod:`rollingstar.sensors.motion`); the neglected term ``alpha d^2 / 2`` is below 1e-18 rad.
 """
 from __future__ import annotations
 
@@ -40,10 +40,15 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from sensors.conventions import NS_PER_S
-from sensors.effects.base import EffectContext
-from sensors.effects.chain import image_effects, ordered, time_effects, time_shift_s
-from sensors.effects.geometry import image_velocity
+from rollingstar.sensors.conventions import NS_PER_S
+from rollingstar.sensors.effects.base import EffectContext
+from rollingstar.sensors.effects.chain import (
+    image_effects,
+    ordered,
+    time_effects,
+    time_shift_s,
+)
+from rollingstar.sensors.effects.geometry import image_velocity
 
 DEFAULT_TOL_PX = 1e-9  # stop when a step is below this; the remaining error is ~|v_y| ld times it
 DEFAULT_MAX_ITER = 60
@@ -76,7 +81,9 @@ class ObservationInfo:
         Covariates are sampled at ``stamp_ns`` (default ``t_ns``): the stamped time of the
         observation, as a log provides them (``covariates`` False skips them when no effect needs them).
         """
-        take = (lambda a: None if a is None else (a if index is None else a[index]))
+        def take(a):
+            return None if a is None else (a if index is None else a[index])
+
         n = np.asarray(x).reshape(-1).shape[0]
         vx = vy = None
         if omega_rad_s is not None:

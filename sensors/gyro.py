@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sensors.conventions import NS_PER_S
-from sensors.motion import AttitudeMotion, compose_rotations
+from rollingstar.sensors.conventions import NS_PER_S
+from rollingstar.sensors.motion import AttitudeMotion, compose_rotations
 
 NOISE_BLOCK = 4096
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr, pdtr
 
-from sensors.conventions import NS_PER_S
+from rollingstar.sensors.conventions import NS_PER_S
 
 FOOTPRINT_SIGMAS = 6.0  # PSF half-width rendered around the streak (mass beyond: 2e-9)
 CHUNK_ELEMENTS = 4_000_000  # (stars x rows x samples x columns) per vectorised chunk

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from sensors.conventions import NS_PER_S
+from rollingstar.sensors.conventions import NS_PER_S
 
 _SERIES_THRESHOLD = 0.1  # |theta| below which (|t| - sin|t|)/|t|^3 uses its Taylor series
 

@@ -7,12 +7,12 @@ For frame ``k`` (timestamp ``t0 = timing.frame_start_ns(k)``, the start of expos
    ``CONE_MARGIN_RAD + CONE_MARGIN_FRACTION * half_diagonal`` covers effects such as distortion),
    optionally cut at ``magnitude_limit``.
 2. Truth: each star's centroid row solves ``y = Y(t0 + y ld + T/2)`` (see
-   :mod:`sensors.centroid_sim`), ``x`` at the same time; stars with ``(x, y)`` on the detector are
+   :mod:`rollingstar.sensors.centroid_sim`), ``x`` at the same time; stars with ``(x, y)`` on the detector are
    kept. ``row_time_ns = timing.row_start_ns(t0, y)``, ``t_ns = timing.row_mid_exposure_ns(t0, y)``.
 3. Centroid level: measured ``x, y`` = truth + N(0, ``centroid_sigma_px``) each; measured
    ``row_time_ns`` / ``t_ns`` are those of the *measured* row (what a real pipeline timestamps);
    ``flux`` is Poisson(expected star electrons, :class:`ImageModel`); sorted by measured y.
-4. Image level: exact smear rendering and detector chain of :mod:`sensors.image_sim`.
+4. Image level: exact smear rendering and detector chain of :mod:`rollingstar.sensors.image_sim`.
 
 Randomness is per frame, ``np.random.default_rng([seed, k, stream])`` with one stream per noise
 source, so ``frame(k)`` does not depend on which frames were simulated before. Hot-pixel
@@ -26,10 +26,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sensors.centroid_sim import ObservationInfo, image_positions, solve_star_rows
-from sensors.effects.base import Effect
-from sensors.effects.chain import apply_gyro, ordered
-from sensors.image_sim import ImageModel, digitise, hot_pixel_mask, mean_electrons, render_star_electrons
+from rollingstar.sensors.centroid_sim import (
+    ObservationInfo,
+    image_positions,
+    solve_star_rows,
+)
+from rollingstar.sensors.effects.base import Effect
+from rollingstar.sensors.effects.chain import apply_gyro, ordered
+from rollingstar.sensors.image_sim import (
+    ImageModel,
+    digitise,
+    hot_pixel_mask,
+    mean_electrons,
+    render_star_electrons,
+)
 
 __all__ = ["ImageModel", "SimulatedFrame", "StarTrackerSimulator", "TrueStars"]
 
@@ -76,8 +86,8 @@ class SimulatedFrame:
 class StarTrackerSimulator:
     """Simulate frames of a star tracker looking at ``catalog`` while moving as ``motion``.
 
-    ``effects`` (a sequence of :class:`sensors.effects.Effect`) are applied in canonical stage
-    order (:func:`sensors.effects.chain.ordered`): time effects shift the instant each star is
+    ``effects`` (a sequence of :class:`rollingstar.sensors.effects.Effect`) are applied in canonical stage
+    order (:func:`rollingstar.sensors.effects.chain.ordered`): time effects shift the instant each star is
     seen on the true motion, the others map the pinhole positions. ``zenith_icrs`` (3,) (ground
     tests) and ``covariates`` (name -> function of int64 ns) feed the effects' context.
     ``level`` is ``"centroid"`` or ``"image"``; ``image_model`` (default
@@ -94,7 +104,7 @@ class StarTrackerSimulator:
         effects = tuple(effects)
         bad = [e for e in effects if not isinstance(e, Effect)]
         if bad:
-            raise ValueError(f"effects must be Effect instances (see sensors.effects.build_effect), got {bad!r}")
+            raise ValueError(f"effects must be Effect instances (see rollingstar.sensors.effects.build_effect), got {bad!r}")
         if level == "image":
             centroid_only = [e.name for e in effects if not e.image_level]
             if centroid_only:

@@ -8,10 +8,10 @@ pinhole camera has a position-dependent image velocity and hence image *accelera
 paper under its own assumption, :class:`UniformDriftSimulator` keeps the attitude fixed and
 translates the whole image at ``V``: a star whose fixed-attitude pinhole position is ``p`` is at
 ``p + V (t - epoch)`` at time ``t``. Everything else follows the project's simulator
-(:mod:`sensors.simulate`): the centroid row solves the rolling-shutter row equation
+(:mod:`rollingstar.sensors.simulate`): the centroid row solves the rolling-shutter row equation
 ``y = Y(t0 + y ld + T/2)`` (here in closed form), ``t_ns`` is the mid-exposure of that row, the
 centroid level adds Gaussian noise per axis and Poisson flux, the image level renders the exact
-rolling-shutter smear with :func:`sensors.image_sim.render_star_electrons` and digitises with the
+rolling-shutter smear with :func:`rollingstar.sensors.image_sim.render_star_electrons` and digitises with the
 same detector chain. Noise streams are per frame (``default_rng([seed, k, stream])``).
 
 This is a separate class rather than a scenario option because a uniform translation is not an
@@ -32,9 +32,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from sensors.image_sim import ImageModel, digitise, mean_electrons, render_star_electrons
-from sensors.motion import inertial_hold
-from sensors.simulate import SimulatedFrame, TrueStars
+from rollingstar.sensors.image_sim import (
+    ImageModel,
+    digitise,
+    mean_electrons,
+    render_star_electrons,
+)
+from rollingstar.sensors.motion import inertial_hold
+from rollingstar.sensors.simulate import SimulatedFrame, TrueStars
 
 DETECTOR_MARGIN_PX = 50.0  # stars farther than this outside the detector are not rendered
 STREAM_CENTROID_X, STREAM_CENTROID_Y, STREAM_FLUX, STREAM_SHOT, STREAM_READ = range(5)
@@ -53,7 +58,7 @@ class UniformDriftSimulator:
 
     ``attitude``: the fixed camera-to-ICRS rotation (pinhole positions at ``epoch_ns``);
     ``level``: ``"centroid"`` or ``"image"``. Attributes used by callers: ``camera``, ``timing``,
-    ``catalog``, ``motion`` (the fixed attitude, :func:`sensors.motion.inertial_hold`), ``level``,
+    ``catalog``, ``motion`` (the fixed attitude, :func:`rollingstar.sensors.motion.inertial_hold`), ``level``,
     ``seed``, ``velocity_px_s``. Stars drift in from outside the initial field (candidates come
     from a cone wide enough for the whole drift up to the frame's end).
     """

@@ -19,8 +19,8 @@ def real_data_dir() -> Path:
 @pytest.fixture(scope="session")
 def small_recording(tmp_path_factory) -> Path:
     """20 frames of the he2021b scenario at centroid level."""
-    from pipelines.config import load_scenario
-    from pipelines.simulate import simulate_to_log
+    from rollingstar.pipelines.simulate import simulate_to_log
+    from rollingstar.sensors.scenario import load_scenario
 
     out = tmp_path_factory.mktemp("rec") / "he2021b_20.mcap"
     simulate_to_log(load_scenario(ROOT / "configs" / "scenarios" / "he2021b.yaml"), out, frames=20, show_progress=False)
@@ -30,8 +30,8 @@ def small_recording(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def small_output(tmp_path_factory, small_recording) -> Path:
     """The baseline pipeline's output over :func:`small_recording`."""
-    from pipelines.config import load_pipeline
-    from pipelines.runner import run_pipeline
+    from rollingstar.pipelines.config import load_pipeline
+    from rollingstar.pipelines.runner import run_pipeline
 
     out = tmp_path_factory.mktemp("out") / "he2021b_20.out.mcap"
     run_pipeline(small_recording, load_pipeline(ROOT / "configs" / "pipelines" / "baseline.yaml"), out, show_progress=False)

@@ -2,7 +2,7 @@
 
 Variables: ``r<i>`` a ``Rot3`` per attitude state (camera-to-ICRS, ``v_icrs = R v_cam``, the
 project convention and GTSAM's ``nRb``), ``b<k>`` a ``Vector3`` per frame segment (the gyro bias,
-or minus the body rate under the constant-rate model, see :mod:`estimators.attitude.motion_model`).
+or minus the body rate under the constant-rate model, see :mod:`rollingstar.estimators.attitude.motion_model`).
 
 Factors:
 

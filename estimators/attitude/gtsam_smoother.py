@@ -1,7 +1,7 @@
 """Attitude smoother ``gtsam``: a factor graph over Rot3 states at the stars' own exposure times.
 
 Factor graph (GTSAM, Dellaert & Kaess, "Factor graphs for robot perception", 2017; the factors in
-:mod:`estimators.attitude.gtsam_graph`):
+:mod:`rollingstar.estimators.attitude.gtsam_graph`):
 
 - one ``Rot3`` state per star time (rolling shutter: every star of a frame refers to its own row's
   mid-exposure ``t_ns``; stars within ``merge_us`` share a state, see :mod:`observations`). We chose
@@ -15,7 +15,7 @@ Factor graph (GTSAM, Dellaert & Kaess, "Factor graphs for robot perception", 201
   (bias estimated, one bias per frame segment with a random walk), or, without a gyro, of a zero
   rate with the "bias" standing for minus the body rate: a nearly-constant-angular-velocity motion
   prior (rate per frame segment, white angular-acceleration random walk), see
-  :mod:`estimators.attitude.motion_model`.
+  :mod:`rollingstar.estimators.attitude.motion_model`.
 
 Modes:
 
@@ -55,15 +55,32 @@ import numpy as np
 from pydantic import Field
 from scipy.spatial.transform import Rotation
 
-from estimators.attitude.base import AttitudeSolver
-from estimators.attitude.gtsam_graph import (ahrs_factor, bias_key, bias_prior_factor, bias_walk_factor, rot_key,
-                                             rotation_of, rotation_params, star_factors, to_rot3)
-from estimators.attitude.motion_model import MotionModelParams, motion_noise, resolve_mode
-from estimators.attitude.robust import apply_robust
-from estimators.attitude.observations import StarObservations, default_sigma_px, star_observations
-from estimators.attitude.wahba import quest, quest_covariance
-from estimators.data import AttitudeEstimate, FrameData, RateEstimate
-from estimators.filters.gyro_kf import GyroIntegrator
+from rollingstar.estimators.attitude.base import AttitudeSolver
+from rollingstar.estimators.attitude.gtsam_graph import (
+    ahrs_factor,
+    bias_key,
+    bias_prior_factor,
+    bias_walk_factor,
+    rot_key,
+    rotation_of,
+    rotation_params,
+    star_factors,
+    to_rot3,
+)
+from rollingstar.estimators.attitude.motion_model import (
+    MotionModelParams,
+    motion_noise,
+    resolve_mode,
+)
+from rollingstar.estimators.attitude.observations import (
+    StarObservations,
+    default_sigma_px,
+    star_observations,
+)
+from rollingstar.estimators.attitude.robust import apply_robust
+from rollingstar.estimators.attitude.wahba import quest, quest_covariance
+from rollingstar.estimators.data import AttitudeEstimate, FrameData, RateEstimate
+from rollingstar.estimators.filters.gyro_kf import GyroIntegrator
 
 __all__ = ["GtsamSmoother", "GtsamParams"]
 
@@ -105,7 +122,7 @@ class _Block:
 class GtsamSmoother(AttitudeSolver):
     """Factor-graph attitude smoother over Rot3 states at the stars' own times (GTSAM); batch
     Levenberg-Marquardt or fixed-lag. See the module docstring for the graph, the modes and the
-    outputs; the star and motion factors are in :mod:`estimators.attitude.gtsam_graph`."""
+    outputs; the star and motion factors are in :mod:`rollingstar.estimators.attitude.gtsam_graph`."""
 
     name = "gtsam"
     Params = GtsamParams

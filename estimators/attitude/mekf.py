@@ -16,13 +16,21 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from estimators.attitude.base import AttitudeSolver
-from estimators.attitude.motion_model import MotionModelParams, motion_noise, resolve_mode
-from estimators.attitude.robust import apply_robust
-from estimators.attitude.observations import default_sigma_px, star_observations, tangent_basis
-from estimators.attitude.wahba import quest, quest_covariance
-from estimators.data import AttitudeEstimate, FrameData, RateEstimate
-from estimators.filters.gyro_kf import GyroIntegrator
+from rollingstar.estimators.attitude.base import AttitudeSolver
+from rollingstar.estimators.attitude.motion_model import (
+    MotionModelParams,
+    motion_noise,
+    resolve_mode,
+)
+from rollingstar.estimators.attitude.observations import (
+    default_sigma_px,
+    star_observations,
+    tangent_basis,
+)
+from rollingstar.estimators.attitude.robust import apply_robust
+from rollingstar.estimators.attitude.wahba import quest, quest_covariance
+from rollingstar.estimators.data import AttitudeEstimate, FrameData, RateEstimate
+from rollingstar.estimators.filters.gyro_kf import GyroIntegrator
 
 __all__ = ["MekfFilter", "MekfParams", "skew", "propagation_matrices", "star_update"]
 
@@ -101,7 +109,7 @@ class MekfFilter(AttitudeSolver):
     State: the camera-to-ICRS attitude ``R`` (kept as a rotation; the filter estimates the small
     error ``dtheta``, ``R_true = R Exp(dtheta)``, and resets it after every update) and ``beta``, the
     gyro bias (``motion_model`` gyro) or minus the body rate (constant_rate), see
-    :mod:`estimators.attitude.motion_model`. Per frame:
+    :mod:`rollingstar.estimators.attitude.motion_model`. Per frame:
 
     1. gyro samples are added to a zero-order-hold integrator (:class:`GyroIntegrator`); the
        samples of a frame's rows arrive with the next frame, so a propagation beyond the newest

@@ -22,7 +22,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from estimators.attitude.observations import ObservationParams
+from rollingstar.estimators.attitude.observations import ObservationParams
 
 DEG = np.pi / 180.0
 ARCSEC = DEG / 3600.0

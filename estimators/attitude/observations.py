@@ -18,10 +18,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
-from estimators.attitude.robust import RobustParams
-from estimators.data import StarTable
+from rollingstar.estimators.attitude.robust import RobustParams
+from rollingstar.estimators.data import StarTable
 
 __all__ = ["StarObservations", "star_observations", "ObservationParams", "default_sigma_px", "tangent_basis"]
 

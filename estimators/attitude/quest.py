@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 from pydantic import ConfigDict, Field
 
-from estimators.attitude.base import AttitudeSolver
-from estimators.attitude.robust import RobustParams, apply_robust
-from estimators.attitude.wahba import quest, quest_covariance
-from estimators.data import AttitudeEstimate, FrameData
+from rollingstar.estimators.attitude.base import AttitudeSolver
+from rollingstar.estimators.attitude.robust import RobustParams, apply_robust
+from rollingstar.estimators.attitude.wahba import quest, quest_covariance
+from rollingstar.estimators.data import AttitudeEstimate, FrameData
 
 
 class QuestParams(RobustParams):

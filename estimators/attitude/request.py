@@ -18,9 +18,9 @@ import numpy as np
 from pydantic import ConfigDict, Field
 from scipy.spatial.transform import Rotation
 
-from estimators.attitude.base import AttitudeSolver
-from estimators.attitude.robust import RobustParams, apply_robust
-from estimators.data import AttitudeEstimate, FrameData
+from rollingstar.estimators.attitude.base import AttitudeSolver
+from rollingstar.estimators.attitude.robust import RobustParams, apply_robust
+from rollingstar.estimators.data import AttitudeEstimate, FrameData
 
 __all__ = ["RequestSolver", "RequestParams", "davenport_k", "transition_matrix", "propagate_k", "dominant_quaternion"]
 
@@ -72,7 +72,7 @@ def davenport_k(obs_cam, ref_icrs, weights) -> tuple[np.ndarray, np.ndarray]:
     ``dS = dB + dB^T`` (27), ``dsigma = sum a w^T v = tr dB`` (25, index restored),
     ``dz = sum a w x v`` (28), ``dK = [[dS - dsigma I, dz], [dz^T, dsigma]]`` (29); ``db = sum a`` (24).
     Normalised by ``b`` this is eqs (18)-(23). The dominant eigenvector of K is the scalar-last
-    quaternion of the camera-to-ICRS rotation (see :mod:`estimators.attitude.wahba`).
+    quaternion of the camera-to-ICRS rotation (see :mod:`rollingstar.estimators.attitude.wahba`).
     """
     w = np.asarray(obs_cam, dtype=float)
     v = np.asarray(ref_icrs, dtype=float)

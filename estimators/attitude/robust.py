@@ -32,8 +32,8 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from estimators.attitude.wahba import quest
-from estimators.data import FrameData, StarTable
+from rollingstar.estimators.attitude.wahba import quest
+from rollingstar.estimators.data import FrameData, StarTable
 
 __all__ = ["RobustParams", "robust_gate", "apply_robust", "star_residuals_rad"]
 

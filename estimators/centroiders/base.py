@@ -1,7 +1,7 @@
 """Centroiders: raw image -> detected spots (``frame.stars``, unidentified)."""
 from __future__ import annotations
 
-from estimators.plugin import Plugin
+from rollingstar.estimators.plugin import Plugin
 
 
 class Centroider(Plugin):

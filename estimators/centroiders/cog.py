@@ -9,11 +9,11 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from estimators.centroiders.base import Centroider
-from estimators.centroiders.edge import with_edge_bias
-from estimators.centroiders.saturation import with_clipping
-from estimators.centroiders.window_cog import _grow as grow_stack
-from estimators.data import FrameData, StarTable
+from rollingstar.estimators.centroiders.base import Centroider
+from rollingstar.estimators.centroiders.edge import with_edge_bias
+from rollingstar.estimators.centroiders.saturation import with_clipping
+from rollingstar.estimators.centroiders.window_cog import _grow as grow_stack
+from rollingstar.estimators.data import FrameData, StarTable
 
 _MAD_TO_SIGMA = 1.482602218505602  # 1 / Phi^-1(3/4): MAD of a Gaussian -> its sigma
 
@@ -76,10 +76,10 @@ class CogCentroider(Centroider):
        propagation through the CoG, per axis; shot noise and PSF-sampling bias not included). A
        saturated spot's clipped, noise-free flat top carries no sub-pixel information: its
        ``sigma_px`` adds in quadrature the RMS sampling error of a clipped spot's CoG,
-       :func:`estimators.centroiders.saturation.clipped_cog_sigma_px` (from its flux, its number of
+       :func:`rollingstar.estimators.centroiders.saturation.clipped_cog_sigma_px` (from its flux, its number of
        pixels at the saturation level and the saturation level above background). A spot with a
        pixel on the detector's outermost rows or columns whose profile is cut by the edge adds in
-       quadrature the CoG bias of the cut, :func:`estimators.centroiders.edge.edge_bias_px`, and
+       quadrature the CoG bias of the cut, :func:`rollingstar.estimators.centroiders.edge.edge_bias_px`, and
        the frame is flagged ``edge_truncated_stars:N`` (``reject_border`` drops such spots instead).
     5. Times: ``row_time_ns = timing.row_start_ns(t0, y)`` and ``t_ns = timing.row_mid_exposure_ns(t0, y)``
        (the time a static-PSF centroid refers to).

@@ -1,7 +1,7 @@
 """Position uncertainty of a saturated (clipped, flat-topped) spot's centre of gravity.
 
 A saturated spot has lost its peak: every pixel above the saturation level ``S`` reads ``S``.
-The background-noise propagation of the CoG (``sigma_px`` of :mod:`estimators.centroiders.cog`)
+The background-noise propagation of the CoG (``sigma_px`` of :mod:`rollingstar.estimators.centroiders.cog`)
 then claims an accuracy the spot does not have: the clipped pixels carry no noise *and* no
 sub-pixel information. What remains is a deterministic, sub-pixel-phase dependent sampling error.
 
@@ -48,7 +48,7 @@ import numpy as np
 from scipy.special import jv
 
 _MAX_FREQ = 4
-_KL = np.array([(k, l) for k in range(-_MAX_FREQ, _MAX_FREQ + 1) for l in range(-_MAX_FREQ, _MAX_FREQ + 1) if (k, l) != (0, 0)],
+_KL = np.array([(k, m) for k in range(-_MAX_FREQ, _MAX_FREQ + 1) for m in range(-_MAX_FREQ, _MAX_FREQ + 1) if (k, m) != (0, 0)],
                dtype=float)
 _RHO = np.hypot(_KL[:, 0], _KL[:, 1])
 _AXIS_WEIGHT = (_KL[:, 0] / _RHO) ** 2  # (k / rho)^2: the x-axis share of each frequency

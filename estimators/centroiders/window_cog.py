@@ -22,7 +22,7 @@ into one ``(n, h, w)`` array and every step runs once for the stack:
    higher label wins where rings meet), then per component (``np.bincount``) with ``d = I - b``:
    ``flux = sum d``, ``x = sum d x / flux``, ``y = sum d y / flux``, ``peak``, ``npix``,
    ``saturated``, ``snr = flux / sqrt(npix s^2 + flux / g)`` (no shot term without a gain ``g``), ``sigma_px = s sqrt(sum r^2) / (sqrt(2) flux)``
-   (saturated spots: plus the clipped-spot term in quadrature, :mod:`estimators.centroiders.saturation`);
+   (saturated spots: plus the clipped-spot term in quadrature, :mod:`rollingstar.estimators.centroiders.saturation`);
 5. per window the kept component nearest to the window's predicted position is returned.
 
 This is the ``cog`` centroider's definition (Liebe 2002; see ``estimators/centroiders/cog.py``)
@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from estimators.centroiders.saturation import with_clipping
+from rollingstar.estimators.centroiders.saturation import with_clipping
 
 _MAD_TO_SIGMA = 1.482602218505602
 _TRUNC3 = 0.98658  # std of a unit normal truncated to +-3

@@ -1,6 +1,6 @@
 """Gyro history for the ``windowed`` centroider's prediction, compiled (liu2013 eqs 8-10 inputs).
 
-:class:`FastGyroIntegrator` is :class:`estimators.filters.gyro_kf.GyroIntegrator` (same model, same
+:class:`FastGyroIntegrator` is :class:`rollingstar.estimators.filters.gyro_kf.GyroIntegrator` (same model, same
 knot arrays ``tau``, ``rate``, ``theta``, ``psi``, same answers: tested to 1e-12) with its per-frame
 :meth:`~FastGyroIntegrator.add` and :meth:`~FastGyroIntegrator.trim` compiled over preallocated
 buffers, and :func:`gyro_increment` its ``increment`` compiled. Why: the numpy versions cost ~26 us
@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from estimators.data import GyroSamples
-from estimators.filters.gyro_kf import NS, GyroIntegrator
+from rollingstar.estimators.data import GyroSamples
+from rollingstar.estimators.filters.gyro_kf import NS, GyroIntegrator
 
 
 @njit(cache=True, nogil=True)
@@ -49,7 +49,7 @@ def _append(tau, rate, theta, psi, m, ts, w):  # pragma: no cover - compiled
 
 
 class FastGyroIntegrator(GyroIntegrator):
-    """:class:`~estimators.filters.gyro_kf.GyroIntegrator` with a compiled ``add`` and ``trim``
+    """:class:`~rollingstar.estimators.filters.gyro_kf.GyroIntegrator` with a compiled ``add`` and ``trim``
     (module docstring). ``tau``, ``rate``, ``theta``, ``psi`` are views of growing buffers."""
 
     def __init__(self, *args, **kwargs):
@@ -108,7 +108,7 @@ class FastGyroIntegrator(GyroIntegrator):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def gyro_increment(tau, psi, theta, rate, origin_ns, t_from, t_to, exposure_ns, exposure_mean):  # pragma: no cover
-    """:meth:`estimators.filters.gyro_kf.GyroIntegrator.increment` compiled, (n, 3) rad, from the
+    """:meth:`rollingstar.estimators.filters.gyro_kf.GyroIntegrator.increment` compiled, (n, 3) rad, from the
     integrator's knot arrays (``tau``, ``psi``, ``theta``, ``rate``, ``origin_ns``): with
     ``exposure_mean`` the increment between the means of the body angle over the exposure windows
     (``exposure_ns`` long) starting at ``t_from`` and at ``t_to``,

@@ -1,6 +1,6 @@
 """Compiled CoG of a few readout windows, read in place from the frame (liu2013 sec 2.1; numba).
 
-The same spot definition as :func:`estimators.centroiders.window_cog.centroid_windows` (the ``cog``
+The same spot definition as :func:`rollingstar.estimators.centroiders.window_cog.centroid_windows` (the ``cog``
 centroider's, applied per window; see that module's docstring, steps 3-5), given each window's
 background ``b_k`` and noise ``s_k``:
 
@@ -16,7 +16,7 @@ background ``b_k`` and noise ``s_k``:
    ``npix``, ``saturated = max I >= saturation`` (over the pixels above threshold),
    ``snr = flux / sqrt(npix s^2 + flux / g)``, ``sigma_px = s sqrt(sum r^2) / (sqrt(2) flux)`` and the
    number of pixels at the saturation level (the callers add the clipped-spot term to a saturated
-   spot's ``sigma_px``, :func:`estimators.centroiders.saturation.with_clipping`: its Bessel sums are scipy's);
+   spot's ``sigma_px``, :func:`rollingstar.estimators.centroiders.saturation.with_clipping`: its Bessel sums are scipy's);
    components with ``flux <= 0`` (or, with ``reject_border``, touching the window edge) are dropped;
 4. per window the component whose centroid is nearest to the predicted position ``(px_k, py_k)``
    (window coordinates) is returned, ties to the brighter.
@@ -39,9 +39,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from estimators.centroiders.edge import MARGIN_SIGMAS
-from estimators.centroiders.saturation import with_clipping
-from estimators.centroiders.window_gyro import gyro_increment
+from rollingstar.estimators.centroiders.edge import MARGIN_SIGMAS
+from rollingstar.estimators.centroiders.saturation import with_clipping
+from rollingstar.estimators.centroiders.window_gyro import gyro_increment
 
 BG_STEP = 4  # background sums over every 4th row (all columns, contiguous): 1024 of a 64 x 64 window's pixels
 
@@ -345,7 +345,7 @@ def predict_windows(x, y, dtheta, cx, cy, f, height, width, h, w):  # pragma: no
     """liu2013 eqs (8)-(10) and the window placement, per star: ``u = x - cx``, ``v = y - cy``,
     ``dx = -(u v / f) dtheta_x + (f + u^2 / f) dtheta_y + v dtheta_z``,
     ``dy = -(f + v^2 / f) dtheta_x + (u v / f) dtheta_y - u dtheta_z`` (the Jacobian of
-    :func:`estimators.filters.gyro_kf.star_motion_jacobian`, applied without building it),
+    :func:`rollingstar.estimators.filters.gyro_kf.star_motion_jacobian`, applied without building it),
     ``(px, py) = (x + dx, y + dy)``; the ``h x w`` window centred on the rounded prediction and
     shifted onto the ``height x width`` detector starts at ``(r0, c0)``. Returns
     ``px, py, r0, c0`` (non-finite predictions give ``r0 = c0 = 0``)."""
@@ -389,7 +389,7 @@ def centroid_windows_at(image: np.ndarray, r0: np.ndarray, c0: np.ndarray, h: in
 
     Returns ``(WindowSpots, bgsum)`` (``bgsum`` (n, 3): count, sum d, sum d^2 over each window's
     background pixels, see the module docstring)."""
-    from estimators.centroiders.window_cog import WindowSpots
+    from rollingstar.estimators.centroiders.window_cog import WindowSpots
 
     img = np.asarray(image)
     clip = min(3.0, float(threshold_sigma))
@@ -424,7 +424,7 @@ def any_coincident(x, y, tol):  # pragma: no cover - compiled
 def predict_step(x, y, t_prev, tau, psi, theta, rate, origin_ns, exposure_mean, t0_ns, line_delay_ns, exposure_ns,
                  cx, cy, f, height, width, h, w):  # pragma: no cover - compiled
     """The ``windowed`` centroider's prediction (its class docstring, step 1), compiled: the gyro
-    increment (:func:`~estimators.centroiders.window_gyro.gyro_increment`) from each track's
+    increment (:func:`~rollingstar.estimators.centroiders.window_gyro.gyro_increment`) from each track's
     ``t_prev`` (its row start with ``exposure_mean``, else its ``t_ns``) to the predicted row's
     start (mid-exposure) in the frame starting at ``t0_ns``, then eqs (8)-(10) and the windows
     (:func:`predict_windows`). With a rolling shutter (``line_delay_ns > 0``) twice, the second
@@ -482,7 +482,7 @@ def track_windows(image, integer, x, y, t_prev, tau, psi, theta, rate, origin_ns
 @njit(cache=True, nogil=True)
 def any_near_edge(x, y, flux, peak, width, height) -> bool:
     """Whether any spot lies within ``MARGIN_SIGMAS`` of its uncut width of the detector edge (the
-    only spots :func:`estimators.centroiders.edge.edge_bias_px` can find cut; the same test as its
+    only spots :func:`rollingstar.estimators.centroiders.edge.edge_bias_px` can find cut; the same test as its
     ``near_edge``, which stays the reference). Compiled because the windowed centroider asks it on
     every tracking frame, whose whole budget is ~70 us: one call instead of six small-array numpy
     calls (the windowed line of `rollingstar bench perf` times the tracking frame with it)."""

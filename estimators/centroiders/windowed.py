@@ -7,15 +7,27 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from estimators.centroiders.base import Centroider
-from estimators.centroiders.cog import CogCentroider, CogParams
-from estimators.centroiders.edge import with_edge_bias
-from estimators.centroiders.saturation import with_clipping
-from estimators.centroiders.window_cog import centroid_windows, cut_windows, median_rows, robust_sigma_rows
-from estimators.centroiders.window_gyro import FastGyroIntegrator
-from estimators.centroiders.window_kernel import (any_coincident, any_near_edge, centroid_windows_kernel, predict_step, track_windows,
-                                                  truncated_normal_std, workspace)
-from estimators.data import FrameData, SensorContext, StarTable
+from rollingstar.estimators.centroiders.base import Centroider
+from rollingstar.estimators.centroiders.cog import CogCentroider, CogParams
+from rollingstar.estimators.centroiders.edge import with_edge_bias
+from rollingstar.estimators.centroiders.saturation import with_clipping
+from rollingstar.estimators.centroiders.window_cog import (
+    centroid_windows,
+    cut_windows,
+    median_rows,
+    robust_sigma_rows,
+)
+from rollingstar.estimators.centroiders.window_gyro import FastGyroIntegrator
+from rollingstar.estimators.centroiders.window_kernel import (
+    any_coincident,
+    any_near_edge,
+    centroid_windows_kernel,
+    predict_step,
+    track_windows,
+    truncated_normal_std,
+    workspace,
+)
+from rollingstar.estimators.data import FrameData, SensorContext, StarTable
 
 NS = 1e-9
 
@@ -54,26 +66,26 @@ class WindowedCentroider(Centroider):
     """Centroids only inside small windows predicted from the gyro (liu2013 sec 2.1).
 
     Frame 0, or any frame where a guide star is lost: full-frame detection with the ``cog`` core
-    (:class:`~estimators.centroiders.cog.CogCentroider`, same ``cog`` params); the brightest
+    (:class:`~rollingstar.estimators.centroiders.cog.CogCentroider`, same ``cog`` params); the brightest
     ``n_guide_stars`` spots become the guide stars and are the output.
 
     Other frames, for every guide star (batched):
 
     1. prediction, eq (10): ``(x, y)_k = (x, y)_{k-1} + J (x, y)_{k-1} dtheta`` with ``J`` liu2013
-       eq (8) derived for our camera convention (:func:`~estimators.filters.gyro_kf.star_motion_jacobian`)
+       eq (8) derived for our camera convention (:func:`~rollingstar.estimators.filters.gyro_kf.star_motion_jacobian`)
        and ``dtheta`` the gyro angle increment from the previous centroid's time to this frame's
-       (:class:`~estimators.filters.gyro_kf.GyroIntegrator`; with ``exposure_mean`` the increment of
+       (:class:`~rollingstar.estimators.filters.gyro_kf.GyroIntegrator`; with ``exposure_mean`` the increment of
        the exposure-window means, see there). For a rolling shutter the new row time uses the
        predicted row. Compiled, with steps 3-4, in one call per frame
-       (:func:`~estimators.centroiders.window_kernel.track_windows`; the gyro history is
-       :class:`~estimators.centroiders.window_gyro.FastGyroIntegrator`, the same model compiled).
+       (:func:`~rollingstar.estimators.centroiders.window_kernel.track_windows`; the gyro history is
+       :class:`~rollingstar.estimators.centroiders.window_gyro.FastGyroIntegrator`, the same model compiled).
     2. predicted 1-sigma error per axis (:meth:`predict`): the previous centroid's ``sigma_px``,
        the gyro angle random walk ``F N sqrt(dt)`` and the second-order term ``F |dtheta|^2``
        (neglected by eq 8), added in quadrature.
     3. a ``window_px`` square centred on the rounded prediction, shifted to lie on the detector,
        is centroided with the ``cog`` definition, all windows in one compiled pass that reads them
-       in place (:func:`~estimators.centroiders.window_kernel.centroid_windows_at`; ``kernel:
-       numpy``: the vectorised numpy pass :func:`~estimators.centroiders.window_cog.centroid_windows`,
+       in place (:func:`~rollingstar.estimators.centroiders.window_kernel.centroid_windows_at`; ``kernel:
+       numpy``: the vectorised numpy pass :func:`~rollingstar.estimators.centroiders.window_cog.centroid_windows`,
        same spots); the spot nearest the prediction is kept. A window without a spot, or two stars
        claiming one spot, means the star is lost: the frame falls back to full-frame detection.
     4. background ``b_k`` and noise ``s_k`` of window ``k`` (``background``): ``window`` takes the
@@ -157,7 +169,7 @@ class WindowedCentroider(Centroider):
         return x, y, sigma
 
     def _predict_windows(self, t0_ns: int):
-        """Eq (10), compiled (:func:`~estimators.centroiders.window_kernel.predict_step`): predicted
+        """Eq (10), compiled (:func:`~rollingstar.estimators.centroiders.window_kernel.predict_step`): predicted
         ``px, py``, window origins ``r0, c0``, gyro increments ``dtheta`` (n, 3), their spans (s)."""
         tr = self._tracks
         g = self._gyro

@@ -1,7 +1,7 @@
 """Rolling-shutter corrections: move star positions to a common time or undo centroid bias."""
 from __future__ import annotations
 
-from estimators.plugin import Plugin
+from rollingstar.estimators.plugin import Plugin
 
 
 class Correction(Plugin):

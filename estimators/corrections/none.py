@@ -1,8 +1,8 @@
 """The identity rolling-shutter correction (the baseline: solve with the raw centroids)."""
 from __future__ import annotations
 
-from estimators.corrections.base import Correction
-from estimators.data import FrameData
+from rollingstar.estimators.corrections.base import Correction
+from rollingstar.estimators.data import FrameData
 
 
 class NoCorrection(Correction):

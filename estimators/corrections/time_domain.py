@@ -37,8 +37,8 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from estimators.corrections.base import Correction
-from estimators.data import FrameData
+from rollingstar.estimators.corrections.base import Correction
+from rollingstar.estimators.data import FrameData
 
 
 def reference_time_ns(timing, t0_ns: int, reference_row: float | None = None) -> int:

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from estimators.diagnosis.residuals import z_from_sf
+from rollingstar.estimators.diagnosis.residuals import z_from_sf
 
 Z_LIMIT = 4.5
 CELLS = 4

@@ -11,9 +11,9 @@ training set)::
     e_k = log(G_k^T S_k)                                   (rad, body frame of frame k)
 
 where ``omega_j'`` are the gyro samples corrected by the model's gyro effects (first order:
-``omega' = omega - (g(omega) - omega)`` with ``g`` = :func:`sensors.effects.chain.apply_gyro`)
+``omega' = omega - (g(omega) - omega)`` with ``g`` = :func:`rollingstar.sensors.effects.chain.apply_gyro`)
 and ``dt_jk`` the overlap of sample ``j``'s interval ``(t_{j-1}, t_j]`` (interval-average rates,
-:mod:`sensors.gyro`) with the window.
+:mod:`rollingstar.sensors.gyro`) with the window.
 
 Noise. To first order ``e_k = delta_{k+1} - delta_k + n_k``: the attitude errors ``delta`` of the
 image fit (covariance ``C_k``, the inverse of frame ``k``'s normal matrix with the recording's
@@ -35,8 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from sensors.conventions import NS_PER_S
-from sensors.effects.chain import gyro_effects
+from rollingstar.sensors.conventions import NS_PER_S
+from rollingstar.sensors.effects.chain import gyro_effects
 
 
 @dataclass(frozen=True, eq=False)
@@ -114,7 +114,7 @@ def gyro_signature(effect, gyro: GyroData, t_ref_ns: np.ndarray) -> np.ndarray:
 
 def attitude_covariances(frame: np.ndarray, n_frames: int, att_jac: np.ndarray, sigma: np.ndarray, mask) -> np.ndarray:
     """``C_k``: inverse of each frame's attitude normal matrix over the stars in ``mask``, (F, 3, 3)."""
-    from estimators.diagnosis.observations import frame_normal
+    from rollingstar.estimators.diagnosis.observations import frame_normal
 
     wts = np.where(mask, 1.0 / sigma**2, 0.0)
     a, _ = frame_normal(frame, n_frames, att_jac, wts, np.zeros((frame.size, 2, 1)))
@@ -189,7 +189,7 @@ def channel_rows(obs, pred) -> np.ndarray:
 
 def absorbed_rotations(frame: np.ndarray, n_frames: int, att_jac_w: np.ndarray, cols_w: np.ndarray) -> np.ndarray:
     """Per-frame least-squares rotation (F, 3, m) fitted to whitened image columns (n, 2, m)."""
-    from estimators.diagnosis.observations import frame_normal, solve_frames
+    from rollingstar.estimators.diagnosis.observations import frame_normal, solve_frames
 
     a, b = frame_normal(frame, n_frames, att_jac_w, np.ones(frame.shape[0]), cols_w)
     return solve_frames(a, b)

@@ -1,9 +1,9 @@
-"""The candidate effects a diagnosis searches: adapters over :mod:`sensors.effects`.
+"""The candidate effects a diagnosis searches: adapters over :mod:`rollingstar.sensors.effects`.
 
 A :class:`Candidate` wraps one registered effect class and gives the diagnosis what it needs: the
 linearised image-plane signature ``d(x', y')/d(theta)`` at the "effect absent" values
 (``EffectParameter.default``) evaluated inside the scenario's effect chain
-(:func:`sensors.effects.chain.chain_jacobian`), instances at any ``theta`` for the nonlinear
+(:func:`rollingstar.sensors.effects.chain.chain_jacobian`), instances at any ``theta`` for the nonlinear
 forward model, the physics text, the declared aliases with their separating experiments, and the
 scenario entry that switches it on.
 
@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from sensors.effects import EFFECTS
-from sensors.effects.chain import chain_jacobian
+from rollingstar.sensors.effects import EFFECTS
+from rollingstar.sensors.effects.chain import chain_jacobian
 
 
 class Candidate:
@@ -50,7 +50,7 @@ class Candidate:
 
     def testable(self, ctx, gyro: bool = False) -> str | None:
         """None when the recording can show this effect, else the reason it cannot (``gyro``: the
-        recording has the gyro/attitude-increment channel, :mod:`estimators.diagnosis.gyro_channel`)."""
+        recording has the gyro/attitude-increment channel, :mod:`rollingstar.estimators.diagnosis.gyro_channel`)."""
         if "image" not in self.channels and "time" not in self.channels and not (gyro and "gyro" in self.channels):
             return f"no image-plane signature (channels: {', '.join(sorted(self.channels))})"
         missing = [k for k in self.needs if (k.startswith("covariate:") and k.split(":", 1)[1] not in ctx.covariates)
@@ -63,8 +63,8 @@ class Candidate:
         """``d(x', y')/d(theta)`` at the absent values inside the base chain, (n, 2, m), px per unit.
 
         ``exposure_ns`` (per observation) evaluates a recording that mixes exposure times group by
-        group (:func:`estimators.diagnosis.observations.by_exposure`)."""
-        from estimators.diagnosis.observations import by_exposure
+        group (:func:`rollingstar.estimators.diagnosis.observations.by_exposure`)."""
+        from rollingstar.estimators.diagnosis.observations import by_exposure
 
         eff = self.instance()
         chain = tuple(base_effects) + (eff,)

@@ -2,7 +2,7 @@
 
 Every identified star ``i`` of frame ``k`` is one observation: measured pixel position
 ``(x_i, y_i)`` with 1-sigma ``sigma_i`` per axis, catalogue direction ``u_i`` (ICRS), the time its
-position refers to ``t_i`` (mid-exposure of its own row, see :mod:`sensors.centroid_sim`).
+position refers to ``t_i`` (mid-exposure of its own row, see :mod:`rollingstar.sensors.centroid_sim`).
 
 The *simulation model* predicts it from a per-frame attitude ``R_k`` at the frame reference time
 ``t_ref,k`` (mid-exposure of the middle row) and a per-frame body rate ``omega_k``::
@@ -11,8 +11,8 @@ The *simulation model* predicts it from a per-frame attitude ``R_k`` at the fram
     w_i    = R(t_i)^T u_i                               (camera frame)
     (x, y) = chain(project(w_i))                         (he2021b eq 2, then the effect chain)
 
-where the chain is :func:`sensors.effects.chain.predict` over the scenario's effects (and the
-candidate effects being fitted) with the per-star :class:`~sensors.effects.base.EffectContext`.
+where the chain is :func:`rollingstar.sensors.effects.chain.predict` over the scenario's effects (and the
+candidate effects being fitted) with the per-star :class:`~rollingstar.sensors.effects.base.EffectContext`.
 
 The attitude is the always-refitted nuisance. Its image-plane Jacobian is a small body rotation
 ``delta`` (``R -> R Exp(delta)`` gives ``w -> w + w x delta``)::
@@ -32,10 +32,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from sensors.conventions import NS_PER_S
-from sensors.effects.base import EffectContext
-from sensors.effects.chain import predict as chain_predict
-
+from rollingstar.sensors.conventions import NS_PER_S
+from rollingstar.sensors.effects.base import EffectContext
+from rollingstar.sensors.effects.chain import predict as chain_predict
 
 POS_STEP_PX = 1e-3
 # A frame takes a one-sided (backward/forward) rate instead of the central difference only when it
@@ -141,7 +140,7 @@ def camera_rotations(obs: Observations, nuis: Nuisance) -> Rotation:
 
 
 def effect_context(obs: Observations, camera, timing, rot: Rotation, x, y, vx, vy, omega) -> EffectContext:
-    """The per-observation :class:`sensors.effects.base.EffectContext` of the ideal positions."""
+    """The per-observation :class:`rollingstar.sensors.effects.base.EffectContext` of the ideal positions."""
     return EffectContext(camera=camera, x=x, y=y, t_ns=obs.t_ns, row=obs.y, t0_ns=obs.t0_ns[obs.frame],
                          frame=obs.frame, magnitude=obs.magnitude, vx=vx, vy=vy, omega_rad_s=omega,
                          attitude=rot, unit_icrs=obs.u_icrs, pm_rad_yr=obs.pm_rad_yr, timing=timing,
@@ -151,7 +150,7 @@ def effect_context(obs: Observations, camera, timing, rot: Rotation, x, y, vx, v
 def by_exposure(ctx: EffectContext, exposure_ns, fn):
     """``fn(ctx)`` evaluated per exposure time of a recording that mixes them.
 
-    :class:`~sensors.effects.base.EffectContext` carries one :class:`~sensors.timing.DetectorTiming`;
+    :class:`~rollingstar.sensors.effects.base.EffectContext` carries one :class:`~rollingstar.sensors.timing.DetectorTiming`;
     a recording whose frames alternate exposure times (``Observations.exposure_ns``) is evaluated
     group by group with that group's exposure (one call per distinct exposure, not per star) and
     the results (arrays over observations, first axis) put back in order. ``fn`` returns an array

@@ -16,9 +16,13 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
-from estimators.diagnosis.gyro_channel import channel_rows
-from estimators.diagnosis.library import Candidate
-from estimators.diagnosis.observations import Nuisance, Observations, fit_attitudes
+from rollingstar.estimators.diagnosis.gyro_channel import channel_rows
+from rollingstar.estimators.diagnosis.library import Candidate
+from rollingstar.estimators.diagnosis.observations import (
+    Nuisance,
+    Observations,
+    fit_attitudes,
+)
 
 STABILITY_Z = 3.0
 
@@ -119,7 +123,7 @@ def rate_operator(nuis: Nuisance, t_ref_ns: np.ndarray) -> np.ndarray:
     :func:`observations.rates_from_attitudes`) is recovered as the candidate closest to
     ``nuis.omega``; the operator then keeps that choice while the attitudes move.
     """
-    from estimators.diagnosis.observations import rates_from_attitudes
+    from rollingstar.estimators.diagnosis.observations import rates_from_attitudes
 
     f = len(t_ref_ns)
     c = np.zeros((f, max(f - 1, 0)))
@@ -172,7 +176,7 @@ def joint_refit(obs: Observations, nuis: Nuisance, camera, timing, base_effects,
     """
     from scipy.spatial.transform import Rotation
 
-    from estimators.diagnosis.observations import predict
+    from rollingstar.estimators.diagnosis.observations import predict
 
     if not candidates:
         return {"thetas": [], "sigmas": [], "corr": np.zeros((0, 0)), "nuisance": nuis, "success": True, "cost": None}

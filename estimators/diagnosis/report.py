@@ -48,7 +48,11 @@ def quiver_maps(internals: dict, path: Path) -> None:
 
 
 def covariate_plot(result: dict, internals: dict, path: Path) -> str | None:
-    from estimators.diagnosis.residuals import binned_structure, channels, covariates
+    from rollingstar.estimators.diagnosis.residuals import (
+        binned_structure,
+        channels,
+        covariates,
+    )
 
     loc = internals["located_full"]
     top = loc["_structure_full"][0] if loc["_structure_full"] else None
@@ -68,7 +72,7 @@ def covariate_plot(result: dict, internals: dict, path: Path) -> str | None:
     ax.axhline(0, color="k", lw=0.8)
     ax.set_xlabel(top["covariate"])
     ax.set_ylabel(f"{top['channel']} residual / sigma (bin mean)")
-    ax.set_title(f"residual vs the covariate that exposed the mismatch")
+    ax.set_title("residual vs the covariate that exposed the mismatch")
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=90)

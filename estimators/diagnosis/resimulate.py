@@ -8,9 +8,9 @@ diagnosis fitted, the recording's sigmas -- and draws fresh Gaussian centroid no
 
     (x, y)_sim = chain(project(R(t_i)^T u_i)) + sigma_i n_i,     n_i ~ N(0, I)
 
-(the forward model of :func:`estimators.diagnosis.observations.predict`, i.e. the scenario's
+(the forward model of :func:`rollingstar.estimators.diagnosis.observations.predict`, i.e. the scenario's
 effect chain; for a constant rate within a frame it is the simulator's model, see
-:mod:`sensors.effects.chain`). Both recordings then go through the same nuisance fit (attitude,
+:mod:`rollingstar.sensors.effects.chain`). Both recordings then go through the same nuisance fit (attitude,
 rates from the attitude sequence) under the model, and their normalised residuals
 ``(obs - model) / sigma`` (both axes, every star) are compared by the two-sample
 Kolmogorov-Smirnov test (``scipy.stats.ks_2samp``) and the k-sample Anderson-Darling test
@@ -27,7 +27,12 @@ from dataclasses import replace
 import numpy as np
 from scipy import stats
 
-from estimators.diagnosis.observations import Nuisance, Observations, fit_nuisance, predict
+from rollingstar.estimators.diagnosis.observations import (
+    Nuisance,
+    Observations,
+    fit_nuisance,
+    predict,
+)
 
 
 def normalised_residuals(obs: Observations, pred) -> np.ndarray:

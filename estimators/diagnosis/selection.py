@@ -34,7 +34,7 @@ def project_frames(frame: np.ndarray, n_frames: int, att_jac: np.ndarray, cols: 
     ``att_jac`` (n, 2, 3) must be whitened the same way. Returns (n, 2, m). Vectorised over stars
     with per-frame normal equations (``np.add.at``).
     """
-    from estimators.diagnosis.observations import frame_normal, solve_frames
+    from rollingstar.estimators.diagnosis.observations import frame_normal, solve_frames
 
     a, b = frame_normal(frame, n_frames, att_jac, np.ones(frame.shape[0]), cols)
     coef = solve_frames(a, b)  # (F, 3, m)

@@ -1,7 +1,7 @@
 """Star-motion filters: smooth identified star positions over frames and estimate image velocity."""
 from __future__ import annotations
 
-from estimators.plugin import Plugin
+from rollingstar.estimators.plugin import Plugin
 
 
 class StarMotionFilter(Plugin):

@@ -28,8 +28,8 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from estimators.data import FrameData, GyroSamples
-from estimators.filters.base import StarMotionFilter
+from rollingstar.estimators.data import FrameData, GyroSamples
+from rollingstar.estimators.filters.base import StarMotionFilter
 
 NS = 1e-9
 
@@ -52,7 +52,7 @@ class GyroIntegrator:
     """Body-angle history from gyro samples, for increments between arbitrary times.
 
     Sample ``i`` at ``t_i`` holds the mean rate over ``(t_{i-1}, t_i]`` (a rate-integrating gyro,
-    see :mod:`sensors.gyro`); the first sample's interval length is taken from the next spacing
+    see :mod:`rollingstar.sensors.gyro`); the first sample's interval length is taken from the next spacing
     (or ``default_period_s``). Minus the known bias, the rates are held constant over their
     intervals (zero-order hold) and also extrapolated beyond the first/last sample, so the angle
     ``Theta(t) = int omega`` is piecewise linear and its integral ``Psi(t)`` piecewise quadratic;

@@ -39,9 +39,12 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from estimators.data import FrameData
-from estimators.filters.base import StarMotionFilter
-from estimators.filters.kf_cv_kernel import kf_cv_batch_kernel, kf_cv_step_kernel
+from rollingstar.estimators.data import FrameData
+from rollingstar.estimators.filters.base import StarMotionFilter
+from rollingstar.estimators.filters.kf_cv_kernel import (
+    kf_cv_batch_kernel,
+    kf_cv_step_kernel,
+)
 
 H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
 _EYE4 = np.eye(4)

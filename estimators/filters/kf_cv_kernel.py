@@ -1,7 +1,7 @@
 """Compiled recursion of the he2021a constant-velocity Kalman filter (numba).
 
-The same equations as the numpy reference functions :func:`estimators.filters.kf_cv.kf_cv_predict`
-and :func:`~estimators.filters.kf_cv.kf_cv_update` (eq 11 with the corrected eq 8 process noise and
+The same equations as the numpy reference functions :func:`rollingstar.estimators.filters.kf_cv.kf_cv_predict`
+and :func:`~rollingstar.estimators.filters.kf_cv.kf_cv_update` (eq 11 with the corrected eq 8 process noise and
 the Joseph-form covariance update); the tests check the kernels against them and against filterpy.
 
 Why compiled code: a frame has 5-40 tracks of 4 states, so one vectorised numpy step is ~25 array

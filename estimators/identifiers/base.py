@@ -1,7 +1,7 @@
 """Star identifiers: detected spots -> spots matched to catalogue stars."""
 from __future__ import annotations
 
-from estimators.plugin import Plugin
+from rollingstar.estimators.plugin import Plugin
 
 
 class Identifier(Plugin):

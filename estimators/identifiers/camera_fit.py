@@ -1,6 +1,6 @@
 """Radial-distortion camera model and its least-squares fit to identified stars (one or many images).
 
-Model (the convention of :class:`sensors.effects.radial_distortion.RadialDistortion`, Brown-Conrady
+Model (the convention of :class:`rollingstar.sensors.effects.radial_distortion.RadialDistortion`, Brown-Conrady
 radial terms): a camera-frame direction ``w`` goes to the ideal pinhole position (he2021b eq 2)
 ``xn = -w_x / w_z``, ``yn = -w_y / w_z`` (normalised coordinates), then
 
@@ -43,7 +43,7 @@ class RadialCamera:
         return cls(float(camera.focal_px), float(camera.cx), float(camera.cy), float(k1), float(k2))
 
     def pinhole(self, camera):
-        """``camera`` (a :class:`sensors.camera.PinholeCamera`) with this focal length and principal point."""
+        """``camera`` (a :class:`rollingstar.sensors.camera.PinholeCamera`) with this focal length and principal point."""
         return replace(camera, focal_length_m=self.focal_px * camera.pixel_size_m, cx=self.cx, cy=self.cy)
 
     def distort(self, x, y) -> tuple[np.ndarray, np.ndarray]:

@@ -10,12 +10,14 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.transform import Rotation
 from scipy.stats import binom
 
-from estimators.data import FrameData
-from estimators.identifiers.base import Identifier
-from estimators.identifiers.camera_fit import RadialCamera, fit_camera
-from estimators.identifiers.tetra3_database import solver_database
-from estimators.identifiers.tracking import TrackingIdentifier, TrackingParams
-
+from rollingstar.estimators.data import FrameData
+from rollingstar.estimators.identifiers.base import Identifier
+from rollingstar.estimators.identifiers.camera_fit import RadialCamera, fit_camera
+from rollingstar.estimators.identifiers.tetra3_database import solver_database
+from rollingstar.estimators.identifiers.tracking import (
+    TrackingIdentifier,
+    TrackingParams,
+)
 
 
 class LostInSpaceParams(BaseModel):
@@ -90,7 +92,7 @@ class LostInSpaceIdentifier(Identifier):
        is the origin; tetra3rs' +x right, +y down convention) go to
        ``tetra3rs.SolverDatabase.solve_from_centroids`` with a pinhole ``CameraModel`` of the
        context's focal length. The database is built once from the context's own catalogue
-       (:mod:`estimators.identifiers.tetra3_database`) for horizontal fields within
+       (:mod:`rollingstar.estimators.identifiers.tetra3_database`) for horizontal fields within
        ``fov_tolerance`` of the camera's, so the ids it returns are our catalogue ids (with
        ``pattern_catalog_magnitude``, from a deeper Hipparcos-2 list: a recording's catalogue cut
        at Hp 6 leaves too few pattern stars in a 10 deg field).
@@ -141,7 +143,7 @@ class LostInSpaceIdentifier(Identifier):
         tol = self.params.fov_tolerance
         cat = context.catalog
         if self.params.pattern_catalog_magnitude is not None:
-            from sensors.catalog import StarCatalog
+            from rollingstar.sensors.catalog import StarCatalog
 
             cat = StarCatalog.from_hipparcos(cat.epoch_year, self.params.pattern_catalog_magnitude)
         if self.params.magnitude_limit is not None:

@@ -18,7 +18,7 @@ import threading
 
 import numpy as np
 
-from sensors.conventions import unit_to_radec
+from rollingstar.sensors.conventions import unit_to_radec
 
 _GDR3 = np.dtype([("id", "<i8"), ("ra", "<f8"), ("dec", "<f8"), ("mag", "<f4"), ("pmra", "<f4"), ("pmdec", "<f4")])
 _CACHE: dict[tuple, object] = {}
@@ -27,7 +27,7 @@ _MAX_CACHED = 8
 
 
 def catalog_fingerprint(catalog) -> str:
-    """A content hash of a :class:`sensors.catalog.StarCatalog` (ids, directions, magnitudes)."""
+    """A content hash of a :class:`rollingstar.sensors.catalog.StarCatalog` (ids, directions, magnitudes)."""
     h = hashlib.sha1()
     for arr in (catalog.ids, catalog.unit_icrs, catalog.magnitude):
         h.update(np.ascontiguousarray(arr).tobytes())

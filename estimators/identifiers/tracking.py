@@ -6,9 +6,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from estimators.data import FrameData, StarTable
-from estimators.identifiers.base import Identifier
-from sensors.conventions import attitude_from_radec_roll
+from rollingstar.estimators.data import FrameData
+from rollingstar.estimators.identifiers.base import Identifier
+from rollingstar.sensors.conventions import attitude_from_radec_roll
 
 
 class RaDecRoll(BaseModel):

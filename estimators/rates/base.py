@@ -1,10 +1,10 @@
 """Angular-rate estimators: identified stars (and/or gyro) -> camera angular velocity."""
 from __future__ import annotations
 
-from estimators.plugin import Plugin
+from rollingstar.estimators.plugin import Plugin
 
 
 class RateEstimator(Plugin):
-    """Sets ``frame.rate`` to a :class:`~estimators.data.RateEstimate` (camera frame, rad/s)."""
+    """Sets ``frame.rate`` to a :class:`~rollingstar.estimators.data.RateEstimate` (camera frame, rad/s)."""
 
     role = "rate"

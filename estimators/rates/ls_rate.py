@@ -1,6 +1,6 @@
 """Single-frame 3-axis angular rate by least squares on angular-distance invariance.
 
-The problem is fu2022's (eqs 7-16, see :mod:`estimators.rates.pso`): the catalogue angle between two
+The problem is fu2022's (eqs 7-16, see :mod:`rollingstar.estimators.rates.pso`): the catalogue angle between two
 identified stars equals the angle between their camera directions once both are moved to one common
 time. Here it is solved by damped Gauss-Newton (Levenberg-Marquardt) with the analytic Jacobian
 below, for the full rate ``omega = (wx, wy, wz)`` -- the paper's ``omega_z = 0`` installation
@@ -41,7 +41,7 @@ at ``w_i`` towards ``w_j``). From the thin SVD ``G S^(1/2) = U D V^T`` the resid
 ``D^-1 U^T`` (the pseudo-inverse of C, generalised least squares), so all pairs are used without
 double counting; the covariance of the estimate is ``(J_w^T J_w)^-1`` with the whitened Jacobian
 ``J_w``. To first order this is the maximum-likelihood estimate of the rate with the attitude as a
-nuisance, i.e. it attains the single-frame Cramér-Rao bound of :func:`pipelines.truth.rate_crb_rad2`.
+nuisance, i.e. it attains the single-frame Cramér-Rao bound of :func:`rollingstar.pipelines.truth.rate_crb_rad2`.
 
 Hand-written parts: the residual/Jacobian (the model is ours), the whitening, and the solver: a
 damped Gauss-Newton loop on the 3x3 normal equations (:func:`_levenberg_marquardt`), because for a
@@ -51,7 +51,7 @@ least_squares version stays as the reference, :func:`solve_rate_least_squares` (
 least_squares``), built from the numpy functions below, and the tests check the two agree. Per
 frame the omega-independent parts (unit vectors, pair indices, catalogue angles, whitening) are
 computed once (:class:`_Problem`); an evaluation of eqs 1-3 is one compiled loop over the pairs
-(:mod:`estimators.rates.ls_rate_kernel`, numba: ~4 us instead of ~45 us of numpy calls, each
+(:mod:`rollingstar.estimators.rates.ls_rate_kernel`, numba: ~4 us instead of ~45 us of numpy calls, each
 checked against the numpy functions here); the whitening uses the known
 null space of a common rotation and a Cholesky inverse instead of an eigendecomposition
 (:func:`whitening_rotation_null`, falling back to :func:`whitening`). No warm start from the
@@ -68,10 +68,13 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.linalg import lapack
 
-from estimators.corrections.base import Correction
-from estimators.data import FrameData, RateEstimate, StarTable
-from estimators.rates.base import RateEstimator
-from estimators.rates.ls_rate_kernel import pair_setup_kernel, residual_jacobian_kernel
+from rollingstar.estimators.corrections.base import Correction
+from rollingstar.estimators.data import FrameData, RateEstimate, StarTable
+from rollingstar.estimators.rates.base import RateEstimator
+from rollingstar.estimators.rates.ls_rate_kernel import (
+    pair_setup_kernel,
+    residual_jacobian_kernel,
+)
 
 DEG = np.pi / 180.0
 
@@ -276,7 +279,7 @@ def _pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
 class _Problem:
     """One frame's least-squares problem (eqs 1-3, whitened): everything that does not depend on omega
     (unit vectors, pairs, catalogue angles, whitening) is computed once here; an evaluation is one
-    compiled pass over the pairs (:mod:`estimators.rates.ls_rate_kernel`) and one matrix product."""
+    compiled pass over the pairs (:mod:`rollingstar.estimators.rates.ls_rate_kernel`) and one matrix product."""
 
     __slots__ = ("w", "dt", "i", "j", "cat", "Wh", "rank", "k", "_X")
 

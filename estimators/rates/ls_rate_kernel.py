@@ -1,6 +1,6 @@
 """Compiled per-pair loops of the ``ls-rate`` solver (numba): residuals and Jacobian, pixel sensitivity.
 
-The same equations as the numpy reference functions in :mod:`estimators.rates.ls_rate`
+The same equations as the numpy reference functions in :mod:`rollingstar.estimators.rates.ls_rate`
 (``moved_directions`` eq 1, ``pair_residuals`` eq 2, ``pair_jacobian`` eq 3, ``pixel_sensitivity``);
 the tests check the kernels against them. Why compiled code: a frame has 10-25 stars, 45-300 pairs,
 so a vectorised numpy evaluation is bound by the fixed cost of its ~40 array operations (~45 us

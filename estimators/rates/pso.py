@@ -50,9 +50,9 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from estimators.corrections.base import Correction
-from estimators.data import FrameData, RateEstimate, StarTable
-from estimators.rates.base import RateEstimator
+from rollingstar.estimators.corrections.base import Correction
+from rollingstar.estimators.data import FrameData, RateEstimate, StarTable
+from rollingstar.estimators.rates.base import RateEstimator
 
 DEG = np.pi / 180.0
 W_MAX, W_MIN = 0.9, 0.4  # eq 18

@@ -9,11 +9,25 @@ Each returns the output path. Recoverable problems are emitted as
 metadata, a JSON list); unusable input raises :class:`ImportDataError` (a ``UserError``: the CLI
 exits 2 with the message, which names the file and the field or line).
 """
-from logs.importers.centroids import import_centroids
-from logs.importers.common import ImportDataError, ImportDataWarning, import_warnings
-from logs.importers.corr import boresight_offsets, import_corr, pointing_centre, pointing_centres
-from logs.importers.images import import_images, read_image
-from logs.importers.sidecar import CameraSpec, RecordingSidecar, load_camera, load_sidecar
+from rollingstar.logs.importers.centroids import import_centroids
+from rollingstar.logs.importers.common import (
+    ImportDataError,
+    ImportDataWarning,
+    import_warnings,
+)
+from rollingstar.logs.importers.corr import (
+    boresight_offsets,
+    import_corr,
+    pointing_centre,
+    pointing_centres,
+)
+from rollingstar.logs.importers.images import import_images, read_image
+from rollingstar.logs.importers.sidecar import (
+    CameraSpec,
+    RecordingSidecar,
+    load_camera,
+    load_sidecar,
+)
 
 __all__ = [
     "CameraSpec", "ImportDataError", "ImportDataWarning", "RecordingSidecar", "boresight_offsets",

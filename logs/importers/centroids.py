@@ -10,7 +10,7 @@ start of row 0: the same on every row of a frame and strictly increasing from fr
 identified star) and ``magnitude``. Other columns are ignored with a warning.
 
 Each star's ``t_ns`` is the mid-exposure of its own row and ``row_time_ns`` its row's exposure
-start (:class:`~sensors.timing.DetectorTiming` of the camera's shutter), as for simulated
+start (:class:`~rollingstar.sensors.timing.DetectorTiming` of the camera's shutter), as for simulated
 centroids. Frames whose stars all carry a catalogue id are treated as already identified by
 ``rollingstar run``.
 """
@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from logs.importers.common import (
+from rollingstar.config import to_yaml
+from rollingstar.logs.importers.common import (
     ImportDataError,
     WarningLog,
     bool_column,
@@ -33,11 +34,10 @@ from logs.importers.common import (
     read_csv,
     time_column,
 )
-from logs.importers.sidecar import CameraSpec, load_camera, scenario_for
-from logs.records import arrays_to_stars
-from logs.writer import LogWriter
-from pipelines.config import to_yaml
-from sensors.conventions import radec_to_unit
+from rollingstar.logs.importers.sidecar import CameraSpec, load_camera, scenario_for
+from rollingstar.logs.records import arrays_to_stars
+from rollingstar.logs.writer import LogWriter
+from rollingstar.sensors.conventions import radec_to_unit
 
 TOPIC_CENTROIDS = "/camera/centroids"
 REQUIRED = ("frame", "x", "y", "flux")
@@ -122,7 +122,7 @@ def read_centroid_table(path: str | Path, camera: CameraSpec, log: WarningLog | 
 
 def import_centroids(csv: str | Path, out: str | Path, camera: CameraSpec | str | Path) -> Path:
     """Import the centroid table ``csv`` into the recording ``out`` with ``camera``; returns ``out``."""
-    from pipelines.build import build_timing
+    from rollingstar.sensors.build import build_timing
 
     csv = Path(csv)
     out = output_path(out)

@@ -16,8 +16,8 @@ from typing import Iterable
 
 import numpy as np
 
-from pipelines.errors import UserError
-from sensors.conventions import seconds_to_ns
+from rollingstar.errors import UserError
+from rollingstar.sensors.conventions import seconds_to_ns
 
 
 class ImportDataError(UserError):
@@ -214,7 +214,7 @@ def output_path(out: str | Path) -> Path:
 
 def import_warnings(recording: str | Path) -> list[str]:
     """The warnings an import emitted, as kept in the log's ``import.warnings`` metadata."""
-    from logs.reader import LogReader
+    from rollingstar.logs.reader import LogReader
 
     meta = LogReader(recording).metadata().get("import")
     if meta is None:
@@ -224,7 +224,7 @@ def import_warnings(recording: str | Path) -> list[str]:
 
 def describe_log(out: Path) -> str:
     """One line about an imported log (for the CLI): messages per topic and the camera's focal length."""
-    from logs.reader import LogReader
+    from rollingstar.logs.reader import LogReader
 
     reader = LogReader(out)
     details = json.loads(reader.metadata().get("import", {}).get("details", "{}"))

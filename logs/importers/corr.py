@@ -33,12 +33,22 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from logs.importers.common import ImportDataError, WarningLog, import_metadata, output_path
-from logs.importers.sidecar import NOMINAL_PIXEL_SIZE_UM, CameraSpec, scenario_for
-from logs.records import arrays_to_stars
-from logs.writer import LogWriter
-from pipelines.config import AttitudeConfig, format_validation_error, to_yaml
-from sensors.conventions import radec_to_unit
+from rollingstar.config import format_validation_error, to_yaml
+from rollingstar.logs.importers.common import (
+    ImportDataError,
+    WarningLog,
+    import_metadata,
+    output_path,
+)
+from rollingstar.logs.importers.sidecar import (
+    NOMINAL_PIXEL_SIZE_UM,
+    CameraSpec,
+    scenario_for,
+)
+from rollingstar.logs.records import arrays_to_stars
+from rollingstar.logs.writer import LogWriter
+from rollingstar.sensors.conventions import radec_to_unit
+from rollingstar.sensors.scenario import AttitudeConfig
 
 TOPIC_CENTROIDS = "/camera/centroids"
 FRAME_SPACING_NS = 1_000_000_000
@@ -321,7 +331,7 @@ def _image_for(folder: Path) -> str | None:
 def import_corr(folder: str | Path, out: str | Path) -> Path:
     """Import the corr table(s) under ``folder`` into the recording ``out``; returns ``out``.
 
-    Recoverable problems emit :class:`~logs.importers.common.ImportDataWarning` and are kept in
+    Recoverable problems emit :class:`~rollingstar.logs.importers.common.ImportDataWarning` and are kept in
     the log's ``import.warnings`` metadata; the per-frame sources and log.json pointing centres
     are in ``import.details`` (see :func:`pointing_centres`).
     """
@@ -343,7 +353,7 @@ def import_corr(folder: str | Path, out: str | Path) -> Path:
     scenario = scenario_for(cam, name=f"import:{root.name}", level="centroid", frames=len(frames),
                             description=f"astrometry.net corr tables imported from {root}",
                             centroid_sigma_px=sigma, initial_attitude=prior, frame_period_ms=FRAME_SPACING_NS * 1e-6)
-    from pipelines.build import build_timing
+    from rollingstar.sensors.build import build_timing
 
     timing = build_timing(scenario)
     details = {
@@ -377,7 +387,7 @@ def pointing_centre(folder: str | Path) -> tuple[float, float]:
 
 def pointing_centres(recording: str | Path) -> dict[int, dict]:
     """Frame index -> that frame's ``import.details.frames`` entry (folder, ra_deg, dec_deg, ...)."""
-    from logs.reader import LogReader
+    from rollingstar.logs.reader import LogReader
 
     meta = LogReader(recording).metadata().get("import", {})
     if meta.get("format") != "corr":
@@ -392,9 +402,13 @@ def boresight_offsets(recording: str | Path, run_output: str | Path) -> list[dic
     ``/estimate/attitude`` of each frame is used. Frames without a valid estimate get
     ``offset_deg = None`` and the estimate's reason.
     """
-    from logs.reader import LogReader
-    from sensors.conventions import quat_from_fields, radec_roll_from_attitude
     from scipy.spatial.transform import Rotation
+
+    from rollingstar.logs.reader import LogReader
+    from rollingstar.sensors.conventions import (
+        quat_from_fields,
+        radec_roll_from_attitude,
+    )
 
     centres = pointing_centres(recording)
     estimates: dict[int, dict] = {}

@@ -1,7 +1,7 @@
 """Import a folder of TIFF/PNG/JPEG frames (8 or 16 bit) as an image-level recording.
 
 ``import_images(folder, out, camera=None)`` reads the folder's ``recording.yaml`` sidecar (see
-:mod:`logs.importers.sidecar`; optional when ``camera`` is given), writes every image as a
+:mod:`rollingstar.logs.importers.sidecar`; optional when ``camera`` is given), writes every image as a
 ``foxglove.RawImage`` on ``/camera/image`` at its frame time ``t0``, the sidecar's gyro CSV on
 ``/gyro`` and its truth CSV on ``/truth/attitude``, and declares the sensor model (metadata
 ``scenario``) so that ``rollingstar run`` works on the result like on a simulated recording.
@@ -17,7 +17,8 @@ import numpy as np
 import yaml
 from PIL import Image
 
-from logs.importers.common import (
+from rollingstar.config import to_yaml
+from rollingstar.logs.importers.common import (
     ImportDataError,
     WarningLog,
     check_non_decreasing,
@@ -27,7 +28,7 @@ from logs.importers.common import (
     read_csv,
     time_column,
 )
-from logs.importers.sidecar import (
+from rollingstar.logs.importers.sidecar import (
     DEFAULT_FRAME_RATE_HZ,
     IMAGE_SUFFIXES,
     CameraSpec,
@@ -36,10 +37,9 @@ from logs.importers.sidecar import (
     load_sidecar,
     scenario_for,
 )
-from logs.records import AttitudeSamplesRecord, GyroSamplesRecord
-from logs.writer import LogWriter
-from pipelines.config import to_yaml
-from pipelines.progress import progress_bar
+from rollingstar.logs.records import AttitudeSamplesRecord, GyroSamplesRecord
+from rollingstar.logs.writer import LogWriter
+from rollingstar.progress import progress_bar
 
 SIDECAR_NAMES = ("recording.yaml", "recording.yml")
 TOPIC_IMAGE = "/camera/image"
@@ -67,7 +67,7 @@ def read_image(path: str | Path) -> np.ndarray:
             elif mode == "I":
                 arr = np.asarray(im)
             elif mode in ("RGB", "RGBA", "P", "LA", "CMYK", "YCbCr", "PA", "La"):
-                from logs.importers.common import warn
+                from rollingstar.logs.importers.common import warn
 
                 warn(f"{path}: colour image (mode {mode}) converted to 8-bit luminance; "
                      "star trackers normally record raw greyscale")
@@ -234,7 +234,7 @@ def import_images(folder: str | Path, out: str | Path, camera: CameraSpec | str 
     ``sidecar``: a recording.yaml kept elsewhere (e.g. for a read-only folder); default
     ``folder/recording.yaml`` when present. Paths inside a sidecar are relative to its own folder,
     except ``files``, which are relative to ``folder``.
-    Imperfect but recoverable input emits :class:`~logs.importers.common.ImportDataWarning` (also
+    Imperfect but recoverable input emits :class:`~rollingstar.logs.importers.common.ImportDataWarning` (also
     kept in the log's ``import.warnings`` metadata); unusable input raises ImportDataError.
     """
     folder = Path(folder)

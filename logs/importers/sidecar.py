@@ -5,7 +5,7 @@ docs/log-format.md "Importing recordings"). A camera file describes the sensor (
 detector size, shutter); a recording sidecar describes one folder of images (which files, their
 times, optional gyro and truth CSVs) and either holds the camera inline or names a camera file.
 
-:func:`scenario_for` turns a camera into the :class:`~pipelines.config.ScenarioConfig` a log must
+:func:`scenario_for` turns a camera into the :class:`~rollingstar.pipelines.config.ScenarioConfig` a log must
 declare (metadata ``scenario``) so that ``rollingstar run`` builds the sensor context from it.
 """
 from __future__ import annotations
@@ -14,10 +14,22 @@ import math
 from pathlib import Path
 from typing import Literal
 
-from pydantic import (BaseModel, ConfigDict, Field, NonNegativeFloat, NonNegativeInt, PositiveFloat, PositiveInt, ValidationError,
-                      model_validator)
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    NonNegativeFloat,
+    NonNegativeInt,
+    PositiveFloat,
+    PositiveInt,
+    ValidationError,
+    model_validator,
+)
 
-from pipelines.config import (
+from rollingstar.config import format_validation_error, read_yaml
+from rollingstar.errors import ConfigError
+from rollingstar.logs.importers.common import ImportDataError
+from rollingstar.sensors.scenario import (
     AttitudeConfig,
     ImageConfig,
     MotionConfig,
@@ -25,12 +37,7 @@ from pipelines.config import (
     ScenarioConfig,
     SensorConfig,
     ShutterConfig,
-    format_validation_error,
-    read_yaml,
 )
-from pipelines.errors import ConfigError
-
-from logs.importers.common import ImportDataError
 
 DEFAULT_EXPOSURE_MS = 100.0
 """Exposure assumed when a camera file does not state one (it only sets the stars' times)."""

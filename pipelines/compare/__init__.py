@@ -5,6 +5,6 @@ One module per job: :mod:`.config` (the comparison config and its expansion into
 :mod:`.aggregate` (results.json), :mod:`.report` (results.md, report.html, PNGs),
 :mod:`.regression` (the baseline gate), :mod:`.run` (the command's orchestration).
 """
-from pipelines.compare.run import run_compare
+from rollingstar.pipelines.compare.run import run_compare
 
 __all__ = ["run_compare"]

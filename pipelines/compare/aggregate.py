@@ -10,7 +10,7 @@ Layout::
      "run": {"executor", "workers", "wall_time_s", "tasks", "pipeline_runs", "profile", ...}}
 
 A task is one (variant, seed) simulation with every pipeline run on it; ``aggregate`` takes the
-pipeline runs (rows of :func:`pipelines.compare.tasks.run_task`) in any order.
+pipeline runs (rows of :func:`rollingstar.pipelines.compare.tasks.run_task`) in any order.
 
 Metrics are the flattened (dotted) numbers of ``evaluate_log`` (efficiency = RMSE / Cramér-Rao bound
 included); ``std`` is the sample standard deviation over seeds (0 with one seed). Everything but
@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from pipelines.compare.config import Comparison
+from rollingstar.pipelines.compare.config import Comparison
 
 
 def flatten(metrics: dict, prefix: str = "") -> dict[str, float | None]:

@@ -28,11 +28,24 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field, NonNegativeFloat, PositiveInt, ValidationError, model_validator
+from pydantic import (
+    Field,
+    NonNegativeFloat,
+    PositiveInt,
+    ValidationError,
+    model_validator,
+)
 
-from pipelines.config import (PipelineConfig, ScenarioConfig, Strict, format_validation_error, load_pipeline,
-                              load_scenario, read_yaml, to_yaml, validate)
-from pipelines.errors import ConfigError
+from rollingstar.config import (
+    Strict,
+    format_validation_error,
+    read_yaml,
+    to_yaml,
+    validate,
+)
+from rollingstar.errors import ConfigError
+from rollingstar.pipelines.config import PipelineConfig, load_pipeline
+from rollingstar.sensors.scenario import ScenarioConfig, load_scenario
 
 
 class PipelineEntry(Strict):
@@ -116,7 +129,7 @@ class Comparison:
     pipeline_paths: dict[str, str]
 
     def tasks(self) -> list[Task]:
-        """One task per (variant, seed), in config order; each runs the variant's pipelines."""
+        """One task per (variant, seed), in config order; each runs the variant's rollingstar.pipelines."""
         out = []
         for v in self.variants:
             scenario_yaml = to_yaml(v.config)
@@ -159,7 +172,7 @@ def _variant_config(base: ScenarioConfig, updates: dict, frames: int | None, sou
 
 def load_compare(path: str | Path) -> Comparison:
     """Validate the config, load every scenario and pipeline it names, build the stages (fail early)."""
-    from pipelines.runner import build_stages
+    from rollingstar.pipelines.runner import build_stages
 
     path = Path(path)
     source = str(path)

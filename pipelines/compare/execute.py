@@ -20,8 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-from pipelines.errors import UserError
-
+from rollingstar.errors import UserError
 
 # The worker processes' environment. dask's default also sets MALLOC_TRIM_THRESHOLD_=65536, which
 # turns off glibc's adaptive mmap threshold: every large temporary array (image-level frames) is

@@ -18,8 +18,8 @@ import json
 from fnmatch import fnmatch
 from pathlib import Path
 
-from pipelines.compare.config import Tolerance
-from pipelines.errors import UserError
+from rollingstar.errors import UserError
+from rollingstar.pipelines.compare.config import Tolerance
 
 LOWER_IS_BETTER = ("attitude_error_arcsec.?_rmse", "rate_error_deg_s.rmse", "rate_error_deg_s.?_rmse",
                    "star_pair_distance_error_px.rmse", "centroid_error_px.rmse", "invalid_attitude_estimates",

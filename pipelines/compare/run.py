@@ -7,14 +7,14 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from pipelines.compare.aggregate import aggregate
-from pipelines.compare.config import load_compare
-from pipelines.compare.execute import execute, executor_profile
-from pipelines.compare.regression import compare_to_baseline, load_baseline
-from pipelines.compare.report import figures, html_report, markdown
-from pipelines.compare.tasks import run_task
-from pipelines.errors import UserError
-from pipelines.progress import progress_bar
+from rollingstar.errors import UserError
+from rollingstar.pipelines.compare.aggregate import aggregate
+from rollingstar.pipelines.compare.config import load_compare
+from rollingstar.pipelines.compare.execute import execute, executor_profile
+from rollingstar.pipelines.compare.regression import compare_to_baseline, load_baseline
+from rollingstar.pipelines.compare.report import figures, html_report, markdown
+from rollingstar.pipelines.compare.tasks import run_task
+from rollingstar.progress import progress_bar
 
 
 @dataclass

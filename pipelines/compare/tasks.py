@@ -1,6 +1,6 @@
 """One comparison task: simulate the variant with the task's seed once -> run each pipeline -> evaluate.
 
-A pure function of the :class:`~pipelines.compare.config.Task` (plain YAML text and numbers, so it
+A pure function of the :class:`~rollingstar.pipelines.compare.config.Task` (plain YAML text and numbers, so it
 pickles to any dask worker): the simulator draws from ``default_rng([seed, frame, stream])`` and
 every stage is deterministic, so the metrics do not depend on where or when the task runs.
 The recording is simulated once for all the variant's pipelines (it depends on the variant and the
@@ -15,14 +15,14 @@ import time
 import warnings
 from pathlib import Path
 
-from pipelines.compare.config import Task
+from rollingstar.pipelines.compare.config import Task
 
 
 def run_task(task: Task) -> dict:
     """``{"index", "variant", "seed", "rows", "task"}``; ``rows``: one ``{"variant", "pipeline", "seed",
     "metrics" | "error", "timing"}`` per pipeline, in the task's order; ``task``: the whole task's CPU
     time (this thread: simulate, runs, evaluations), wall time and the process that ran it (the
-    executors' profile, :func:`pipelines.compare.execute.executor_profile`)."""
+    executors' profile, :func:`rollingstar.pipelines.compare.execute.executor_profile`)."""
     import os
 
     import numpy  # noqa: F401  (loaded before limiting its BLAS)
@@ -38,9 +38,10 @@ def run_task(task: Task) -> dict:
 
 
 def _run(task: Task) -> list[dict]:
-    from pipelines.config import ScenarioConfig, parse_yaml, validate
-    from pipelines.errors import UserError
-    from pipelines.simulate import simulate_to_log
+    from rollingstar.config import parse_yaml, validate
+    from rollingstar.errors import UserError
+    from rollingstar.pipelines.simulate import simulate_to_log
+    from rollingstar.sensors.scenario import ScenarioConfig
 
     rows = [{"variant": task.variant, "pipeline": name, "seed": task.seed} for name, _ in task.pipelines]
     with tempfile.TemporaryDirectory(prefix="rollingstar-compare-") as tmp, warnings.catch_warnings():
@@ -63,10 +64,11 @@ def _run(task: Task) -> list[dict]:
 def _run_pipeline(row: dict, rec: Path, out: Path, name: str, pipeline_yaml: str) -> None:
     """Run one pipeline on the recording and evaluate it into ``row`` (``metrics`` and ``timing``, or
     ``error`` when a stage fails on this scenario: recorded, not fatal)."""
-    from pipelines.config import PipelineConfig, parse_yaml, validate
-    from pipelines.errors import UserError
-    from pipelines.evaluate import evaluate_log
-    from pipelines.runner import build_stages, run_pipeline
+    from rollingstar.config import parse_yaml, validate
+    from rollingstar.errors import UserError
+    from rollingstar.pipelines.config import PipelineConfig
+    from rollingstar.pipelines.evaluate import evaluate_log
+    from rollingstar.pipelines.runner import build_stages, run_pipeline
 
     try:
         pipeline = validate(PipelineConfig, parse_yaml(pipeline_yaml, name), name)

@@ -1,15 +1,15 @@
 """The effect library: named physical effects shared by the simulator and the diagnosis.
 
 ``EFFECTS`` maps each effect's ``name`` to its class (one module per effect); :func:`build_effect`
-also accepts the ``synonyms`` an effect declares. See :mod:`sensors.effects.base` for the
-interface, :mod:`sensors.effects.chain` for chains (prediction, stacked Jacobians, gyro hook),
-:mod:`sensors.effects.design` for detection limits and :mod:`sensors.effects.doc` for the
+also accepts the ``synonyms`` an effect declares. See :mod:`rollingstar.sensors.effects.base` for the
+interface, :mod:`rollingstar.sensors.effects.chain` for chains (prediction, stacked Jacobians, gyro hook),
+:mod:`rollingstar.sensors.effects.design` for detection limits and :mod:`rollingstar.sensors.effects.doc` for the
 generated ``docs/effects.md``.
 """
 from __future__ import annotations
 
-from sensors.effects.angular_acceleration import AngularAcceleration
-from sensors.effects.base import (
+from rollingstar.sensors.effects.angular_acceleration import AngularAcceleration
+from rollingstar.sensors.effects.base import (
     CHANNELS,
     NUISANCE,
     STAGE_DETECTOR,
@@ -23,22 +23,22 @@ from sensors.effects.base import (
     EffectParameter,
     MissingContextError,
 )
-from sensors.effects.boresight_rotation import BoresightRotation
-from sensors.effects.catalog_epoch import CatalogEpoch
-from sensors.effects.exposure_smear import ExposureSmear
-from sensors.effects.focal_length import FocalLength
-from sensors.effects.gyro_bias import GyroBias
-from sensors.effects.gyro_scale import GyroScale
-from sensors.effects.magnitude_bias import MagnitudeBias
-from sensors.effects.pixel_phase_bias import PixelPhaseBias
-from sensors.effects.principal_point import PrincipalPointOffset
-from sensors.effects.radial_distortion import RadialDistortion
-from sensors.effects.refraction import Refraction
-from sensors.effects.rolling_shutter import RollingShutter
-from sensors.effects.stellar_aberration import StellarAberration
-from sensors.effects.tangential_distortion import TangentialDistortion
-from sensors.effects.thermal_focal_drift import ThermalFocalDrift
-from sensors.effects.time_offset import TimeOffset
+from rollingstar.sensors.effects.boresight_rotation import BoresightRotation
+from rollingstar.sensors.effects.catalog_epoch import CatalogEpoch
+from rollingstar.sensors.effects.exposure_smear import ExposureSmear
+from rollingstar.sensors.effects.focal_length import FocalLength
+from rollingstar.sensors.effects.gyro_bias import GyroBias
+from rollingstar.sensors.effects.gyro_scale import GyroScale
+from rollingstar.sensors.effects.magnitude_bias import MagnitudeBias
+from rollingstar.sensors.effects.pixel_phase_bias import PixelPhaseBias
+from rollingstar.sensors.effects.principal_point import PrincipalPointOffset
+from rollingstar.sensors.effects.radial_distortion import RadialDistortion
+from rollingstar.sensors.effects.refraction import Refraction
+from rollingstar.sensors.effects.rolling_shutter import RollingShutter
+from rollingstar.sensors.effects.stellar_aberration import StellarAberration
+from rollingstar.sensors.effects.tangential_distortion import TangentialDistortion
+from rollingstar.sensors.effects.thermal_focal_drift import ThermalFocalDrift
+from rollingstar.sensors.effects.time_offset import TimeOffset
 
 _CLASSES = (
     RollingShutter, ExposureSmear, RadialDistortion, TangentialDistortion, PrincipalPointOffset, FocalLength,

@@ -5,9 +5,15 @@ from typing import ClassVar
 
 import numpy as np
 
-from sensors.conventions import NS_PER_S
-from sensors.effects.base import STAGE_SKY, Alias, Effect, EffectParameter, as_positions
-from sensors.effects.geometry import rotate_line_of_sight
+from rollingstar.sensors.conventions import NS_PER_S
+from rollingstar.sensors.effects.base import (
+    STAGE_SKY,
+    Alias,
+    Effect,
+    EffectParameter,
+    as_positions,
+)
+from rollingstar.sensors.effects.geometry import rotate_line_of_sight
 
 DEG = np.pi / 180.0
 
@@ -15,9 +21,9 @@ DEG = np.pi / 180.0
 class AngularAcceleration(Effect):
     """A body angular acceleration ``alpha`` (deg/s^2) not in the nominal constant-rate-per-frame
     model. Relative to the frame's reference time ``t_ref`` (mid-exposure of the middle row,
-    :meth:`~sensors.timing.DetectorTiming.frame_reference_ns`), an observation at ``t`` sees the
+    :meth:`~rollingstar.sensors.timing.DetectorTiming.frame_reference_ns`), an observation at ``t`` sees the
     camera turned further by the body rotation ``d = alpha tau^2 / 2``, ``tau = t - t_ref``
-    (the quadratic term of ``theta(tau) = omega tau + alpha tau^2 / 2``, :mod:`sensors.motion`)::
+    (the quadratic term of ``theta(tau) = omega tau + alpha tau^2 / 2``, :mod:`rollingstar.sensors.motion`)::
 
         w' = Exp(d)^T w,    d(x', y')/d alpha = P(w') [w']x J_r(d) tau^2 / 2     (per axis, x DEG)
 

@@ -13,7 +13,7 @@ observation (arrays of length ``n``), everything an effect may need:
 ============== ========= ===========================================================================
 field          shape     meaning
 ============== ========= ===========================================================================
-camera         --        :class:`~sensors.camera.PinholeCamera` (nominal model)
+camera         --        :class:`~rollingstar.sensors.camera.PinholeCamera` (nominal model)
 x, y           (n,)      *ideal* pinhole position (px) of the star at ``t_ns`` (no effect applied)
 t_ns           (n,) i8   time the observation refers to: mid-exposure of its row (nominal timing)
 row            (n,)      detector row whose exposure times the observation (default ``y``)
@@ -28,7 +28,7 @@ unit_icrs      (n, 3)    catalogue ICRS direction the ideal position was project
 pm_rad_yr      (n, 3)    catalogue proper motion as an ICRS tangent vector (rad/yr)
 zenith_icrs    (n, 3)    local zenith (ground-based observations only)
 covariates     dict      logged covariates, name -> (n,) array (e.g. ``temperature_c``)
-timing         --        :class:`~sensors.timing.DetectorTiming` (nominal) or None
+timing         --        :class:`~rollingstar.sensors.timing.DetectorTiming` (nominal) or None
 t_start_ns     int       start of the recording (reference of time-linear drifts)
 ============== ========= ===========================================================================
 
@@ -44,7 +44,7 @@ Effect interface (class attributes)
   bounds, description). Column order of every Jacobian;
 - ``stage``: where the effect sits in the forward chain (:data:`STAGE_TIME` < :data:`STAGE_SKY`
   < :data:`STAGE_OPTICS` < :data:`STAGE_DETECTOR` < :data:`STAGE_GYRO`); chains are applied in
-  stage order, stably (:func:`sensors.effects.chain.ordered`);
+  stage order, stably (:func:`rollingstar.sensors.effects.chain.ordered`);
 - ``channels``: which measurement channels carry a signature: ``"image"`` (centroid positions),
   ``"time"`` (the effect shifts the instant a star is seen: :meth:`Effect.time_shift_s`),
   ``"gyro"`` (gyro samples: :meth:`Effect.apply_gyro`), ``"attitude"`` (visible only against an
@@ -64,7 +64,7 @@ Effect interface (methods), all vectorised over the ``n`` observations
   the rotation of the line of sight by ``Exp(-omega dt)`` with ``omega = ctx.omega_rad_s`` (exact for
   a constant rate); the simulator instead evaluates the true motion at the shifted time (exact
   for any motion) and skips their ``apply``. Effects after the time stage see the context of the
-  instant the star is really seen (:func:`sensors.effects.chain.shifted_context`: ``t_ns`` and
+  instant the star is really seen (:func:`rollingstar.sensors.effects.chain.shifted_context`: ``t_ns`` and
   ``attitude`` shifted; covariates stay those sampled at the stamped time, as a log has them).
   Gyro-stage effects are the identity here.
 - ``jacobian(x, y, ctx) -> (n, 2, n_params)``: analytic ``d(x', y') / d(params)`` of ``apply`` at
@@ -76,7 +76,7 @@ Effect interface (methods), all vectorised over the ``n`` observations
   per parameter unit that a per-frame attitude fit absorbs (the per-frame least-squares rotation
   fitted to the image signature; for effects whose image signature is collinear with attitude).
 - ``signature_rms_px(ctx) -> (n_params,)``: RMS over observations of ``|d(x', y')/d p_j|`` (px per
-  unit), the raw scale of each parameter's signature (see :mod:`sensors.effects.design` for
+  unit), the raw scale of each parameter's signature (see :mod:`rollingstar.sensors.effects.design` for
   detection limits with the per-frame attitude projected out).
 
 Constructors only validate and store parameter values (unknown name / out of bounds / not a
@@ -87,20 +87,20 @@ number -> ``ValueError`` naming the effect and parameter). Effects are immutable
 
 Where the rest lives
 --------------------
-- :func:`sensors.effects.build_effect` / ``EFFECTS`` / ``resolve``: the registry (one module per effect);
-- :func:`sensors.effects.context.context_from_attitude`: a context from an attitude (per
+- :func:`rollingstar.sensors.effects.build_effect` / ``EFFECTS`` / ``resolve``: the registry (one module per effect);
+- :func:`rollingstar.sensors.effects.context.context_from_attitude`: a context from an attitude (per
   observation), catalogue directions, times and the body rate (fills ideal ``x, y`` and ``vx, vy``);
-- :func:`sensors.effects.chain.predict` (forward model of a chain on a context),
-  :func:`~sensors.effects.chain.chain_jacobian` (stacked ``(n, 2, sum p)`` Jacobian and labels),
-  :func:`~sensors.effects.chain.apply_gyro`, :func:`~sensors.effects.chain.ordered`;
-- :mod:`sensors.effects.design`: nuisance (per-frame attitude, optionally rate) projection,
-  Cramér–Rao parameter sigmas and :func:`~sensors.effects.design.detection_limit`;
-- :mod:`sensors.effects.doc`: ``docs/effects.md``, generated;
-- simulator side: :class:`sensors.centroid_sim.ObservationInfo` and
-  :class:`sensors.simulate.StarTrackerSimulator` (time effects on the true motion, gyro hook via
+- :func:`rollingstar.sensors.effects.chain.predict` (forward model of a chain on a context),
+  :func:`~rollingstar.sensors.effects.chain.chain_jacobian` (stacked ``(n, 2, sum p)`` Jacobian and labels),
+  :func:`~rollingstar.sensors.effects.chain.apply_gyro`, :func:`~rollingstar.sensors.effects.chain.ordered`;
+- :mod:`rollingstar.sensors.effects.design`: nuisance (per-frame attitude, optionally rate) projection,
+  Cramér–Rao parameter sigmas and :func:`~rollingstar.sensors.effects.design.detection_limit`;
+- :mod:`rollingstar.sensors.effects.doc`: ``docs/effects.md``, generated;
+- simulator side: :class:`rollingstar.sensors.centroid_sim.ObservationInfo` and
+  :class:`rollingstar.sensors.simulate.StarTrackerSimulator` (time effects on the true motion, gyro hook via
   ``StarTrackerSimulator.apply_gyro``); scenarios: ``effects:`` and ``environment:``
   (``elevation_deg`` for refraction, ``covariates`` e.g. ``temperature_c``) in
-  :class:`pipelines.config.ScenarioConfig`.
+  :class:`rollingstar.pipelines.config.ScenarioConfig`.
 """
 from __future__ import annotations
 
@@ -391,11 +391,13 @@ class Effect:
         """Apparent body-frame attitude change (rad) per parameter unit, ``(n, 3, n_params)``.
 
         What a per-frame attitude fit absorbs of the image signature: the per-frame
-        least-squares rotation fitted to :meth:`jacobian` (:func:`sensors.effects.design.absorbed_attitude`),
+        least-squares rotation fitted to :meth:`jacobian` (:func:`rollingstar.sensors.effects.design.absorbed_attitude`),
         repeated for every observation of the frame. Diagnosis compares it with a gyro or truth
         reference for effects whose image signature is (nearly) a rigid rotation.
         """
-        from sensors.effects.design import absorbed_attitude  # design imports this module
+        from rollingstar.sensors.effects.design import (
+            absorbed_attitude,  # design imports this module
+        )
 
         return absorbed_attitude(self.jacobian(ctx.x, ctx.y, ctx), ctx)
 
@@ -403,7 +405,7 @@ class Effect:
         """RMS over the observations of ``|d(x', y') / d p_j|`` (px per parameter unit), (n_params,).
 
         Evaluated at the ideal positions of ``ctx`` (the raw signature, before any nuisance is
-        projected out; see :func:`sensors.effects.design.detection_limit` for the projected one).
+        projected out; see :func:`rollingstar.sensors.effects.design.detection_limit` for the projected one).
         """
         jac = self.jacobian(ctx.x, ctx.y, ctx)
         return np.sqrt(np.mean(np.sum(jac * jac, axis=1), axis=0)) if ctx.n else np.zeros(len(self.parameters))

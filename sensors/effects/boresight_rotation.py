@@ -5,9 +5,15 @@ from typing import ClassVar
 
 import numpy as np
 
-from sensors.conventions import ARCSEC_TO_RAD
-from sensors.effects.base import STAGE_SKY, Alias, Effect, EffectParameter, as_positions
-from sensors.effects.geometry import rotate_line_of_sight
+from rollingstar.sensors.conventions import ARCSEC_TO_RAD
+from rollingstar.sensors.effects.base import (
+    STAGE_SKY,
+    Alias,
+    Effect,
+    EffectParameter,
+    as_positions,
+)
+from rollingstar.sensors.effects.geometry import rotate_line_of_sight
 
 
 class BoresightRotation(Effect):

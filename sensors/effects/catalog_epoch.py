@@ -3,14 +3,20 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-from sensors.effects.base import STAGE_SKY, Alias, Effect, EffectParameter, as_positions
-from sensors.effects.geometry import displace_direction, to_camera
+from rollingstar.sensors.effects.base import (
+    STAGE_SKY,
+    Alias,
+    Effect,
+    EffectParameter,
+    as_positions,
+)
+from rollingstar.sensors.effects.geometry import displace_direction, to_camera
 
 
 class CatalogEpoch(Effect):
     """The sky is ``d`` years ahead of the epoch the catalogue directions were propagated to.
     With ``mu`` the star's proper motion as an ICRS tangent vector (rad/yr), the true direction is
-    ``u + d mu`` (the first-order propagation of :func:`sensors.catalog.propagate_proper_motion`), so
+    ``u + d mu`` (the first-order propagation of :func:`rollingstar.sensors.catalog.propagate_proper_motion`), so
     ``w' = w + d R^T mu`` and ``d(x', y')/dd = P(w') R^T mu`` exactly (projection is homogeneous).
     """
 

@@ -1,13 +1,13 @@
 """Chains of effects: canonical order, prediction, stacked Jacobians, total time shift, gyro hook.
 
-A chain is applied in stage order (:data:`~sensors.effects.base.STAGE_TIME` first, then sky,
+A chain is applied in stage order (:data:`~rollingstar.sensors.effects.base.STAGE_TIME` first, then sky,
 optics, detector; stable within a stage), whatever order a scenario lists its effects in:
 time effects need the ideal line of sight, sky effects need an undistorted line of sight, and
 centroid biases come last.
 
 :func:`predict` is the forward model for callers that have a context but not the motion (the
 diagnosis): time effects rotate the line of sight by the context's body rate. The simulator
-(:mod:`sensors.centroid_sim`) evaluates the time channel on the true motion instead, via
+(:mod:`rollingstar.sensors.centroid_sim`) evaluates the time channel on the true motion instead, via
 :func:`time_shift_s`, and applies only :func:`image_effects`. For a constant rate both agree
 exactly; otherwise they differ by ``alpha dt^2 / 2`` (``alpha`` the angular acceleration).
 """
@@ -17,7 +17,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from sensors.effects.base import STAGE_GYRO, STAGE_TIME, Effect, EffectContext
+from rollingstar.sensors.effects.base import (
+    STAGE_GYRO,
+    STAGE_TIME,
+    Effect,
+    EffectContext,
+)
 
 
 def ordered(effects: Sequence[Effect]) -> tuple[Effect, ...]:

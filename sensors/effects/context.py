@@ -1,16 +1,16 @@
-"""Build an :class:`~sensors.effects.base.EffectContext` from an attitude and catalogue directions.
+"""Build an :class:`~rollingstar.sensors.effects.base.EffectContext` from an attitude and catalogue directions.
 
 This is how the simulator, the evaluation and the diagnosis all obtain *ideal* positions: the
 pinhole projection (he2021b eq 2) of ``w = R^T u`` with ``R`` the camera->ICRS attitude at each
 observation's time, plus the image velocity ``P(w) (w x omega)`` when the body rate is known
-(:func:`sensors.effects.geometry.image_velocity`).
+(:func:`rollingstar.sensors.effects.geometry.image_velocity`).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from sensors.effects.base import EffectContext
-from sensors.effects.geometry import image_velocity, to_camera
+from rollingstar.sensors.effects.base import EffectContext
+from rollingstar.sensors.effects.geometry import image_velocity, to_camera
 
 
 def context_from_attitude(camera, attitude, unit_icrs, t_ns, omega_rad_s=None, **fields) -> EffectContext:

@@ -1,12 +1,12 @@
 """Detectability of an effect in a measurement design: signature size after the nuisance is refitted.
 
-For a design (the observations of a recording, as an :class:`~sensors.effects.base.EffectContext`
+For a design (the observations of a recording, as an :class:`~rollingstar.sensors.effects.base.EffectContext`
 with ``frame`` indices) with isotropic centroid noise ``sigma_px`` per axis, the Fisher
 information of an effect's parameters ``p`` with the per-frame attitude (and optionally rate)
 refitted is ``F = J_perp^T J_perp / sigma^2`` where ``J_perp`` is the image-plane signature
 ``J = d(x', y') / dp`` with its least-squares projection on the nuisance columns removed frame by
 frame: attitude columns ``A = d(x, y) / d rotvec = P(w) [w]x``
-(:func:`sensors.effects.geometry.rotation_jacobian`) and, for ``nuisance="attitude_rate"``,
+(:func:`rollingstar.sensors.effects.geometry.rotation_jacobian`) and, for ``nuisance="attitude_rate"``,
 ``A * tau`` with ``tau`` the time from the frame's mean observation time (a rate refitted per
 frame). The Cramér–Rao sigma of ``p_j`` alone (others fixed) is ``sigma / |J_perp,j|`` and
 :func:`detection_limit` is ``n_sigma`` times that: the parameter value whose projected signature
@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from sensors.effects.base import Effect, EffectContext
-from sensors.effects.geometry import rotation_jacobian
+from rollingstar.sensors.effects.base import Effect, EffectContext
+from rollingstar.sensors.effects.geometry import rotation_jacobian
 
 NUISANCES = (None, "attitude", "attitude_rate")
 

@@ -1,6 +1,6 @@
 """Generate ``docs/effects.md`` from the effect library (the doc is never edited by hand).
 
-``python -m sensors.effects.doc docs/effects.md`` rewrites it; ``tests/sensors/test_effects.py``
+``python -m rollingstar.sensors.effects.doc docs/effects.md`` rewrites it; ``tests/sensors/test_effects.py``
 fails when the committed file differs from :func:`render_markdown`.
 """
 from __future__ import annotations
@@ -8,12 +8,18 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from sensors.effects import EFFECTS
-from sensors.effects.base import STAGE_DETECTOR, STAGE_GYRO, STAGE_OPTICS, STAGE_SKY, STAGE_TIME
+from rollingstar.sensors.effects import EFFECTS
+from rollingstar.sensors.effects.base import (
+    STAGE_DETECTOR,
+    STAGE_GYRO,
+    STAGE_OPTICS,
+    STAGE_SKY,
+    STAGE_TIME,
+)
 
 STAGE_NAMES = {STAGE_TIME: "time", STAGE_SKY: "sky", STAGE_OPTICS: "optics", STAGE_DETECTOR: "detector",
                STAGE_GYRO: "gyro"}
-COMMAND = "python -m sensors.effects.doc docs/effects.md"
+COMMAND = "python -m rollingstar.sensors.effects.doc docs/effects.md"
 
 
 def _fmt(v: float) -> str:

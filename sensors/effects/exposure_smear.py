@@ -5,9 +5,9 @@ from typing import ClassVar
 
 import numpy as np
 
-from sensors.conventions import NS_PER_S
-from sensors.effects.base import Alias, EffectParameter
-from sensors.effects.timeshift import TimeShiftEffect
+from rollingstar.sensors.conventions import NS_PER_S
+from rollingstar.sensors.effects.base import Alias, EffectParameter
+from rollingstar.sensors.effects.timeshift import TimeShiftEffect
 
 
 class ExposureSmear(TimeShiftEffect):

@@ -5,7 +5,14 @@ from typing import ClassVar
 
 import numpy as np
 
-from sensors.effects.base import STAGE_OPTICS, Alias, Effect, EffectParameter, as_positions, stack_jacobian
+from rollingstar.sensors.effects.base import (
+    STAGE_OPTICS,
+    Alias,
+    Effect,
+    EffectParameter,
+    as_positions,
+    stack_jacobian,
+)
 
 PPM = 1e-6
 

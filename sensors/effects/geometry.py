@@ -2,7 +2,7 @@
 
 All functions are vectorised over ``n`` observations and exact (no small-angle approximation
 beyond what the docstrings say). ``P(w)`` is the pinhole projection Jacobian for *unnormalised*
-camera vectors (:meth:`sensors.camera.PinholeCamera.projection_jacobian`), so a direction change
+camera vectors (:meth:`rollingstar.sensors.camera.PinholeCamera.projection_jacobian`), so a direction change
 ``dw`` moves the image by ``P(w) dw`` whatever the length of ``w``.
 """
 from __future__ import annotations
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from sensors.motion import so3_right_jacobian
+from rollingstar.sensors.motion import so3_right_jacobian
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -30,7 +30,7 @@ def rotate_line_of_sight(camera, x, y, rotvec, jacobian: bool = True):
     """Image positions after the camera turns by the body-frame rotation ``Exp(rotvec)``.
 
     A camera-frame direction ``w`` becomes ``w' = Exp(rotvec)^T w`` (``R' = R Exp(rotvec)``, the
-    kinematics convention of :mod:`sensors.motion`). Returns ``(x', y', J)`` with
+    kinematics convention of :mod:`rollingstar.sensors.motion`). Returns ``(x', y', J)`` with
     ``J = d(x', y') / d rotvec = P(w') [w']x J_r(rotvec)`` (n, 2, 3), from
     ``Exp(d + e) = Exp(d) Exp(J_r(d) e)`` to first order in ``e`` (``J`` is None when
     ``jacobian`` is False: forward models skip its cost).

@@ -5,7 +5,13 @@ from typing import ClassVar
 
 import numpy as np
 
-from sensors.effects.base import STAGE_DETECTOR, Alias, Effect, EffectParameter, as_positions
+from rollingstar.sensors.effects.base import (
+    STAGE_DETECTOR,
+    Alias,
+    Effect,
+    EffectParameter,
+    as_positions,
+)
 
 REFERENCE_MAG = 6.0  # magnitude with zero shift
 

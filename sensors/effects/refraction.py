@@ -5,9 +5,15 @@ from typing import ClassVar
 
 import numpy as np
 
-from sensors.conventions import ARCSEC_TO_RAD
-from sensors.effects.base import STAGE_SKY, Alias, Effect, EffectParameter, as_positions
-from sensors.effects.geometry import project, to_camera
+from rollingstar.sensors.conventions import ARCSEC_TO_RAD
+from rollingstar.sensors.effects.base import (
+    STAGE_SKY,
+    Alias,
+    Effect,
+    EffectParameter,
+    as_positions,
+)
+from rollingstar.sensors.effects.geometry import project, to_camera
 
 MIN_ELEVATION_RAD = np.radians(3.0)  # cot(e) is clipped below this elevation (the formula fails there anyway)
 

@@ -5,14 +5,14 @@ from typing import ClassVar
 
 import numpy as np
 
-from sensors.effects.base import Alias, EffectParameter
-from sensors.effects.timeshift import TimeShiftEffect
+from rollingstar.sensors.effects.base import Alias, EffectParameter
+from rollingstar.sensors.effects.timeshift import TimeShiftEffect
 
 
 class RollingShutter(TimeShiftEffect):
     """Row ``r`` is seen ``r * d_ld`` later than the nominal timing says (he2021a eq 5 timing with
     line delay ``ld + d_ld``): ``dt = row * d_ld``, so to first order ``(x', y') = (x, y) + (vx, vy) y d_ld``
-    -- an image shear along the motion growing with the row (see :mod:`sensors.effects.timeshift`).
+    -- an image shear along the motion growing with the row (see :mod:`rollingstar.sensors.effects.timeshift`).
     """
 
     name: ClassVar[str] = "rolling_shutter"

@@ -5,8 +5,14 @@ from typing import ClassVar
 
 import numpy as np
 
-from sensors.effects.base import STAGE_SKY, Alias, Effect, EffectParameter, as_positions
-from sensors.effects.geometry import displace_direction, to_camera
+from rollingstar.sensors.effects.base import (
+    STAGE_SKY,
+    Alias,
+    Effect,
+    EffectParameter,
+    as_positions,
+)
+from rollingstar.sensors.effects.geometry import displace_direction, to_camera
 
 C_KM_S = 299_792.458
 

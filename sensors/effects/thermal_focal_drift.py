@@ -5,8 +5,14 @@ from typing import ClassVar
 
 import numpy as np
 
-from sensors.conventions import NS_PER_S
-from sensors.effects.base import STAGE_OPTICS, Alias, Effect, EffectParameter, as_positions
+from rollingstar.sensors.conventions import NS_PER_S
+from rollingstar.sensors.effects.base import (
+    STAGE_OPTICS,
+    Alias,
+    Effect,
+    EffectParameter,
+    as_positions,
+)
 
 PPM = 1e-6
 COVARIATE = "temperature_c"
@@ -17,7 +23,7 @@ HOUR_S = 3600.0
 class ThermalFocalDrift(Effect):
     """Focal length ``f (1 + s)`` with ``s = 1e-6 [a (t - t_start) / 1 h + b (T - 20 C)]`` where ``T``
     is the logged covariate ``temperature_c`` and ``t_start`` the recording start. As for
-    :class:`~sensors.effects.focal_length.FocalLength`, ``x' = cx + (x - cx)(1 + s)``, so
+    :class:`~rollingstar.sensors.effects.focal_length.FocalLength`, ``x' = cx + (x - cx)(1 + s)``, so
     ``d x'/da = (x - cx) 1e-6 (t - t_start)/h`` and ``d x'/db = (x - cx) 1e-6 (T - 20)``. Without
     the covariate in the context the ``b`` column of the Jacobian is zero (nothing to detect it by).
     """

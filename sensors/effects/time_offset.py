@@ -5,8 +5,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from sensors.effects.base import Alias, EffectParameter
-from sensors.effects.timeshift import TimeShiftEffect
+from rollingstar.sensors.effects.base import Alias, EffectParameter
+from rollingstar.sensors.effects.timeshift import TimeShiftEffect
 
 
 class TimeOffset(TimeShiftEffect):

@@ -1,13 +1,13 @@
 """Common machinery of the time-stage effects: a shift ``dt = sum_j basis_j(ctx) p_j`` of the instant seen.
 
 A star seen ``dt`` later than the nominal timing says is seen along ``w' = Exp(omega dt)^T w``
-(body rate ``omega``, :mod:`sensors.motion` kinematics, exact for a constant rate), so with
-:func:`sensors.effects.geometry.rotate_line_of_sight`::
+(body rate ``omega``, :mod:`rollingstar.sensors.motion` kinematics, exact for a constant rate), so with
+:func:`rollingstar.sensors.effects.geometry.rotate_line_of_sight`::
 
     (x', y') = project(Exp(omega dt)^T w),     d(x', y')/dp_j = J_rot(omega dt) omega basis_j
 
 To first order this is ``(x, y) + (vx, vy) dt``. The simulator does not call :meth:`apply` of
-these effects: it evaluates the true motion at ``t + dt`` (:func:`sensors.effects.chain.time_shift_s`).
+these effects: it evaluates the true motion at ``t + dt`` (:func:`rollingstar.sensors.effects.chain.time_shift_s`).
 """
 from __future__ import annotations
 
@@ -15,8 +15,13 @@ from typing import ClassVar
 
 import numpy as np
 
-from sensors.effects.base import STAGE_TIME, Effect, EffectContext, as_positions
-from sensors.effects.geometry import rotate_line_of_sight
+from rollingstar.sensors.effects.base import (
+    STAGE_TIME,
+    Effect,
+    EffectContext,
+    as_positions,
+)
+from rollingstar.sensors.effects.geometry import rotate_line_of_sight
 
 
 class TimeShiftEffect(Effect):

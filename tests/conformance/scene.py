@@ -8,14 +8,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import erf
 from scipy.spatial.transform import Rotation
+from scipy.special import erf
 
-from estimators.data import FrameData, SensorContext, StarTable
-from sensors.camera import PinholeCamera
-from sensors.catalog import StarCatalog
-from sensors.conventions import attitude_from_radec_roll, radec_to_unit
-from sensors.timing import DetectorTiming
+from rollingstar.estimators.data import FrameData, SensorContext, StarTable
+from rollingstar.sensors.camera import PinholeCamera
+from rollingstar.sensors.catalog import StarCatalog
+from rollingstar.sensors.conventions import attitude_from_radec_roll, radec_to_unit
+from rollingstar.sensors.timing import DetectorTiming
 
 # What each role consumes: "image" (raw frames), "detections" (unidentified spots), "identified".
 # A new role (or a third-party plugin of a new role) only needs an entry here.

@@ -1,6 +1,6 @@
 """The shared conformance suite: every registered plugin (built-in or third-party) of every role.
 
-Parametrised over ``pipelines.registry.plugins_by_role()``, so a new plugin is checked as soon as it
+Parametrised over ``rollingstar.pipelines.registry.plugins_by_role()``, so a new plugin is checked as soon as it
 is registered. Each role's standard input comes from ``scene.frames_for_role``.
 """
 from __future__ import annotations
@@ -13,8 +13,13 @@ import numpy as np
 import pydantic
 import pytest
 
-from estimators.data import AttitudeEstimate, FrameData, RateEstimate, StarTable
-from pipelines.registry import plugins_by_role
+from rollingstar.estimators.data import (
+    AttitudeEstimate,
+    FrameData,
+    RateEstimate,
+    StarTable,
+)
+from rollingstar.pipelines.registry import plugins_by_role
 from tests.conformance.scene import ROLE_INPUT, frames_for_role, make_scene
 
 PLUGINS = [(role, cls) for role, classes in plugins_by_role().items() for cls in classes]

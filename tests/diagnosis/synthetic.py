@@ -1,7 +1,7 @@
 """A synthetic recording built directly from the diagnosis forward model (no simulator, no pipeline).
 
 Stars at random pixels of every frame, a constant body rate, per-star times from the rolling
-shutter timing; observed positions = :func:`estimators.diagnosis.observations.predict` under the
+shutter timing; observed positions = :func:`rollingstar.estimators.diagnosis.observations.predict` under the
 true attitude, rate and effects, plus Gaussian noise. Self-consistent by construction, so the
 estimators' statistical properties (bias, interval coverage) can be checked against the truth.
 """
@@ -10,9 +10,13 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from estimators.diagnosis.observations import Nuisance, Observations, predict
-from pipelines import build
-from pipelines.bench.discrepancy import base_scenario
+from rollingstar.estimators.diagnosis.observations import (
+    Nuisance,
+    Observations,
+    predict,
+)
+from rollingstar.sensors import build
+from rollingstar.studies.bench.discrepancy import base_scenario
 
 
 def synthetic(effects=(), frames: int = 12, stars: int = 25, rate_deg_s=(1.0, 0.0, 0.0), sigma: float = 0.05,

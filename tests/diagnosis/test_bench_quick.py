@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from pipelines.bench.discrepancy import NULL_FRACTION, run_benchmark
+from rollingstar.studies.bench.discrepancy import NULL_FRACTION, run_benchmark
 
 
 @pytest.fixture(scope="module")

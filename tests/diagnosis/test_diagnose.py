@@ -5,12 +5,11 @@ import json
 
 import numpy as np
 import pytest
-import yaml
 from typer.testing import CliRunner
 
-from pipelines.cli import app
-from pipelines.config import load_scenario
-from pipelines.simulate import simulate_to_log
+from rollingstar.cli import app
+from rollingstar.pipelines.simulate import simulate_to_log
+from rollingstar.sensors.scenario import load_scenario
 
 BASE = """
 name: diag-test
@@ -114,7 +113,7 @@ def test_null_recording_is_explained_within_noise(recordings):
 
 
 def test_heldout_frames_are_split_before_fitting(recordings):
-    from pipelines.diagnose import DiagnoseOptions, diagnose
+    from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose
 
     res, internals = diagnose(recordings["radial"], load_scenario(recordings["base"]), options=DiagnoseOptions(n_boot=0, stability=False))
     obs = internals["obs"]
@@ -134,7 +133,7 @@ def test_cli_errors_exit_2(recordings, tmp_path, case):
         res = _run("diagnose", "--sim", bad, "--recording", recordings["null"])
         needle = "framez"
     else:
-        from logs.writer import LogWriter
+        from rollingstar.logs.writer import LogWriter
 
         rec = tmp_path / "bare.mcap"
         with LogWriter(rec, kind="simulation"):

@@ -1,16 +1,17 @@
-"""The attitude-increment channel against a gyro (estimators.diagnosis.gyro_channel)."""
+"""The attitude-increment channel against a gyro (rollingstar.estimators.diagnosis.gyro_channel)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimators.diagnosis import gyro_channel as gc
-from pipelines.bench import discrepancy as D
-from pipelines.config import ScenarioConfig, validate
-from pipelines.diagnose import DiagnoseOptions, diagnose
-from pipelines.simulate import simulate_to_log
-from sensors.effects import EFFECTS
+from rollingstar.config import validate
+from rollingstar.estimators.diagnosis import gyro_channel as gc
+from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose
+from rollingstar.pipelines.simulate import simulate_to_log
+from rollingstar.sensors.effects import EFFECTS
+from rollingstar.sensors.scenario import ScenarioConfig
+from rollingstar.studies.bench import discrepancy as D
 
 
 def _constant_rate_gyro(omega, t0=0, rate_hz=200.0, seconds=1.0):

@@ -10,10 +10,14 @@ import pytest
 from scipy import stats
 from threadpoolctl import threadpool_limits
 
-from estimators.diagnosis import refit as R
-from estimators.diagnosis import resimulate, selection
-from estimators.diagnosis.library import library
-from estimators.diagnosis.observations import by_exposure, fit_nuisance, predict
+from rollingstar.estimators.diagnosis import refit as R
+from rollingstar.estimators.diagnosis import resimulate, selection
+from rollingstar.estimators.diagnosis.library import library
+from rollingstar.estimators.diagnosis.observations import (
+    by_exposure,
+    fit_nuisance,
+    predict,
+)
 from tests.diagnosis.synthetic import synthetic
 
 RS = library()["rolling_shutter"]
@@ -103,7 +107,7 @@ def test_by_exposure_evaluates_each_group_with_its_own_exposure():
     expo = np.where(obs.frame % 2 == 0, 20_000_000, 80_000_000)
     from dataclasses import replace
 
-    from sensors.effects.chain import predict as chain_predict
+    from rollingstar.sensors.effects.chain import predict as chain_predict
 
     got = by_exposure(p.ctx, expo, lambda c: chain_predict((smear,), c))
     for e in (20_000_000, 80_000_000):

@@ -1,10 +1,10 @@
-"""Selection on synthetic linear problems with known answers (estimators.diagnosis.selection)."""
+"""Selection on synthetic linear problems with known answers (rollingstar.estimators.diagnosis.selection)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from estimators.diagnosis import selection as sel
+from rollingstar.estimators.diagnosis import selection as sel
 
 
 def _groups(rng, n, sizes):

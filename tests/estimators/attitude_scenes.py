@@ -8,12 +8,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from estimators.data import FrameData, GyroSamples, StarTable
-from pipelines import build
-from pipelines.config import GyroConfig, load_scenario
-from pipelines.simulate import build_simulator
-from pipelines.truth import attitude_crb_rad2
-from sensors.gyro import simulate_gyro
+from rollingstar.estimators.data import FrameData, GyroSamples, SensorContext, StarTable
+from rollingstar.pipelines.simulate import build_simulator
+from rollingstar.pipelines.truth import attitude_crb_rad2
+from rollingstar.sensors import build
+from rollingstar.sensors.gyro import simulate_gyro
+from rollingstar.sensors.scenario import GyroConfig, load_scenario
 
 SCENARIO = "configs/scenarios/he2021b_table2.yaml"
 ARCSEC = np.pi / 180 / 3600
@@ -29,7 +29,7 @@ def sim_frames(n_frames: int, seed: int = 1, sigma_px: float = 0.05, rate_deg_s=
         update["gyro"] = GyroConfig(enabled=True, **gyro)
     cfg = cfg.model_copy(update=update)
     sim = build_simulator(cfg)
-    ctx = build.build_context(cfg)
+    ctx = SensorContext.from_scenario(cfg)
     period = int(sim.timing.frame_period_ns)
     g = None
     if gyro is not None:

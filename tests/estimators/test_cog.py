@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from estimators.centroiders.cog import CogCentroider
-from estimators.data import FrameData
+from rollingstar.estimators.centroiders.cog import CogCentroider
+from rollingstar.estimators.data import FrameData
 from tests.conformance.scene import make_scene, render
 
 NOISE = 5.0  # ADU, Gaussian read noise of the rendered images

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from estimators.centroiders.cog import CogCentroider, _robust_sigma
-from estimators.data import FrameData
+from rollingstar.estimators.centroiders.cog import CogCentroider, _robust_sigma
+from rollingstar.estimators.data import FrameData
 from tests.conformance.scene import make_scene, render
 
 NOISE = 5.0

@@ -8,16 +8,16 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from estimators.data import FrameData, SensorContext, StarTable
-from estimators.identifiers.camera_fit import RadialCamera, fit_camera
-from estimators.identifiers.lost_in_space import LostInSpaceIdentifier
-from sensors.camera import PinholeCamera
-from sensors.catalog import StarCatalog
-from sensors.effects.base import EffectContext
-from sensors.effects.radial_distortion import RadialDistortion
-from sensors.motion import PiecewiseMotion, Segment
-from sensors.simulate import StarTrackerSimulator
-from sensors.timing import DetectorTiming
+from rollingstar.estimators.data import FrameData, SensorContext, StarTable
+from rollingstar.estimators.identifiers.camera_fit import RadialCamera, fit_camera
+from rollingstar.estimators.identifiers.lost_in_space import LostInSpaceIdentifier
+from rollingstar.sensors.camera import PinholeCamera
+from rollingstar.sensors.catalog import StarCatalog
+from rollingstar.sensors.effects.base import EffectContext
+from rollingstar.sensors.effects.radial_distortion import RadialDistortion
+from rollingstar.sensors.motion import PiecewiseMotion, Segment
+from rollingstar.sensors.simulate import StarTrackerSimulator
+from rollingstar.sensors.timing import DetectorTiming
 
 # an 8 mm lens on 5.5 um pixels: 1024 x 768, 38.8 deg horizontal field (the creusot 8 mm lens is 28 deg)
 CAM = PinholeCamera(focal_length_m=0.008, pixel_size_m=5.5e-6, width=1024, height=768)
@@ -45,7 +45,7 @@ def distorted_frame(context, attitude: Rotation, seed: int, k1: float = K1):
 
 
 def test_radial_camera_matches_the_effect_model():
-    """RadialCamera.distort is sensors.effects' RadialDistortion.apply; undistort is its inverse."""
+    """RadialCamera.distort is rollingstar.sensors.effects' RadialDistortion.apply; undistort is its inverse."""
     rng = np.random.default_rng(0)
     x, y = rng.uniform(-200, 1224, 500), rng.uniform(-200, 968, 500)
     cam = RadialCamera.from_pinhole(CAM, k1=-0.3, k2=0.2)

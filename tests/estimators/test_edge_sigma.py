@@ -10,11 +10,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.special import erf
 
-from estimators.centroiders.cog import CogCentroider
-from estimators.centroiders.edge import edge_bias_px, near_edge, with_edge_bias
-from estimators.centroiders.window_kernel import any_near_edge
-from estimators.centroiders.windowed import WindowedCentroider
-from estimators.data import FrameData
+from rollingstar.estimators.centroiders.cog import CogCentroider
+from rollingstar.estimators.centroiders.edge import (
+    edge_bias_px,
+    near_edge,
+    with_edge_bias,
+)
+from rollingstar.estimators.centroiders.window_kernel import any_near_edge
+from rollingstar.estimators.centroiders.windowed import WindowedCentroider
+from rollingstar.estimators.data import FrameData
 from tests.conformance.scene import make_scene, render
 
 SHAPE = (64, 96)  # rows, columns
@@ -60,7 +64,7 @@ def test_the_fixed_point_has_converged(monkeypatch):
     """20 steps (the module's) approach the 200-step bias from below: 87-100 % of it (measured
     0.866 at the slowest, a 2 px PSF centred just inside the edge) on cut spots of PSF 0.8-2 px
     centred from 0.4 px outside to 4 px inside the first column."""
-    import estimators.centroiders.edge as edge
+    import rollingstar.estimators.centroiders.edge as edge
 
     spots = [_cut_spot(psf, mu) for psf in (0.8, 1.2, 2.0) for mu in np.linspace(-0.4, 4.0, 23)]
     x, y, F, P = (np.array(v) for v in zip(*spots))

@@ -6,10 +6,21 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimators.attitude.gtsam_graph import ahrs_factor, rotation_params, star_factors
-from estimators.attitude.gtsam_smoother import GtsamSmoother
-from estimators.attitude.mekf import MekfFilter
-from tests.estimators.attitude_scenes import ARCSEC, errors_rad, nees, run_plugin, sim_frames, valid_estimates
+from rollingstar.estimators.attitude.gtsam_graph import (
+    ahrs_factor,
+    rotation_params,
+    star_factors,
+)
+from rollingstar.estimators.attitude.gtsam_smoother import GtsamSmoother
+from rollingstar.estimators.attitude.mekf import MekfFilter
+from tests.estimators.attitude_scenes import (
+    ARCSEC,
+    errors_rad,
+    nees,
+    run_plugin,
+    sim_frames,
+    valid_estimates,
+)
 
 # Nearly-constant-rate model matched to the simulated constant-rate truth.
 MATCHED = {"angular_accel_noise_deg_s_sqrt_s": 1e-6, "attitude_noise_arcsec_sqrt_s": 0.1}
@@ -144,10 +155,11 @@ def test_invalid_cases_are_flagged_not_invented():
 
 
 def test_runner_writes_each_smoothed_frame_once(tmp_path):
-    from pipelines.config import PipelineConfig, load_scenario
-    from pipelines.evaluate import evaluate_log
-    from pipelines.runner import run_pipeline
-    from pipelines.simulate import simulate_to_log
+    from rollingstar.pipelines.config import PipelineConfig
+    from rollingstar.pipelines.evaluate import evaluate_log
+    from rollingstar.pipelines.runner import run_pipeline
+    from rollingstar.pipelines.simulate import simulate_to_log
+    from rollingstar.sensors.scenario import load_scenario
 
     rec = tmp_path / "rec.mcap"
     simulate_to_log(load_scenario("configs/scenarios/he2021b_table2.yaml"), rec, frames=8, seed=2, show_progress=False)

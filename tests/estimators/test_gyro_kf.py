@@ -3,8 +3,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimators.data import FrameData, GyroSamples, StarTable
-from estimators.filters.gyro_kf import GyroIntegrator, GyroKalmanFilter, star_motion_jacobian
+from rollingstar.estimators.data import FrameData, GyroSamples, StarTable
+from rollingstar.estimators.filters.gyro_kf import (
+    GyroIntegrator,
+    GyroKalmanFilter,
+    star_motion_jacobian,
+)
 from tests.conformance.scene import make_scene
 
 

@@ -13,9 +13,20 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimators.attitude.wahba import _FLIP_QUATS, _canonical, _quat_product, quest
-from estimators.filters.kf_cv import H, cv_process_noise, cv_transition, kf_cv_predict, kf_cv_update
-from estimators.filters.kf_cv_kernel import kf_cv_step_kernel
+from rollingstar.estimators.attitude.wahba import (
+    _FLIP_QUATS,
+    _canonical,
+    _quat_product,
+    quest,
+)
+from rollingstar.estimators.filters.kf_cv import (
+    H,
+    cv_process_noise,
+    cv_transition,
+    kf_cv_predict,
+    kf_cv_update,
+)
+from rollingstar.estimators.filters.kf_cv_kernel import kf_cv_step_kernel
 
 
 @pytest.mark.parametrize("tol", [1e-10, 1e-6, 1e-2])
@@ -91,7 +102,7 @@ def test_flip_gammas_equal_each_variants_own_gamma():
     """The four sequential-rotation gammas computed from variant 0 (adjugate diagonal) equal each
     variant's own ``(lambda + sigma) alpha - Delta``, on random attitudes including ones near
     180 degrees about each axis (where variant 0's gamma vanishes)."""
-    from estimators.attitude.wahba import _FLIPS, _flip_gammas, _quest_terms
+    from rollingstar.estimators.attitude.wahba import _FLIPS, _flip_gammas, _quest_terms
 
     rng = np.random.default_rng(8)
     F, N = 400, 6

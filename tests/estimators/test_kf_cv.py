@@ -8,10 +8,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimators.data import FrameData, StarTable
-from estimators.filters.kf_cv import (KfCvFilter, cv_process_noise, kf_cv_batch, kf_cv_predict, kf_cv_update,
-                                      steady_state_covariance)
-from sensors.timing import DetectorTiming
+from rollingstar.estimators.data import FrameData, StarTable
+from rollingstar.estimators.filters.kf_cv import (
+    KfCvFilter,
+    cv_process_noise,
+    kf_cv_batch,
+    kf_cv_predict,
+    kf_cv_update,
+    steady_state_covariance,
+)
+from rollingstar.sensors.timing import DetectorTiming
 
 TIMING = DetectorTiming(mode="rolling", exposure_ns=44_900_000, line_delay_ns=43_900, rows=1024)
 CONTEXT = SimpleNamespace(timing=TIMING)
@@ -67,7 +73,6 @@ def test_lifecycle_and_eq6_initialisation():
     np.testing.assert_allclose(out[1].stars.vx[o1], (s1.x[o1] - s0.x[o0]) / dt, rtol=1e-12)
     np.testing.assert_array_equal(out[1].stars.x, s1.x)
     # a star that disappears is retired; when it comes back it starts again
-    drop = frames[2].stars.take(frames[2].stars.catalog_id != 100)
     f = KfCvFilter()
     f.setup(CONTEXT)
     f.process(frames[0])

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimators.filters.kf_cv import kf_cv_batch
+from rollingstar.estimators.filters.kf_cv import kf_cv_batch
 
 DT = 0.08985
 R = 0.05

@@ -10,13 +10,18 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from scipy.stats import binom
 
-from estimators.data import AttitudeEstimate, FrameData, SensorContext, StarTable
-from estimators.identifiers.lost_in_space import LostInSpaceIdentifier
-from sensors.camera import PinholeCamera
-from sensors.catalog import StarCatalog
-from sensors.motion import PiecewiseMotion, Segment
-from sensors.simulate import StarTrackerSimulator
-from sensors.timing import DetectorTiming
+from rollingstar.estimators.data import (
+    AttitudeEstimate,
+    FrameData,
+    SensorContext,
+    StarTable,
+)
+from rollingstar.estimators.identifiers.lost_in_space import LostInSpaceIdentifier
+from rollingstar.sensors.camera import PinholeCamera
+from rollingstar.sensors.catalog import StarCatalog
+from rollingstar.sensors.motion import PiecewiseMotion, Segment
+from rollingstar.sensors.simulate import StarTrackerSimulator
+from rollingstar.sensors.timing import DetectorTiming
 
 CAM = PinholeCamera(focal_length_m=0.025, pixel_size_m=5.5e-6, width=1024, height=1024)  # 12.8 deg field
 TIMING = DetectorTiming(mode="rolling", exposure_ns=20_000_000, line_delay_ns=10_000, rows=1024)
@@ -25,7 +30,7 @@ SIGMA_PX = 0.1
 
 @pytest.fixture(scope="module")
 def context():
-    # as pipelines.build.build_catalog: close doubles (here < 3 px) dropped, they blend in any real image
+    # as rollingstar.sensors.build.build_catalog: close doubles (here < 3 px) dropped, they blend in any real image
     catalog = StarCatalog.from_hipparcos(2000.0, 6.5).without_close_pairs(3 * CAM.ifov_rad)
     return SensorContext(camera=CAM, timing=TIMING, catalog=catalog, bit_depth=12)
 

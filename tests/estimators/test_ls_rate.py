@@ -11,15 +11,25 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from estimators.data import FrameData, StarTable
-from estimators.rates.ls_rate import (LsRateCorrection, LsRateEstimator, _Problem, left_jacobian, pair_jacobian,
-                                      pair_residuals, pixel_sensitivity, rotation_null_space, solve_rate,
-                                      solve_rate_least_squares, whitening, whitening_rotation_null)
-from estimators.rates.ls_rate_kernel import pair_setup_kernel
-from pipelines import build
-from pipelines.config import load_scenario
-from pipelines.simulate import build_simulator
-from pipelines.truth import rate_crb_rad2
+from rollingstar.estimators.data import FrameData, SensorContext, StarTable
+from rollingstar.estimators.rates.ls_rate import (
+    LsRateCorrection,
+    LsRateEstimator,
+    _Problem,
+    left_jacobian,
+    pair_jacobian,
+    pair_residuals,
+    pixel_sensitivity,
+    rotation_null_space,
+    solve_rate,
+    solve_rate_least_squares,
+    whitening,
+    whitening_rotation_null,
+)
+from rollingstar.estimators.rates.ls_rate_kernel import pair_setup_kernel
+from rollingstar.pipelines.simulate import build_simulator
+from rollingstar.pipelines.truth import rate_crb_rad2
+from rollingstar.sensors.scenario import load_scenario
 
 DEG = np.pi / 180.0
 ROOT = Path(__file__).resolve().parents[2]
@@ -38,7 +48,7 @@ def truth_frame(cfg, k=0) -> tuple[FrameData, object, object]:
     tr = sim.frame(k).truth
     stars = StarTable.build(tr.x, tr.y, tr.t_ns, tr.row_time_ns, flux=10 ** (-0.4 * tr.magnitude),
                             catalog_id=tr.catalog_id, ref_icrs=tr.unit_icrs)
-    return FrameData(index=k, t0_ns=int(sim.timing.frame_start_ns(k)), stars=stars), build.build_context(cfg), sim
+    return FrameData(index=k, t0_ns=int(sim.timing.frame_start_ns(k)), stars=stars), SensorContext.from_scenario(cfg), sim
 
 
 def estimate(frame, ctx, **params):
@@ -116,7 +126,7 @@ def test_property_recovers_rate_any_pointing_and_invariances(wx, wy, wz, ra, dec
 
 def test_covariance_matches_monte_carlo_and_crb():
     """400 noisy copies of one frame: sample covariance vs the reported one, and the reported one vs
-    the independent single-frame Cramér-Rao bound (pipelines.truth.rate_crb_rad2)."""
+    the independent single-frame Cramér-Rao bound (rollingstar.pipelines.truth.rate_crb_rad2)."""
     sigma, rate = 0.02, np.array([1.0, 1.0, 2.0])
     frame, ctx, sim = truth_frame(scenario(rate), k=0)
     s = frame.stars

@@ -6,8 +6,19 @@ import pytest
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from estimators.attitude.mekf import MekfFilter, propagation_matrices, star_update
-from tests.estimators.attitude_scenes import ARCSEC, errors_rad, nees, run_plugin, sim_frames, valid_estimates
+from rollingstar.estimators.attitude.mekf import (
+    MekfFilter,
+    propagation_matrices,
+    star_update,
+)
+from tests.estimators.attitude_scenes import (
+    ARCSEC,
+    errors_rad,
+    nees,
+    run_plugin,
+    sim_frames,
+    valid_estimates,
+)
 
 # Nearly-constant-rate model matched to the simulated constant-rate truth.
 MATCHED = {"angular_accel_noise_deg_s_sqrt_s": 1e-6, "attitude_noise_arcsec_sqrt_s": 1e-3}

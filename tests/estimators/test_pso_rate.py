@@ -4,16 +4,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimators.data import FrameData, StarTable
-from estimators.rates.pso import (PsoCorrection, PsoRateEstimator, angular_distance_loss, image_velocity_px_s,
-                                  _pair_angles)
-from sensors.camera import PinholeCamera
-from sensors.catalog import StarCatalog
-from sensors.conventions import attitude_from_radec_roll
-from sensors.motion import constant_rate
-from sensors.simulate import StarTrackerSimulator
-from sensors.timing import DetectorTiming
-from estimators.data import SensorContext
+from rollingstar.estimators.data import FrameData, SensorContext, StarTable
+from rollingstar.estimators.rates.pso import (
+    PsoCorrection,
+    PsoRateEstimator,
+    _pair_angles,
+    angular_distance_loss,
+    image_velocity_px_s,
+)
+from rollingstar.sensors.camera import PinholeCamera
+from rollingstar.sensors.catalog import StarCatalog
+from rollingstar.sensors.conventions import attitude_from_radec_roll
+from rollingstar.sensors.motion import constant_rate
+from rollingstar.sensors.simulate import StarTrackerSimulator
+from rollingstar.sensors.timing import DetectorTiming
 
 DEG = np.pi / 180.0
 OMEGA = np.array([1.0, -0.7, 0.0]) * DEG  # rad/s
@@ -119,7 +123,7 @@ def test_correction_moves_stars_to_reference_time(setup):
 def test_correction_reuses_the_pipeline_rate_and_runs_the_pso_once(setup, monkeypatch):
     """pso-rate then pso-correction (configs/pipelines/fu2022.yaml): the correction takes frame.rate
     instead of re-running the swarm, and its stars equal those of a correction that estimates itself."""
-    import estimators.rates.pso as pso
+    import rollingstar.estimators.rates.pso as pso
 
     ctx, frame = setup
     calls = []
@@ -148,8 +152,8 @@ def test_correction_reuses_the_pipeline_rate_and_runs_the_pso_once(setup, monkey
 def test_correction_with_an_exact_external_rate_is_exact(setup, monkeypatch):
     """A valid frame.rate from elsewhere (here the true 3-axis rate, as a gyro would give) is used as
     is: no PSO, and the rotation model moves the stars exactly to the reference time."""
-    import estimators.rates.pso as pso
-    from estimators.data import RateEstimate
+    import rollingstar.estimators.rates.pso as pso
+    from rollingstar.estimators.data import RateEstimate
 
     ctx, frame = setup
 

@@ -3,13 +3,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from estimators.attitude.quest import QuestSolver
-from estimators.attitude.wahba import quest, quest_covariance, wahba_loss
-from estimators.corrections.none import NoCorrection
-from estimators.data import FrameData
+from rollingstar.estimators.attitude.quest import QuestSolver
+from rollingstar.estimators.attitude.wahba import quest, quest_covariance, wahba_loss
+from rollingstar.estimators.corrections.none import NoCorrection
+from rollingstar.estimators.data import FrameData
 from tests.conformance.scene import identified, make_scene
 
 MIN_SEP_RAD = np.radians(2.0)

@@ -5,14 +5,24 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimators.attitude.quest import QuestSolver
-from estimators.attitude.request import (RequestSolver, davenport_k, dominant_quaternion, propagate_k,
-                                         transition_matrix)
-from estimators.data import FrameData, RateEstimate, StarTable, TruthSamples
-from pipelines import build
-from pipelines.config import load_scenario
-from pipelines.simulate import build_simulator, truth_sample_times
-from sensors.conventions import attitude_error_body_arcsec
+from rollingstar.estimators.attitude.quest import QuestSolver
+from rollingstar.estimators.attitude.request import (
+    RequestSolver,
+    davenport_k,
+    dominant_quaternion,
+    propagate_k,
+    transition_matrix,
+)
+from rollingstar.estimators.data import (
+    FrameData,
+    RateEstimate,
+    SensorContext,
+    StarTable,
+    TruthSamples,
+)
+from rollingstar.pipelines.simulate import build_simulator, truth_sample_times
+from rollingstar.sensors.conventions import attitude_error_body_arcsec
+from rollingstar.sensors.scenario import load_scenario
 from tests.conformance.scene import frames_for_role, make_scene
 
 SCENARIO = "configs/scenarios/he2021b_table2.yaml"
@@ -24,7 +34,7 @@ def _sim_frames(n_frames=3, sigma_px=0.0, rate=0.05):
                                  "noise": cfg.noise.model_copy(update={"centroid_sigma_px": sigma_px}),
                                  "motion": cfg.motion.model_copy(update={"rate_deg_s": (rate, 0.0, 0.0)})})
     sim = build_simulator(cfg)
-    ctx = build.build_context(cfg)
+    ctx = SensorContext.from_scenario(cfg)
     period = int(sim.timing.frame_period_ns)
     frames = []
     for f in sim.frames(n_frames):
@@ -158,7 +168,7 @@ def test_invalid_cases_flagged_not_invented():
 
 def test_gyro_source_and_needs_truth():
     assert RequestSolver(rate_source="truth").needs_truth and not RequestSolver().needs_truth
-    from estimators.data import GyroSamples
+    from rollingstar.estimators.data import GyroSamples
 
     frames, motion, ctx = _sim_frames(n_frames=3)
     gyro = [f.evolve(gyro=GyroSamples(f.truth.t_ns[::5], f.truth.omega_rad_s[::5])) for f in frames]

@@ -6,9 +6,9 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.special import erf
 
-from estimators.centroiders.cog import CogCentroider
-from estimators.centroiders.saturation import clipped_cog_sigma_px
-from estimators.data import FrameData
+from rollingstar.estimators.centroiders.cog import CogCentroider
+from rollingstar.estimators.centroiders.saturation import clipped_cog_sigma_px
+from rollingstar.estimators.data import FrameData
 from tests.conformance.scene import make_scene, render
 
 SAT, BG = 4095.0, 100.0

@@ -6,9 +6,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from estimators.corrections.time_domain import TimeDomainCorrection, reference_time_ns, time_domain_correct
-from estimators.data import FrameData, StarTable
-from sensors.timing import DetectorTiming
+from rollingstar.estimators.corrections.time_domain import (
+    TimeDomainCorrection,
+    reference_time_ns,
+    time_domain_correct,
+)
+from rollingstar.estimators.data import FrameData, StarTable
+from rollingstar.sensors.timing import DetectorTiming
 
 TIMING = DetectorTiming(mode="rolling", exposure_ns=44_900_000, line_delay_ns=43_900, rows=1024)
 
@@ -93,10 +97,10 @@ def test_simulated_rotation_noise_free():
 
     The remaining error is the constant-velocity model's: the pinhole projection bends the image
     track (image acceleration); over the <= 45 ms extrapolation it stays below 0.005 px here."""
-    from pipelines import build
-    from pipelines.config import load_scenario
-    from pipelines.simulate import build_simulator
-    from pipelines.truth import true_positions
+    from rollingstar.pipelines.simulate import build_simulator
+    from rollingstar.pipelines.truth import true_positions
+    from rollingstar.sensors import build
+    from rollingstar.sensors.scenario import load_scenario
 
     cfg = load_scenario("configs/scenarios/he2021a.yaml")
     cfg = cfg.model_copy(update={"level": "centroid", "noise": cfg.noise.model_copy(update={"centroid_sigma_px": 0.0}),

@@ -5,12 +5,13 @@ import dataclasses
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from estimators.data import AttitudeEstimate, FrameData, StarTable
-from estimators.identifiers.tracking import TrackingIdentifier
-from sensors.conventions import radec_roll_from_attitude
+from rollingstar.estimators.data import AttitudeEstimate, FrameData, StarTable
+from rollingstar.estimators.identifiers.tracking import TrackingIdentifier
+from rollingstar.sensors.conventions import radec_roll_from_attitude
 from tests.conformance.scene import detections, make_scene
 
 

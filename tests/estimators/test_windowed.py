@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimators.centroiders.cog import CogCentroider
-from estimators.centroiders.windowed import WindowedCentroider
-from estimators.data import FrameData, GyroSamples
-from estimators.filters.gyro_kf import star_motion_jacobian
+from rollingstar.estimators.centroiders.cog import CogCentroider
+from rollingstar.estimators.centroiders.windowed import WindowedCentroider
+from rollingstar.estimators.data import FrameData, GyroSamples
+from rollingstar.estimators.filters.gyro_kf import star_motion_jacobian
 from tests.conformance.scene import make_scene, render
 
 
@@ -136,7 +136,7 @@ def test_batched_windows_equal_the_per_window_cog_loop(kernel, dtype):
 def test_window_cog_known_answer_and_windows_do_not_join():
     """A symmetric spot centred at (12.5, 9.5) has its CoG exactly there; two windows stacked with
     spots on their touching edges are labelled separately (no component crosses windows)."""
-    from estimators.centroiders.window_cog import centroid_windows
+    from rollingstar.estimators.centroiders.window_cog import centroid_windows
 
     yy, xx = np.mgrid[0:24, 0:24].astype(float)
     spot = 1000.0 * np.exp(-((xx - 12.5) ** 2 + (yy - 9.5) ** 2) / (2 * 1.2**2))
@@ -159,8 +159,13 @@ def test_compiled_kernel_equals_numpy_window_pass_on_many_windows():
     windows) given the same per-window background and noise: every column, 40 random windows with
     0-3 noisy spots each (edges, blends, hot pixels, saturated spots: their sigma_px carries the
     clipped-spot term), 4- and 8-connectivity, grow 0-2 rings."""
-    from estimators.centroiders.window_cog import centroid_windows, cut_windows, median_rows, robust_sigma_rows
-    from estimators.centroiders.window_kernel import centroid_windows_at
+    from rollingstar.estimators.centroiders.window_cog import (
+        centroid_windows,
+        cut_windows,
+        median_rows,
+        robust_sigma_rows,
+    )
+    from rollingstar.estimators.centroiders.window_kernel import centroid_windows_at
 
     rng = np.random.default_rng(21)
     H = W = 200
@@ -208,10 +213,16 @@ def test_compiled_prediction_and_gyro_increment_equal_the_reference_helpers():
     GyroIntegrator.increment (instants and exposure means), predict_step's row times equal
     DetectorTiming's, and FastGyroIntegrator keeps GyroIntegrator's knots, on random stars and
     gyro histories."""
-    from estimators.centroiders.window_gyro import FastGyroIntegrator, gyro_increment
-    from estimators.centroiders.window_kernel import predict_step, predict_windows
-    from sensors.timing import DetectorTiming
-    from estimators.filters.gyro_kf import GyroIntegrator
+    from rollingstar.estimators.centroiders.window_gyro import (
+        FastGyroIntegrator,
+        gyro_increment,
+    )
+    from rollingstar.estimators.centroiders.window_kernel import (
+        predict_step,
+        predict_windows,
+    )
+    from rollingstar.estimators.filters.gyro_kf import GyroIntegrator
+    from rollingstar.sensors.timing import DetectorTiming
 
     scene = make_scene(seed=13)
     cam = scene.context.camera

@@ -1,9 +1,14 @@
 """Small recordings written for the log tests."""
 import numpy as np
 
-from logs import (
-    AttitudeEstimateRecord, FrameStatusRecord, LogWriter, RateEstimateRecord, arrays_to_stars,
-    attitude_samples_from_arrays, gyro_samples_from_arrays,
+from rollingstar.logs import (
+    AttitudeEstimateRecord,
+    FrameStatusRecord,
+    LogWriter,
+    RateEstimateRecord,
+    arrays_to_stars,
+    attitude_samples_from_arrays,
+    gyro_samples_from_arrays,
 )
 
 FRAME_PERIOD_NS = 100_000_000

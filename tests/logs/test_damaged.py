@@ -6,13 +6,15 @@ import sys
 import warnings
 
 import pytest
-from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from mcap.data_stream import ReadDataStream
 from mcap.reader import make_reader
-from mcap.records import Chunk, Message as McapMessage
+from mcap.records import Chunk
+from mcap.records import Message as McapMessage
 from mcap.stream_reader import breakup_chunk
 
-from logs import LogFormatError, LogReader, TruncatedLogWarning
+from rollingstar.logs import LogFormatError, LogReader, TruncatedLogWarning
 
 from .helpers import write_recording
 
@@ -98,7 +100,7 @@ def _corrupt(recording, tmp_path, k, cut=None):
     return path, start
 
 
-@pytest.mark.filterwarnings("ignore::logs.TruncatedLogWarning")
+@pytest.mark.filterwarnings("ignore::rollingstar.logs.TruncatedLogWarning")
 @pytest.mark.parametrize("truncate", [False, True])
 def test_corrupt_chunk_is_skipped_with_its_offset(layout, tmp_path, truncate):
     k = 3
@@ -117,7 +119,7 @@ def test_corrupt_chunk_is_skipped_with_its_offset(layout, tmp_path, truncate):
 KILLED_WRITER = """
 import os, sys
 import numpy as np
-from logs import LogWriter, gyro_samples_from_arrays
+from rollingstar.logs import LogWriter, gyro_samples_from_arrays
 w = LogWriter(sys.argv[1], chunk_size=1024)
 for i in range(200):
     w.write_json("/gyro", gyro_samples_from_arrays([i], [[0.0, 0.0, float(i)]]))

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from logs import LogReader, iter_frames, stars_to_arrays
+from rollingstar.logs import LogReader, iter_frames, stars_to_arrays
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "log-format.md"
 

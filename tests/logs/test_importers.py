@@ -1,4 +1,4 @@
-"""`rollingstar import`: images, astrometry.net corr tables and centroid CSVs into rollingstar logs."""
+"""`rollingstar import`: images, astrometry.net corr tables and centroid CSVs into rollingstar rollingstar.logs."""
 from __future__ import annotations
 
 import json
@@ -14,17 +14,34 @@ import pytest
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from logs import LogReader, image_from_raw, iter_frames, stars_to_arrays
-from logs.importers import (
-    CameraSpec, ImportDataError, ImportDataWarning, boresight_offsets, import_centroids, import_corr,
-    import_images, import_warnings, pointing_centres, read_image,
+from rollingstar.logs import LogReader, image_from_raw, iter_frames, stars_to_arrays
+from rollingstar.logs.importers import (
+    CameraSpec,
+    ImportDataError,
+    ImportDataWarning,
+    boresight_offsets,
+    import_centroids,
+    import_corr,
+    import_images,
+    import_warnings,
+    pointing_centres,
+    read_image,
 )
-from logs.importers.corr import focal_px_from_fov, read_corr_table, read_log_json
-from logs.importers.images import batches_by_frame
-from pipelines.config import PipelineConfig, load_pipeline, scenario_from_yaml
-from pipelines.runner import run_pipeline
-from sensors.camera import PinholeCamera
-from sensors.conventions import attitude_from_radec_roll, radec_to_unit, unit_to_radec
+from rollingstar.logs.importers.corr import (
+    focal_px_from_fov,
+    read_corr_table,
+    read_log_json,
+)
+from rollingstar.logs.importers.images import batches_by_frame
+from rollingstar.pipelines.config import PipelineConfig, load_pipeline
+from rollingstar.pipelines.runner import run_pipeline
+from rollingstar.sensors.camera import PinholeCamera
+from rollingstar.sensors.conventions import (
+    attitude_from_radec_roll,
+    radec_to_unit,
+    unit_to_radec,
+)
+from rollingstar.sensors.scenario import scenario_from_yaml
 
 ROOT = Path(__file__).resolve().parents[2]
 DOC = ROOT / "docs" / "log-format.md"
@@ -35,7 +52,7 @@ QUEST_ONLY = PipelineConfig.model_validate({"name": "quest-only", "stages": [{"k
 
 
 def cli(*args):
-    return subprocess.run([sys.executable, "-m", "pipelines.cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "rollingstar.cli", *map(str, args)], capture_output=True, text=True,
                           cwd=ROOT, timeout=300)
 
 
@@ -278,7 +295,7 @@ def test_corr_damaged_rows_dropped_and_overflowing_residuals_not_taken_as_noise(
     s = stars_to_arrays(next(iter(iter_frames(LogReader(rec), "/camera/centroids"))).frame.data)
     np.testing.assert_array_equal(s["catalog_id"], np.delete(table["ids"], 3))
     scenario = scenario_from_yaml(LogReader(rec).metadata()["scenario"]["yaml"])
-    from pipelines.config import NoiseConfig
+    from rollingstar.sensors.scenario import NoiseConfig
     assert scenario.noise.centroid_sigma_px == NoiseConfig().centroid_sigma_px  # the default, not inf
 
 

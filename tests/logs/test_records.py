@@ -3,14 +3,24 @@ import json
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from pydantic import ValidationError
 
-from logs.records import (
-    RECORD_TYPES, AttitudeEstimateRecord, AttitudeSamplesRecord, GyroSamplesRecord,
-    RateEstimateRecord, StarsRecord, arrays_to_stars, attitude_samples_from_arrays,
-    attitude_samples_to_arrays, gyro_samples_from_arrays, gyro_samples_to_arrays, stars_to_arrays,
+from rollingstar.logs.records import (
+    RECORD_TYPES,
+    AttitudeEstimateRecord,
+    AttitudeSamplesRecord,
+    GyroSamplesRecord,
+    RateEstimateRecord,
+    StarsRecord,
+    arrays_to_stars,
+    attitude_samples_from_arrays,
+    attitude_samples_to_arrays,
+    gyro_samples_from_arrays,
+    gyro_samples_to_arrays,
+    stars_to_arrays,
 )
 
 floats = st.floats(allow_nan=True, allow_infinity=False, width=64)

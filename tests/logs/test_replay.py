@@ -1,7 +1,14 @@
 """Frame replay: side messages grouped with the frame they lead up to."""
 import pytest
 
-from logs import LogFormatError, LogReader, LogWriter, arrays_to_stars, gyro_samples_from_arrays, iter_frames
+from rollingstar.logs import (
+    LogFormatError,
+    LogReader,
+    LogWriter,
+    arrays_to_stars,
+    gyro_samples_from_arrays,
+    iter_frames,
+)
 
 from .helpers import FRAME_PERIOD_NS, write_recording
 

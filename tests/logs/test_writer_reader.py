@@ -6,9 +6,16 @@ import numpy as np
 import pytest
 from mcap.writer import Writer
 
-from logs import (
-    LogFormatError, LogReader, LogWriter, StarsRecord, TruncatedLogWarning, arrays_to_stars,
-    gyro_samples_to_arrays, image_from_raw, stars_to_arrays,
+from rollingstar.logs import (
+    LogFormatError,
+    LogReader,
+    LogWriter,
+    StarsRecord,
+    TruncatedLogWarning,
+    arrays_to_stars,
+    gyro_samples_to_arrays,
+    image_from_raw,
+    stars_to_arrays,
 )
 
 from .helpers import write_recording
@@ -182,7 +189,7 @@ def test_require_topics_lists_present_ones(tmp_path):
 def test_third_party_one_gyro_sample_per_message(tmp_path):
     path = tmp_path / "gyro.mcap"
     with LogWriter(path, kind="import") as w:
-        from logs import gyro_samples_from_arrays
+        from rollingstar.logs import gyro_samples_from_arrays
         for t in [30, 10, 20]:  # out of write order: the reader sorts by log time
             w.write_json("/gyro", gyro_samples_from_arrays([t], [[0.1, 0.2, 0.3]]))
     assert [m.log_time_ns for m in LogReader(path).messages()] == [10, 20, 30]

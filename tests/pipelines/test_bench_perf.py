@@ -12,7 +12,7 @@ import json
 import pytest
 from typer.testing import CliRunner
 
-from pipelines.cli import app
+from rollingstar.cli import app
 
 EXPECTED = {"quest", "kf", "rate", "centroid_full", "centroid_windowed", "render", "render_speedup",
             "replay_centroid", "replay_image", "compare"}
@@ -76,7 +76,7 @@ def test_compare_line_not_invented(quick_result):
 
 def test_markdown_has_one_row_per_line(quick_result):
     """`--markdown` (the docs/performance.md table): a header, then one row per line in order."""
-    from pipelines.bench.perf import format_markdown
+    from rollingstar.studies.bench.perf import format_markdown
 
     rows = [r for r in format_markdown(quick_result).splitlines() if r.startswith("| ") and not r.startswith("| line ")]
     assert len(rows) == len(quick_result["lines"])
@@ -88,8 +88,8 @@ def test_compare_line_takes_the_faster_of_interleaved_runs(monkeypatch):
     """The compare line runs serial and dask alternately, quotes the faster run of each, and checks
     every run's results against the first serial one (a stand-in ``run_compare`` whose wall times
     are scripted: no dask cluster, no timing assertion)."""
-    import pipelines.bench.perf as perf
-    import pipelines.compare as compare_pkg
+    import rollingstar.pipelines.compare as compare_pkg
+    import rollingstar.studies.bench.perf as perf
 
     clock = iter([0.0, 10.0, 10.0, 16.0, 16.0, 25.0, 25.0, 30.0])  # serial 10, dask 6, serial 9, dask 5
     calls = []

@@ -6,7 +6,13 @@ import threading
 
 import pytest
 
-from pipelines.checkpoint import CheckpointWriter, RunState, add_index, checkpoint_dir, load_checkpoint
+from rollingstar.pipelines.checkpoint import (
+    CheckpointWriter,
+    RunState,
+    add_index,
+    checkpoint_dir,
+    load_checkpoint,
+)
 
 
 class Stage:

@@ -5,13 +5,13 @@ import subprocess
 import sys
 from pathlib import Path
 
-from logs.reader import LogReader
+from rollingstar.logs.reader import LogReader
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def cli(*args):
-    return subprocess.run([sys.executable, "-m", "pipelines.cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "rollingstar.cli", *map(str, args)], capture_output=True, text=True,
                           cwd=ROOT, timeout=300)
 
 

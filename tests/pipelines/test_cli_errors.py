@@ -3,15 +3,13 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 ROOT = Path(__file__).resolve().parents[2]
 SCENARIO = ROOT / "configs" / "scenarios" / "he2021b.yaml"
 BASELINE = ROOT / "configs" / "pipelines" / "baseline.yaml"
 
 
 def cli(*args, cwd=None):
-    proc = subprocess.run([sys.executable, "-m", "pipelines.cli", *map(str, args)], capture_output=True, text=True,
+    proc = subprocess.run([sys.executable, "-m", "rollingstar.cli", *map(str, args)], capture_output=True, text=True,
                           cwd=cwd or ROOT, timeout=300)
     return proc
 

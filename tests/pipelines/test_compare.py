@@ -8,15 +8,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipelines.compare import run_compare
-from pipelines.compare.aggregate import deterministic_view
-from pipelines.compare.config import Tolerance, load_compare
-from pipelines.compare.regression import compare_to_baseline
-from pipelines.config import load_pipeline, load_scenario
-from pipelines.errors import ConfigError
-from pipelines.evaluate import evaluate_log
-from pipelines.runner import run_pipeline
-from pipelines.simulate import simulate_to_log
+from rollingstar.errors import ConfigError
+from rollingstar.pipelines.compare import run_compare
+from rollingstar.pipelines.compare.aggregate import deterministic_view
+from rollingstar.pipelines.compare.config import Tolerance, load_compare
+from rollingstar.pipelines.compare.regression import compare_to_baseline
+from rollingstar.pipelines.config import load_pipeline
+from rollingstar.pipelines.evaluate import evaluate_log
+from rollingstar.pipelines.runner import run_pipeline
+from rollingstar.pipelines.simulate import simulate_to_log
+from rollingstar.sensors.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"
@@ -44,7 +45,7 @@ def cli(*args):
     """The command in-process (typer's runner): exit code, stdout, stderr."""
     from typer.testing import CliRunner
 
-    from pipelines.cli import app
+    from rollingstar.cli import app
 
     return CliRunner().invoke(app, [str(a) for a in args])
 
@@ -185,7 +186,7 @@ def test_cli_gate_exit_codes(tmp_path):
 
 
 def test_executor_profile_known_answer():
-    from pipelines.compare.execute import executor_profile
+    from rollingstar.pipelines.compare.execute import executor_profile
 
     tasks = [{"task": {"cpu_s": c, "wall_s": 2 * c, "process": p}} for c, p in [(1.0, 7), (2.0, 8), (3.0, 7), (0.5, 8)]]
     prof = executor_profile(tasks + [{"error": "stage failed"}], wall_s=13.0)
@@ -197,9 +198,9 @@ def test_task_simulates_once_and_keeps_each_pipelines_failure_to_its_row():
     """A task runs every pipeline of its variant on one simulation: a pipeline that fails gets an
     ``error`` in its own row while the others are evaluated; a scenario that cannot be simulated
     gives every row the simulation's error."""
-    from pipelines.compare.config import Task
-    from pipelines.compare.tasks import run_task
-    from pipelines.config import to_yaml
+    from rollingstar.config import to_yaml
+    from rollingstar.pipelines.compare.config import Task
+    from rollingstar.pipelines.compare.tasks import run_task
 
     scenario = to_yaml(load_scenario(CONFIGS / "scenarios" / "fu2022.yaml"))
     good = to_yaml(load_pipeline(CONFIGS / "pipelines" / "baseline.yaml"))

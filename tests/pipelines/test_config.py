@@ -3,9 +3,11 @@ from pathlib import Path
 
 import pytest
 
-from pipelines.config import ScenarioConfig, load_pipeline, load_scenario, parse_yaml, to_yaml, validate
-from pipelines.errors import ConfigError
-from pipelines.runner import build_stages
+from rollingstar.config import parse_yaml, to_yaml, validate
+from rollingstar.errors import ConfigError
+from rollingstar.pipelines.config import load_pipeline
+from rollingstar.pipelines.runner import build_stages
+from rollingstar.sensors.scenario import ScenarioConfig, load_scenario
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from pipelines.figures import run_foundation
+from rollingstar.studies.figures import run_foundation
 
 
 @pytest.fixture(scope="module")

@@ -4,10 +4,10 @@ import textwrap
 
 import pytest
 
-from pipelines import registry
-from pipelines.config import PipelineConfig
-from pipelines.errors import ConfigError
-from pipelines.runner import build_stages
+from rollingstar.errors import ConfigError
+from rollingstar.pipelines import registry
+from rollingstar.pipelines.config import PipelineConfig
+from rollingstar.pipelines.runner import build_stages
 
 
 def test_builtins_have_their_declared_role_and_name():
@@ -22,7 +22,7 @@ def third_party_plugin(tmp_path, monkeypatch):
     """A real installed distribution (dist-info on sys.path) exposing a plugin entry point."""
     (tmp_path / "acme_plugin.py").write_text(textwrap.dedent("""
         from pydantic import BaseModel, ConfigDict
-        from estimators.corrections.base import Correction
+        from rollingstar.estimators.corrections.base import Correction
 
         class Shift(Correction):
             '''Adds a constant shift to every star (a test plugin).'''

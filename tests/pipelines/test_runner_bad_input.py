@@ -1,17 +1,15 @@
 """The runner on degraded input: truncated logs, frames with too few stars, NaN centroids."""
-import shutil
 import warnings
 
 import numpy as np
 import pytest
 
-from logs.errors import TruncatedLogWarning
-from logs.reader import LogReader
-from logs.records import arrays_to_stars
-from logs.writer import LogWriter
-from pipelines.config import PipelineConfig
-from pipelines.evaluate import evaluate_log
-from pipelines.runner import run_pipeline
+from rollingstar.logs.errors import TruncatedLogWarning
+from rollingstar.logs.reader import LogReader
+from rollingstar.logs.writer import LogWriter
+from rollingstar.pipelines.config import PipelineConfig
+from rollingstar.pipelines.evaluate import evaluate_log
+from rollingstar.pipelines.runner import run_pipeline
 
 PIPELINE = PipelineConfig(stages=[{"kind": "tracking"}, {"kind": "none"}, {"kind": "quest"}])
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import yaml
 
-from logs.reader import LogReader
-from pipelines.config import ScenarioConfig
-from pipelines.simulate import TOPIC_GYRO, simulate_to_log
+from rollingstar.logs.reader import LogReader
+from rollingstar.pipelines.simulate import TOPIC_GYRO, simulate_to_log
+from rollingstar.sensors.scenario import ScenarioConfig
 
 SCENARIO = """
 name: gyro-period

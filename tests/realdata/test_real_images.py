@@ -7,7 +7,7 @@ import warnings
 import numpy as np
 import pytest
 
-from pipelines import real_data as rd
+from rollingstar.studies import real_data as rd
 
 pytestmark = pytest.mark.realdata
 
@@ -35,8 +35,8 @@ def test_tetra3_attitude_agrees_with_tetra3rs_own_solution(real_data_dir, tetra3
     boresight tetra3rs reports for the same detections: within 30 arcsec (about 0.75 px)."""
     import tetra3rs
 
-    from logs.importers.images import read_image
-    from sensors.conventions import radec_to_unit
+    from rollingstar.logs.importers.images import read_image
+    from rollingstar.sensors.conventions import radec_to_unit
 
     for job, r in zip(rd.tetra3_jobs(real_data_dir), tetra3_rows):
         img = read_image(job.path)
@@ -51,8 +51,8 @@ def test_tetra3_attitude_agrees_with_tetra3rs_own_solution(real_data_dir, tetra3
 
 
 def _tetra3rs_db():
-    from estimators.identifiers.tetra3_database import solver_database
-    from sensors.catalog import StarCatalog
+    from rollingstar.estimators.identifiers.tetra3_database import solver_database
+    from rollingstar.sensors.catalog import StarCatalog
 
     return solver_database(StarCatalog.from_hipparcos(rd.TETRA3_EPOCH, rd.MAGNITUDE_LIMIT), 11.0, 12.0)
 
@@ -76,10 +76,10 @@ def test_creusot_boresight_against_astrometry_net(real_data_dir):
 def test_pipeline_over_imported_tetra3_recording(real_data_dir, tmp_path):
     """`rollingstar import images` + the real_images pipeline: a valid attitude on every frame
     (the eight pointings differ, so each frame after the first loses track and is re-acquired)."""
-    from logs.importers import import_images
-    from logs.reader import LogReader
-    from pipelines.config import load_pipeline
-    from pipelines.runner import run_pipeline
+    from rollingstar.logs.importers import import_images
+    from rollingstar.logs.reader import LogReader
+    from rollingstar.pipelines.config import load_pipeline
+    from rollingstar.pipelines.runner import run_pipeline
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -5,8 +5,8 @@ from pathlib import Path
 
 from typer.testing import CliRunner
 
-from logs.reader import LogReader
-from logs.writer import LogWriter
+from rollingstar.logs.reader import LogReader
+from rollingstar.logs.writer import LogWriter
 
 ROOT = Path(__file__).resolve().parents[2]
 SCENARIO = ROOT / "configs" / "scenarios" / "he2021b.yaml"
@@ -30,7 +30,7 @@ def rewrite(src, dst, edit=None, metadata_edit=None, chunk_size: int = 262144):
 
 def cli(*args):
     """``rollingstar ARGS`` in-process: (exit code, stdout, stderr)."""
-    from pipelines.cli import app
+    from rollingstar.cli import app
 
     res = CliRunner().invoke(app, [str(a) for a in args])
     return res.exit_code, res.stdout, res.stderr

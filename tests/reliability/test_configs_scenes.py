@@ -4,12 +4,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimators.attitude.base import AttitudeSolver
-from logs.reader import LogReader
-from pipelines import runner as runner_module
-from pipelines.config import PipelineConfig
-from pipelines.errors import PipelineError
-from pipelines.runner import run_pipeline
+from rollingstar.errors import PipelineError
+from rollingstar.estimators.attitude.base import AttitudeSolver
+from rollingstar.logs.reader import LogReader
+from rollingstar.pipelines import runner as runner_module
+from rollingstar.pipelines.config import PipelineConfig
+from rollingstar.pipelines.runner import run_pipeline
 
 from .helpers import SCENARIO, assert_exit_2, rewrite
 
@@ -75,7 +75,12 @@ def test_no_stars_and_one_star_frames_are_flagged_and_tracking_recovers(tmp_path
 def test_a_planet_among_the_stars_is_rejected_by_the_gate(tmp_path, small_recording):
     """A bright non-catalogue spot the identifier matched (planted: a spot with a wrong catalogue
     direction, i.e. a centroid recording already identified, as `import corr` writes)."""
-    from pipelines.outlier_bench import clean_scene, plant_false_matches, rms_error_arcsec, run_solver
+    from rollingstar.studies.outlier_bench import (
+        clean_scene,
+        plant_false_matches,
+        rms_error_arcsec,
+        run_solver,
+    )
 
     from .helpers import ROOT
 
@@ -110,8 +115,9 @@ _POINTINGS = [(83.8, -5.4, 0.0), (84.4, -4.9, 23.0), (83.1, -6.0, 61.0), (85.0, 
 
 
 def _saturated_runs(tmp_path, reject_border: bool = True):
-    from pipelines.config import load_pipeline, load_scenario
-    from pipelines.simulate import simulate_to_log
+    from rollingstar.pipelines.config import load_pipeline
+    from rollingstar.pipelines.simulate import simulate_to_log
+    from rollingstar.sensors.scenario import load_scenario
 
     from .helpers import PIPELINE
 
@@ -131,12 +137,16 @@ def _saturated_runs(tmp_path, reject_border: bool = True):
 
 def _errors_against_truth(out):
     """Per identified star: (x, y, dx, dy, sigma_px, saturated); per valid attitude: (error arcsec, 1-sigma arcsec)."""
-    from logs.records import stars_to_arrays
-    from pipelines import build
-    from pipelines.config import scenario_from_yaml
-    from pipelines.truth import TruthTrajectory, true_positions
-    from sensors.conventions import RAD_TO_ARCSEC, attitude_error_body_arcsec
     from scipy.spatial.transform import Rotation
+
+    from rollingstar.logs.records import stars_to_arrays
+    from rollingstar.pipelines.truth import TruthTrajectory, true_positions
+    from rollingstar.sensors import build
+    from rollingstar.sensors.conventions import (
+        RAD_TO_ARCSEC,
+        attitude_error_body_arcsec,
+    )
+    from rollingstar.sensors.scenario import scenario_from_yaml
 
     reader = LogReader(out)
     camera = build.build_camera(scenario_from_yaml(reader.metadata()["scenario"]["yaml"], str(out)))
@@ -257,8 +267,8 @@ def test_saturated_scene_with_spots_cut_by_the_edge_keeps_an_honest_sigma(tmp_pa
 def test_saturation_flags_count_detections_and_degrade_only_all_saturated_solutions():
     """``saturated_stars:N`` counts saturated detections (matched and unmatched); the attitude is
     flagged degraded only when every identified star is saturated and the attitude is valid."""
-    from estimators.data import AttitudeEstimate, FrameData, StarTable
-    from pipelines.runner import _finish_frame
+    from rollingstar.estimators.data import AttitudeEstimate, FrameData, StarTable
+    from rollingstar.pipelines.runner import _finish_frame
 
     def frame(sat, ids, unmatched_sat=(), valid=True):
         n = len(sat)

@@ -18,10 +18,10 @@ import warnings
 
 import pytest
 
-from logs.errors import TruncatedLogWarning
-from logs.reader import LogReader
-from pipelines.config import load_scenario
-from pipelines.simulate import simulate_to_log
+from rollingstar.logs.errors import TruncatedLogWarning
+from rollingstar.logs.reader import LogReader
+from rollingstar.pipelines.simulate import simulate_to_log
+from rollingstar.sensors.scenario import load_scenario
 
 from .helpers import PIPELINE, ROOT, SCENARIO
 
@@ -58,7 +58,7 @@ def recording(tmp_path_factory):
     rec = d / "rec.mcap"
     simulate_to_log(load_scenario(SCENARIO), rec, frames=FRAMES, show_progress=False)
     ref = d / "ref.mcap"  # the uninterrupted run, by the same command (same environment, e.g. BLAS threads)
-    p = subprocess.run([sys.executable, "-m", "pipelines.cli", "run", PIPELINE, rec, "-o", ref, "-q"], cwd=ROOT,
+    p = subprocess.run([sys.executable, "-m", "rollingstar.cli", "run", PIPELINE, rec, "-o", ref, "-q"], cwd=ROOT,
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
     return rec, ref
@@ -67,7 +67,7 @@ def recording(tmp_path_factory):
 def _start(args, out, min_bytes):
     """Start ``rollingstar ARGS`` and return once ``out`` has ``min_bytes`` on disk (finished chunks)."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    proc = subprocess.Popen([sys.executable, "-m", "pipelines.cli", *map(str, args)], cwd=ROOT, env=env,
+    proc = subprocess.Popen([sys.executable, "-m", "rollingstar.cli", *map(str, args)], cwd=ROOT, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
     while not (out.exists() and out.stat().st_size >= min_bytes):
@@ -100,7 +100,7 @@ def test_killed_run_keeps_complete_messages_and_resumes_to_an_equivalent_output(
         assert len(partial) == sum(1 for k in full if k[1] <= max(k2[1] for k2 in partial))
     else:
         assert proc.returncode == -signal.SIGKILL and truncated
-    res = subprocess.run([sys.executable, "-m", "pipelines.cli", "run", PIPELINE, rec, "-o", out, "--resume", "-q",
+    res = subprocess.run([sys.executable, "-m", "rollingstar.cli", "run", PIPELINE, rec, "-o", out, "--resume", "-q",
                           "--checkpoint-every", str(every)], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     _assert_equivalent(out, ref)
@@ -136,7 +136,7 @@ def test_same_inputs_and_seed_give_byte_identical_logs(tmp_path, recording):
         sim, out = tmp_path / f"{name}.mcap", tmp_path / f"{name}.out.mcap"
         for args in (["simulate", SCENARIO, "-o", sim, "--frames", "8", "--seed", "5", "-q"],
                      ["run", PIPELINE, sim, "-o", out, "-q"]):
-            p = subprocess.run([sys.executable, "-m", "pipelines.cli", *map(str, args)], cwd=ROOT, env=env,
+            p = subprocess.run([sys.executable, "-m", "rollingstar.cli", *map(str, args)], cwd=ROOT, env=env,
                                capture_output=True, text=True, timeout=120)
             assert p.returncode == 0, p.stderr
         digests.append((sim.read_bytes(), out.read_bytes()))

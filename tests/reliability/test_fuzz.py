@@ -12,17 +12,19 @@ import os
 import warnings
 
 import numpy as np
-import pytest
-from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
-from logs.errors import LogFormatError
-from logs.importers import CameraSpec, import_centroids
-from logs.importers.sidecar import load_camera, load_sidecar
-from logs.reader import STANDARD_SCHEMAS, LogReader
-from logs.records import TOPIC_RECORDS
-from logs.replay import image_from_raw
-from pipelines.config import PipelineConfig, ScenarioConfig, parse_yaml, scenario_from_yaml, validate
-from pipelines.errors import UserError
+from rollingstar.config import parse_yaml, validate
+from rollingstar.errors import UserError
+from rollingstar.logs.errors import LogFormatError
+from rollingstar.logs.importers import CameraSpec, import_centroids
+from rollingstar.logs.importers.sidecar import load_camera, load_sidecar
+from rollingstar.logs.reader import STANDARD_SCHEMAS, LogReader
+from rollingstar.logs.records import TOPIC_RECORDS
+from rollingstar.logs.replay import image_from_raw
+from rollingstar.pipelines.config import PipelineConfig
+from rollingstar.sensors.scenario import ScenarioConfig, scenario_from_yaml
 
 from ..logs.helpers import write_recording
 from .helpers import SCENARIO
@@ -199,7 +201,7 @@ IMAGE_SIDECAR = ("camera: {width_px: 40, height_px: 30, focal_length_mm: 10.0, p
 @given(suffix=st.sampled_from([".png", ".tiff"]), mutations=st.lists(mutation, min_size=1, max_size=4))
 def test_image_importer_on_damaged_files(tmp_path, suffix, mutations):
     """A damaged image file fails with an error naming it, or imports as a readable frame of the declared size."""
-    from logs.importers import import_images
+    from rollingstar.logs.importers import import_images
 
     folder = tmp_path / "imgs"
     folder.mkdir(exist_ok=True)
@@ -241,7 +243,7 @@ def _corr_files(tmp_path) -> tuple[bytes, str]:
        json_edits=st.lists(st.tuples(st.floats(0, 1), st.text(max_size=3)), max_size=2))
 def test_corr_importer_on_damaged_tables(tmp_path, fits_mutations, json_edits):
     """Damaged corr FITS / log.json: an error naming the file, or one frame whose stars are finite and inside the image."""
-    from logs.importers import import_corr
+    from rollingstar.logs.importers import import_corr
 
     fits_bytes, log_json = _corr_files(tmp_path)
     for where, insert in json_edits:

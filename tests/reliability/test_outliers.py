@@ -5,8 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimators.attitude.robust import RobustParams, robust_gate
-from pipelines.outlier_bench import SOLVERS, clean_scene, plant_false_matches, rms_error_arcsec, run_solver
+from rollingstar.estimators.attitude.robust import RobustParams, robust_gate
+from rollingstar.studies.outlier_bench import (
+    SOLVERS,
+    clean_scene,
+    plant_false_matches,
+    rms_error_arcsec,
+    run_solver,
+)
 
 from .helpers import ROOT
 

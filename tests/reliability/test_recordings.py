@@ -8,11 +8,12 @@ import warnings
 import pytest
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
-from logs.reader import LogReader
-from logs.writer import LogWriter, timestamp_ns
-from pipelines.config import PipelineConfig, load_scenario
-from pipelines.runner import run_pipeline
-from pipelines.simulate import simulate_to_log
+from rollingstar.logs.reader import LogReader
+from rollingstar.logs.writer import LogWriter, timestamp_ns
+from rollingstar.pipelines.config import PipelineConfig
+from rollingstar.pipelines.runner import run_pipeline
+from rollingstar.pipelines.simulate import simulate_to_log
+from rollingstar.sensors.scenario import load_scenario
 
 from .helpers import PIPELINE, SCENARIO, assert_exit_2, cli, rewrite
 
@@ -194,7 +195,7 @@ def test_non_finite_values_in_a_side_record_skip_that_message_and_flag_its_frame
     with LogWriter(bad, kind="simulation", metadata=meta) as w:
         for m in reader.messages():
             w.write_message(m)
-        from logs.records import GyroSamples
+        from rollingstar.logs.records import GyroSamples
 
         t = m.log_time_ns - 1
         cid = w._channel("/gyro", GyroSamples.SCHEMA_NAME, lambda: w._mcap.register_schema(

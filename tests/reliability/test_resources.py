@@ -8,12 +8,12 @@ import warnings
 
 import pytest
 
-from logs import writer as writer_module
-from logs.errors import LogWriteError, TruncatedLogWarning
-from logs.reader import LogReader
-from pipelines.config import PipelineConfig
-from pipelines import runner as runner_module
-from pipelines.runner import run_pipeline
+from rollingstar.logs import writer as writer_module
+from rollingstar.logs.errors import LogWriteError, TruncatedLogWarning
+from rollingstar.logs.reader import LogReader
+from rollingstar.pipelines import runner as runner_module
+from rollingstar.pipelines.config import PipelineConfig
+from rollingstar.pipelines.runner import run_pipeline
 
 from .helpers import PIPELINE, assert_exit_2
 

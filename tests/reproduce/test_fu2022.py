@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipelines.reproduce import run_reproduction
+from rollingstar.studies.reproduce import run_reproduction
 
 
 @pytest.fixture(scope="module")

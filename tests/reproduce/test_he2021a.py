@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import pytest
 
-from pipelines.reproduce import paper_values, run_reproduction
+from rollingstar.studies.reproduce import paper_values, run_reproduction
 
 
 @pytest.fixture(scope="module")

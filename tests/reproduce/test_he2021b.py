@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 
-from pipelines.reproduce import he2021b
+from rollingstar.studies.reproduce import he2021b
 
 
 @pytest.fixture(scope="module")

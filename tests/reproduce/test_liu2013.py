@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipelines.reproduce import liu2013
+from rollingstar.studies.reproduce import liu2013
 
 
 @pytest.fixture(scope="module")

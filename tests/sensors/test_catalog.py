@@ -7,9 +7,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from sensors import catalog as catmod
-from sensors.catalog import StarCatalog, load_hipparcos_columns, propagate_proper_motion
-from sensors.conventions import RAD_TO_ARCSEC, radec_to_unit, unit_to_radec
+from rollingstar.sensors import catalog as catmod
+from rollingstar.sensors.catalog import (
+    StarCatalog,
+    load_hipparcos_columns,
+    propagate_proper_motion,
+)
+from rollingstar.sensors.conventions import RAD_TO_ARCSEC, radec_to_unit, unit_to_radec
 
 
 def _angle(a, b):
@@ -174,8 +178,8 @@ def test_cone_validation():
 
 
 def test_without_close_pairs_drops_both_stars_of_close_pairs_only():
-    from sensors.catalog import StarCatalog
-    from sensors.conventions import radec_to_unit
+    from rollingstar.sensors.catalog import StarCatalog
+    from rollingstar.sensors.conventions import radec_to_unit
 
     arcsec = np.pi / 180 / 3600
     ra = np.array([0.0, 30.0, 0.0, 100.0]) * arcsec  # stars 0-1 are 30" apart, 2 duplicates 0

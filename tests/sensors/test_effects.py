@@ -11,9 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from sensors.camera import PinholeCamera
-from sensors.conventions import ARCSEC_TO_RAD, attitude_from_radec_roll
-from sensors.effects import (
+from rollingstar.sensors.camera import PinholeCamera
+from rollingstar.sensors.conventions import ARCSEC_TO_RAD, attitude_from_radec_roll
+from rollingstar.sensors.effects import (
     EFFECTS,
     NUISANCE,
     Effect,
@@ -23,13 +23,17 @@ from sensors.effects import (
     UnknownEffectError,
     build_effect,
 )
-from sensors.effects.chain import chain_jacobian, ordered, predict
-from sensors.effects.context import context_from_attitude
-from sensors.effects.design import detection_limit, parameter_sigma, project_out
-from sensors.effects.doc import render_markdown
-from sensors.effects.principal_point import PrincipalPointOffset
-from sensors.effects.radial_distortion import RadialDistortion
-from sensors.timing import DetectorTiming
+from rollingstar.sensors.effects.chain import chain_jacobian, ordered, predict
+from rollingstar.sensors.effects.context import context_from_attitude
+from rollingstar.sensors.effects.design import (
+    detection_limit,
+    parameter_sigma,
+    project_out,
+)
+from rollingstar.sensors.effects.doc import render_markdown
+from rollingstar.sensors.effects.principal_point import PrincipalPointOffset
+from rollingstar.sensors.effects.radial_distortion import RadialDistortion
+from rollingstar.sensors.timing import DetectorTiming
 
 CAMERA = PinholeCamera(focal_length_m=24.09e-3, pixel_size_m=5.5e-6, width=1024, height=1024)
 TIMING = DetectorTiming("rolling", exposure_ns=50_000_000, line_delay_ns=49_000, rows=1024)
@@ -355,4 +359,4 @@ def test_effect_parameter_validation():
 
 def test_effects_doc_is_up_to_date():
     doc = ROOT / "docs" / "effects.md"
-    assert doc.read_text() == render_markdown(), "regenerate: python -m sensors.effects.doc docs/effects.md"
+    assert doc.read_text() == render_markdown(), "regenerate: python -m rollingstar.sensors.effects.doc docs/effects.md"

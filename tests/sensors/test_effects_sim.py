@@ -12,14 +12,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipelines import build
-from pipelines.config import ScenarioConfig, parse_yaml, validate
-from pipelines.errors import ConfigError
-from pipelines.simulate import build_simulator
-from sensors.effects import EFFECTS, build_effect
-from sensors.effects.context import context_from_attitude
-from sensors.simulate import ImageModel, StarTrackerSimulator
-from sensors.timing import DetectorTiming
+from rollingstar.config import parse_yaml, validate
+from rollingstar.errors import ConfigError
+from rollingstar.pipelines.simulate import build_simulator
+from rollingstar.sensors import build
+from rollingstar.sensors.effects import EFFECTS, build_effect
+from rollingstar.sensors.effects.context import context_from_attitude
+from rollingstar.sensors.scenario import ScenarioConfig
+from rollingstar.sensors.simulate import ImageModel, StarTrackerSimulator
+from rollingstar.sensors.timing import DetectorTiming
 
 GRID = [(float(x), float(y)) for x in np.linspace(40, 984, 7) for y in np.linspace(40, 984, 7)]
 PM = [(float(a), float(b)) for a, b in np.random.default_rng(7).normal(0, 300.0, (len(GRID), 2))]
@@ -220,8 +221,8 @@ if __name__ == "__main__":
 
 def test_gyro_effect_reaches_the_recorded_gyro_topic(tmp_path):
     """simulate_to_log passes the gyro samples through the scenario's gyro effects."""
-    from logs.reader import LogReader
-    from pipelines.simulate import TOPIC_GYRO, simulate_to_log
+    from rollingstar.logs.reader import LogReader
+    from rollingstar.pipelines.simulate import TOPIC_GYRO, simulate_to_log
 
     def gyro(cfg, name):
         simulate_to_log(cfg, tmp_path / name, frames=2, show_progress=False)
@@ -238,12 +239,12 @@ def test_gyro_effect_reaches_the_recorded_gyro_topic(tmp_path):
 
 def test_evaluate_reproduces_the_simulated_truth_with_effects_on(tmp_path):
     """End to end: simulate with effects needing every kind of context, run the baseline pipeline,
-    evaluate: the truth positions evaluate re-predicts (sensors.effects.chain.predict on the logged
+    evaluate: the truth positions evaluate re-predicts (rollingstar.sensors.effects.chain.predict on the logged
     truth) match the noise-free simulated centroids."""
-    from pipelines.config import load_pipeline
-    from pipelines.evaluate import evaluate_log
-    from pipelines.runner import run_pipeline
-    from pipelines.simulate import simulate_to_log
+    from rollingstar.pipelines.config import load_pipeline
+    from rollingstar.pipelines.evaluate import evaluate_log
+    from rollingstar.pipelines.runner import run_pipeline
+    from rollingstar.pipelines.simulate import simulate_to_log
 
     effects = [("time_offset", {"offset_ms": 4.0}), ("catalog_epoch", {"epoch_error_yr": 30.0}),
                ("refraction", {"r0_arcsec": 58.0}), ("thermal_focal_drift", {"ppm_per_degc": 20.0}),

@@ -5,8 +5,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from sensors.gyro import NOISE_BLOCK, GyroModel, simulate_gyro
-from sensors.motion import JitterMotion, constant_acceleration, constant_rate, inertial_hold
+from rollingstar.sensors.gyro import NOISE_BLOCK, GyroModel, simulate_gyro
+from rollingstar.sensors.motion import (
+    JitterMotion,
+    constant_acceleration,
+    constant_rate,
+    inertial_hold,
+)
 
 NS = 1_000_000_000
 HOLD = inertial_hold(Rotation.identity())

@@ -7,11 +7,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from sensors.motion import (
+from rollingstar.sensors.motion import (
     JitterMotion,
-    compose_rotations,
     PiecewiseMotion,
     Segment,
+    compose_rotations,
     constant_acceleration,
     constant_rate,
     inertial_hold,

@@ -1,6 +1,6 @@
 """The image simulator's shot-noise generator (guide-table Poisson inversion) is exactly Poisson.
 
-Chi-square goodness of fit of :func:`sensors.image_sim.poisson_constant` against the Poisson pmf
+Chi-square goodness of fit of :func:`rollingstar.sensors.image_sim.poisson_constant` against the Poisson pmf
 at small, medium and large means, and of :func:`shot_noise` on a non-uniform mean map (the sum
 decomposition ``Poisson(m0) + Poisson(m - m0)``) per pixel class; fixed seeds, 1e-4 false-alarm
 level per test.
@@ -11,7 +11,12 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from sensors.image_sim import ImageModel, digitise, poisson_constant, shot_noise
+from rollingstar.sensors.image_sim import (
+    ImageModel,
+    digitise,
+    poisson_constant,
+    shot_noise,
+)
 
 
 def _chi2_pvalue(samples: np.ndarray, lam: float) -> float:

@@ -5,14 +5,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from sensors.camera import PinholeCamera
-from sensors.catalog import StarCatalog
-from sensors.centroid_sim import solve_star_rows
-from sensors.conventions import NS_PER_S, attitude_from_radec_roll
-from sensors.effects import EffectContext, build_effect
-from sensors.motion import constant_rate, inertial_hold
-from sensors.simulate import ImageModel, StarTrackerSimulator
-from sensors.timing import DetectorTiming
+from rollingstar.sensors.camera import PinholeCamera
+from rollingstar.sensors.catalog import StarCatalog
+from rollingstar.sensors.centroid_sim import solve_star_rows
+from rollingstar.sensors.conventions import NS_PER_S, attitude_from_radec_roll
+from rollingstar.sensors.effects import EffectContext, build_effect
+from rollingstar.sensors.motion import constant_rate, inertial_hold
+from rollingstar.sensors.simulate import ImageModel, StarTrackerSimulator
+from rollingstar.sensors.timing import DetectorTiming
 
 # he2021a sensor: f = 24.09 mm, 5.5 um pixels, 1024 x 1024, line delay 43.9 us, exposure 44.9 ms
 CAMERA = PinholeCamera(focal_length_m=24.09e-3, pixel_size_m=5.5e-6, width=1024, height=1024)

@@ -5,14 +5,17 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from estimators.attitude.wahba import quest
-from sensors.camera import PinholeCamera
-from sensors.catalog import StarCatalog
-from sensors.motion import constant_rate
-from sensors.timing import DetectorTiming
-from sensors.effects.base import EffectContext
-from sensors.image_sim import ImageModel
-from sensors.uniform_drift import UniformDriftSimulator, drift_reference_vectors, image_velocity_px_s
+from rollingstar.estimators.attitude.wahba import quest
+from rollingstar.sensors.camera import PinholeCamera
+from rollingstar.sensors.catalog import StarCatalog
+from rollingstar.sensors.image_sim import ImageModel
+from rollingstar.sensors.motion import constant_rate
+from rollingstar.sensors.timing import DetectorTiming
+from rollingstar.sensors.uniform_drift import (
+    UniformDriftSimulator,
+    drift_reference_vectors,
+    image_velocity_px_s,
+)
 
 CAM = PinholeCamera(focal_length_m=24.09e-3, pixel_size_m=5.5e-6, width=1024, height=1024)  # he2021a Table 1
 TIMING = DetectorTiming(mode="rolling", exposure_ns=44_900_000, line_delay_ns=43_900, rows=1024)

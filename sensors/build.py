@@ -1,4 +1,4 @@
-"""Turn a validated :class:`~pipelines.config.ScenarioConfig` into the sensor objects.
+"""Turn a validated :class:`~rollingstar.pipelines.config.ScenarioConfig` into the sensor objects.
 
 This is the only place that converts config units (mm, us, deg/s, deg/h) into the SI units and
 integer nanoseconds the ``sensors`` package works in.
@@ -8,16 +8,24 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from estimators.data import SensorContext
-from pipelines.config import ScenarioConfig
-from pipelines.errors import ConfigError
-from sensors.camera import PinholeCamera
-from sensors.catalog import StarCatalog, proper_motion_vector
-from sensors.conventions import attitude_from_radec_roll, seconds_to_ns, unit_to_radec
-from sensors.effects import UnknownEffectError, build_effect
-from sensors.gyro import GyroModel
-from sensors.motion import AttitudeMotion, JitterMotion, PiecewiseMotion, Segment
-from sensors.timing import DetectorTiming
+from rollingstar.errors import ConfigError
+from rollingstar.sensors.camera import PinholeCamera
+from rollingstar.sensors.catalog import StarCatalog, proper_motion_vector
+from rollingstar.sensors.conventions import (
+    attitude_from_radec_roll,
+    seconds_to_ns,
+    unit_to_radec,
+)
+from rollingstar.sensors.effects import UnknownEffectError, build_effect
+from rollingstar.sensors.gyro import GyroModel
+from rollingstar.sensors.motion import (
+    AttitudeMotion,
+    JitterMotion,
+    PiecewiseMotion,
+    Segment,
+)
+from rollingstar.sensors.scenario import ScenarioConfig
+from rollingstar.sensors.timing import DetectorTiming
 
 DEG = np.pi / 180.0
 ARCSEC = DEG / 3600.0
@@ -146,17 +154,4 @@ def build_gyro(cfg: ScenarioConfig) -> GyroModel | None:
         arw_rad_sqrt_s=g.arw_deg_sqrt_h * DEG / np.sqrt(HOUR),
         rrw_rad_s_sqrt_s=g.rrw_deg_h_sqrt_h * DEG / HOUR / np.sqrt(HOUR),
         scale_factor=np.asarray(g.scale_ppm) * 1e-6,
-    )
-
-
-def build_context(cfg: ScenarioConfig, catalog: StarCatalog | None = None) -> SensorContext:
-    """The sensor context the pipeline stages receive for a recording made with ``cfg``."""
-    camera = build_camera(cfg)
-    return SensorContext(
-        camera=camera,
-        timing=build_timing(cfg),
-        catalog=catalog if catalog is not None else build_catalog(cfg, camera),
-        initial_attitude=initial_attitude(cfg),
-        centroid_sigma_px=cfg.noise.centroid_sigma_px if cfg.level == "centroid" else None,
-        bit_depth=cfg.image.bit_depth if cfg.level == "image" else None,
     )

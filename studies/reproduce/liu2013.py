@@ -33,19 +33,20 @@ from pathlib import Path
 
 import numpy as np
 
-from estimators.data import FrameData, GyroSamples
-from pipelines import build
-from pipelines.config import load_pipeline, load_scenario
-from pipelines.reproduce import Row, paper_values
-from pipelines.runner import build_stages
-from sensors.effects.base import Effect
-from sensors.gyro import simulate_gyro
-from sensors.simulate import ImageModel, StarTrackerSimulator
+from rollingstar.config import CONFIGS
+from rollingstar.estimators.data import FrameData, GyroSamples, SensorContext
+from rollingstar.pipelines.config import load_pipeline
+from rollingstar.pipelines.runner import build_stages
+from rollingstar.sensors import build
+from rollingstar.sensors.effects.base import Effect
+from rollingstar.sensors.gyro import simulate_gyro
+from rollingstar.sensors.scenario import load_scenario
+from rollingstar.sensors.simulate import ImageModel, StarTrackerSimulator
+from rollingstar.studies.reproduce import Row, paper_values
 
-ROOT = Path(__file__).resolve().parents[2]
-SCENARIO = ROOT / "configs" / "scenarios" / "liu2013.yaml"
-PIPE_FULL = ROOT / "configs" / "pipelines" / "liu2013_fullframe.yaml"
-PIPE_WIN = ROOT / "configs" / "pipelines" / "liu2013_windowed.yaml"
+SCENARIO = CONFIGS / "scenarios" / "liu2013.yaml"
+PIPE_FULL = CONFIGS / "pipelines" / "liu2013_fullframe.yaml"
+PIPE_WIN = CONFIGS / "pipelines" / "liu2013_windowed.yaml"
 EFFECTIVE_EXPOSURE_NS = 100_000  # unsmeared spots as in the paper (see module docstring)
 ABERRATION_SIGMA_PX = 0.03
 BRIGHTNESS_NOISE = 0.10
@@ -134,7 +135,7 @@ def run_once(seed: int, frames: int, keep_images: int = 0):
                                effects=[AberrationJitter(offsets, nominal, 0, int(timing.frame_period_ns))],
                                image_model=model, level="image", seed=seed)
     gyro = simulate_gyro(build.build_gyro(cfg), motion, -int(timing.frame_period_ns), frames * int(timing.frame_period_ns), seed)
-    context = build.build_context(cfg, catalog)
+    context = SensorContext.from_scenario(cfg, catalog)
     context = type(context)(camera=camera, timing=sim_timing, catalog=catalog, initial_attitude=context.initial_attitude,
                             bit_depth=model.bit_depth)
     full = build_stages(load_pipeline(PIPE_FULL), str(PIPE_FULL))
@@ -363,9 +364,9 @@ def plot(results, plots_dir: Path) -> None:
 
 
 def _main(argv=None) -> None:
-    """``python -m pipelines.reproduce.liu2013 [--frames N] [--seed S]``: one run, CPU ms per stage.
+    """``python -m rollingstar.studies.reproduce.liu2013 [--frames N] [--seed S]``: one run, CPU ms per stage.
 
-    The entry point for profiling, e.g. ``pyinstrument -m pipelines.reproduce.liu2013 --frames 150``."""
+    The entry point for profiling, e.g. ``pyinstrument -m rollingstar.studies.reproduce.liu2013 --frames 150``."""
     import argparse
 
     ap = argparse.ArgumentParser(description=_main.__doc__)

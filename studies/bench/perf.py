@@ -11,18 +11,18 @@ the checks and the JSON structure, never the timings.
 
 Lines (full sizes; ``--quick`` shrinks every one to a few seconds):
 
-1. ``quest``: batched :func:`estimators.attitude.wahba.quest` vs a Python loop over scipy
+1. ``quest``: batched :func:`rollingstar.estimators.attitude.wahba.quest` vs a Python loop over scipy
    ``Rotation.align_vectors`` on 10,000 frames x 10 stars (target >= 20x).
-2. ``kf``: :func:`estimators.filters.kf_cv.kf_cv_batch` vs one filterpy ``KalmanFilter`` per
+2. ``kf``: :func:`rollingstar.estimators.filters.kf_cv.kf_cv_batch` vs one filterpy ``KalmanFilter`` per
    star on 20 stars x 5,000 frames, states and covariances equal to 1e-9 (target >= 10x).
 3. ``rate``: ``ls-rate`` vs ``pso-rate`` (``benchmarks/rate_solvers.py`` frames) on the same
    frames, CPU time per frame, both RMSEs beside it (target >= 50x at equal accuracy).
 4. ``centroid_full``: ``cog`` on a 1024 x 1024 16-bit frame with 15 stars vs ``frame.sum()``
    (target <= 10x); ``centroid_windowed``: the ``windowed`` centroider's tracking frame vs
    ``cog`` full frame (target >= 20x).
-5. ``render``: image-level rolling-shutter rendering (:mod:`sensors.image_sim`) of that frame vs
+5. ``render``: image-level rolling-shutter rendering (:mod:`rollingstar.sensors.image_sim`) of that frame vs
    ``frame.sum()``; ``render_speedup``: the shot-noise generator before (``Generator.poisson``
-   over every pixel) vs after (:func:`sensors.image_sim.shot_noise`), same distribution checked.
+   over every pixel) vs after (:func:`rollingstar.sensors.image_sim.shot_noise`), same distribution checked.
 6. ``replay_*``: ``run_pipeline`` in a fresh subprocess replaying 1,000 and 10,000 frames of one
    centroid-level recording (he2021b, baseline pipeline), and of an image-level one (he2021a optics
    on a 256 x 256 sensor, 1.3 GB of pixels at 10,000 frames: at 1024 x 1024, 10,000 rendered frames
@@ -47,6 +47,8 @@ from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from rollingstar.config import CONFIGS
 
 ROOT = Path(__file__).resolve().parents[2]
 ARCSEC = np.pi / (180.0 * 3600.0)
@@ -138,7 +140,7 @@ def _check(name: str, value: float, limit: float, unit: str = "") -> dict:
 # ----------------------------------------------------------------------------------- 1. QUEST
 def bench_quest(quick: bool) -> dict:
     """Batched QUEST vs a Python loop over scipy ``Rotation.align_vectors`` (equal weights)."""
-    from estimators.attitude.wahba import quest
+    from rollingstar.estimators.attitude.wahba import quest
 
     F, N = _size("quest_frames", quick), _size("quest_stars", quick)
     rng = np.random.default_rng(7)
@@ -173,7 +175,13 @@ def bench_kf(quick: bool) -> dict:
     """Batched he2021a constant-velocity KF vs one filterpy KalmanFilter per star."""
     from filterpy.kalman import KalmanFilter
 
-    from estimators.filters.kf_cv import H, cv_process_noise, cv_transition, kf_cv_batch, kf_cv_init
+    from rollingstar.estimators.filters.kf_cv import (
+        H,
+        cv_process_noise,
+        cv_transition,
+        kf_cv_batch,
+        kf_cv_init,
+    )
 
     n, T = _size("kf_stars", quick), _size("kf_frames", quick)
     q, r, dt = 1e-4, 0.05, 0.08985
@@ -224,7 +232,7 @@ def _bench_script(name: str):
 
 def bench_rate(quick: bool) -> dict:
     """ls-rate vs pso-rate on the fu2022 frames of benchmarks/rate_solvers.py, CPU time per frame."""
-    from pipelines.registry import get_plugin_class
+    from rollingstar.pipelines.registry import get_plugin_class
 
     try:
         rs = _bench_script("rate_solvers")
@@ -270,10 +278,10 @@ def bench_rate(quick: bool) -> dict:
 # ----------------------------------------------------------------------------------- 4-5. frames
 def _scene(px: int, n_stars: int):
     """he2021a optics and timing on a px x px detector, 15 stars moving at 1 deg/s (76 px/s)."""
-    from estimators.data import SensorContext
-    from sensors.camera import PinholeCamera
-    from sensors.image_sim import ImageModel
-    from sensors.timing import DetectorTiming
+    from rollingstar.estimators.data import SensorContext
+    from rollingstar.sensors.camera import PinholeCamera
+    from rollingstar.sensors.image_sim import ImageModel
+    from rollingstar.sensors.timing import DetectorTiming
 
     cam = PinholeCamera(focal_length_m=0.02409, pixel_size_m=5.5e-6, width=px, height=px)
     timing = DetectorTiming(mode="rolling", exposure_ns=44_900_000, line_delay_ns=43_900 * 1024 // px, rows=px)
@@ -294,7 +302,7 @@ def _scene(px: int, n_stars: int):
 
 
 def _render(px, timing, model, pos, vel, mags, t0_ns, seed, digitise_fn):
-    from sensors.image_sim import mean_electrons, render_star_electrons
+    from rollingstar.sensors.image_sim import mean_electrons, render_star_electrons
 
     def positions(star, t_ns, rows):
         dt = (t_ns - t0_ns) * 1e-9
@@ -320,10 +328,10 @@ def digitise_before(mean_e, model, rng_shot, rng_read):
 
 def bench_frames(quick: bool) -> list[dict]:
     """Centroiding (full frame, windowed) and rendering of one 16-bit frame with 15 stars."""
-    from estimators.centroiders.cog import CogCentroider
-    from estimators.centroiders.windowed import WindowedCentroider
-    from estimators.data import FrameData, GyroSamples
-    from sensors.image_sim import digitise
+    from rollingstar.estimators.centroiders.cog import CogCentroider
+    from rollingstar.estimators.centroiders.windowed import WindowedCentroider
+    from rollingstar.estimators.data import FrameData, GyroSamples
+    from rollingstar.sensors.image_sim import digitise
 
     px, n_stars, reps = _size("frame_px", quick), _size("frame_stars", quick), _size("repeats", quick)
     cam, timing, model, ctx, pos, vel, mags = _scene(px, n_stars)
@@ -378,7 +386,7 @@ def bench_frames(quick: bool) -> list[dict]:
 
 def _noise_checks(model) -> list[dict]:
     """Same distribution before/after: mean and variance of a flat field and of a bright one."""
-    from sensors.image_sim import digitise
+    from rollingstar.sensors.image_sim import digitise
 
     checks = []
     for level in (2.47, 800.0):
@@ -405,8 +413,8 @@ def replay_child(recording: str, pipeline: str, max_frames: int, trace: bool = F
     """
     import tracemalloc
 
-    from pipelines.config import load_pipeline
-    from pipelines.runner import run_pipeline
+    from rollingstar.pipelines.config import load_pipeline
+    from rollingstar.pipelines.runner import run_pipeline
 
     cfg = load_pipeline(pipeline)
     with tempfile.TemporaryDirectory() as tmp:
@@ -425,7 +433,7 @@ def replay_child(recording: str, pipeline: str, max_frames: int, trace: bool = F
 
 
 def _run_child(recording: Path, pipeline: Path, frames: int, trace: bool = False) -> dict:
-    code = ("import json, sys; from pipelines.bench.perf import replay_child; "
+    code = ("import json, sys; from rollingstar.studies.bench.perf import replay_child; "
             "print(json.dumps(replay_child(sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4] == '1')))")
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
     proc = subprocess.run([sys.executable, "-c", code, str(recording), str(pipeline), str(frames), "1" if trace else "0"],
@@ -437,20 +445,20 @@ def _run_child(recording: Path, pipeline: Path, frames: int, trace: bool = False
 
 def bench_replay(quick: bool) -> list[dict]:
     """Replay fps and peak memory at two log lengths, centroid and image level."""
-    from pipelines.config import load_scenario
-    from pipelines.simulate import simulate_to_log
+    from rollingstar.pipelines.simulate import simulate_to_log
+    from rollingstar.sensors.scenario import load_scenario
 
-    pipeline = ROOT / "configs" / "pipelines" / "baseline.yaml"
+    pipeline = CONFIGS / "pipelines" / "baseline.yaml"
     lines = []
     with tempfile.TemporaryDirectory() as tmp:
         for level in ("centroid", "image"):
             n_short, n_long = _size(f"replay_{level}", quick)
             if level == "centroid":
-                cfg = load_scenario(ROOT / "configs" / "scenarios" / "he2021b.yaml")
+                cfg = load_scenario(CONFIGS / "scenarios" / "he2021b.yaml")
                 desc = "he2021b 1024 x 1024, Hipparcos stars, baseline pipeline (tracking, quest)"
             else:
                 px = _size("replay_image_px", quick)
-                base = load_scenario(ROOT / "configs" / "scenarios" / "he2021a.yaml")
+                base = load_scenario(CONFIGS / "scenarios" / "he2021a.yaml")
                 sensor = base.sensor.model_copy(update={"width_px": px, "height_px": px,
                                                         "focal_length_mm": base.sensor.focal_length_mm * px / 1024})
                 cfg = base.model_copy(update={"sensor": sensor})
@@ -490,14 +498,14 @@ def bench_compare(quick: bool) -> dict:
     by -9 % to +15 % from one run to the next."""
     title = "compare on dask (2 workers) vs serial"
     try:
-        from pipelines.compare import run_compare
+        from rollingstar.pipelines.compare import run_compare
     except ImportError as exc:
         return _unavailable("compare", title, f"not available: {exc}", (">=", 1.7))
-    config = ROOT / "configs" / "compare" / "scaling.yaml"
+    config = CONFIGS / "compare" / "scaling.yaml"
     if quick:
         return _unavailable("compare", title, "skipped with --quick (a dask cluster's start-up dominates tiny runs)",
                             (">=", 1.7))
-    from pipelines.compare.aggregate import deterministic_view
+    from rollingstar.pipelines.compare.aggregate import deterministic_view
 
     runs: dict[str, list] = {"serial": [], "dask": []}
     with tempfile.TemporaryDirectory() as tmp:
@@ -554,13 +562,13 @@ def machine_info() -> dict:
 
 def run_perf(quick: bool = False, show_progress: bool = True, only: list[str] | None = None) -> dict:
     """Run every line (or those whose id starts with one of ``only``); returns the JSON document."""
-    from pipelines.progress import progress_bar
+    from rollingstar.progress import progress_bar
 
     steps = [("quest", lambda: [bench_quest(quick)]), ("kf", lambda: [bench_kf(quick)]),
              ("rate", lambda: [bench_rate(quick)]), ("centroid", lambda: bench_frames(quick)),
              ("replay", lambda: bench_replay(quick)), ("compare", lambda: [bench_compare(quick)])]
     if only:
-        from pipelines.errors import UserError
+        from rollingstar.errors import UserError
 
         names = [name for name, _ in steps]
         unknown = [o for o in only if o not in names]

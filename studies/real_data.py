@@ -23,20 +23,31 @@ from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from estimators.centroiders.cog import CogCentroider
-from estimators.data import FrameData, SensorContext, StarTable
-from estimators.identifiers.camera_fit import INTRINSICS, RadialCamera, fit_camera
-from estimators.identifiers.lost_in_space import LostInSpaceIdentifier
-from pipelines.errors import UserError
-from pipelines.real_calibration import ImageMatches, calibrate_lens, calibration_summary, lens_folder, leave_one_out
-from sensors.camera import PinholeCamera
-from sensors.catalog import StarCatalog
-from sensors.conventions import radec_roll_from_attitude, radec_to_unit
-from sensors.timing import DetectorTiming
+from rollingstar.config import CONFIGS
+from rollingstar.errors import UserError
+from rollingstar.estimators.centroiders.cog import CogCentroider
+from rollingstar.estimators.data import FrameData, SensorContext, StarTable
+from rollingstar.estimators.identifiers.camera_fit import (
+    INTRINSICS,
+    RadialCamera,
+    fit_camera,
+)
+from rollingstar.estimators.identifiers.lost_in_space import LostInSpaceIdentifier
+from rollingstar.sensors.camera import PinholeCamera
+from rollingstar.sensors.catalog import StarCatalog
+from rollingstar.sensors.conventions import radec_roll_from_attitude, radec_to_unit
+from rollingstar.sensors.timing import DetectorTiming
+from rollingstar.studies.real_calibration import (
+    ImageMatches,
+    calibrate_lens,
+    calibration_summary,
+    leave_one_out,
+    lens_folder,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 RAD_TO_ARCSEC = 180.0 / np.pi * 3600.0
-TETRA3_CAMERA = ROOT / "configs" / "cameras" / "tetra3_blackfly_s.yaml"
+TETRA3_CAMERA = CONFIGS / "cameras" / "tetra3_blackfly_s.yaml"
 TETRA3_EPOCH = 2019.58  # 2019-07-29
 CREUSOT_EPOCH = 2023.69  # 2023-09-07 (log.json dates are d/mm/yyyy: "7/09/2023")
 MAGNITUDE_LIMIT = 7.0
@@ -151,7 +162,7 @@ class ImageJob:
 
 
 def tetra3_jobs(base: Path) -> list[ImageJob]:
-    from logs.importers.sidecar import load_camera
+    from rollingstar.logs.importers.sidecar import load_camera
 
     cam = load_camera(TETRA3_CAMERA)
     files = sorted((base / "tetra3").glob("*.tiff"))
@@ -161,8 +172,8 @@ def tetra3_jobs(base: Path) -> list[ImageJob]:
 
 def creusot_jobs(base: Path) -> list[ImageJob]:
     """Every PNG under creusot/, with its folder's log.json (the importer's tolerant reader)."""
-    from logs.importers.common import WarningLog
-    from logs.importers.corr import focal_px_from_fov, read_log_json
+    from rollingstar.logs.importers.common import WarningLog
+    from rollingstar.logs.importers.corr import focal_px_from_fov, read_log_json
 
     jobs = []
     root = base / "creusot"
@@ -194,7 +205,7 @@ class Detected:
 
 def detect(job: ImageJob, repeats: int = 3) -> Detected:
     """Read the image and run ``cog`` (minimum time over ``repeats`` calls)."""
-    from logs.importers.images import read_image
+    from rollingstar.logs.importers.images import read_image
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -236,7 +247,7 @@ def process_image(job: ImageJob, repeats: int = 3, camera=None, detected: Detect
 
     Without ``camera``: pinhole with the nominal focal length, identification with ``LIS_PARAMS``
     and a joint attitude + focal-length fit (:func:`fit_attitude_focal`). With ``camera`` (a lens
-    calibration, :mod:`pipelines.real_calibration`): the context camera takes its focal length and
+    calibration, :mod:`rollingstar.studies.real_calibration`): the context camera takes its focal length and
     principal point, the identifier its ``k1, k2`` (``FINAL_PARAMS``), and the attitude is fitted
     with the whole model fixed; ``camera`` may be ``(RadialCamera, residual bound px)``.
     The offset to astrometry.net's pointing centre is measured from the direction of the image's
@@ -321,7 +332,7 @@ def run_real_data(base: Path | None = None, repeats: int = 3, show_progress: boo
     peer comparison (``process_image``): tetra3 with the nominal pinhole (``LIS_PARAMS``), creusot
     with its folder's leave-one-out calibrated model (``FINAL_PARAMS``).
     """
-    from pipelines.progress import progress_bar
+    from rollingstar.progress import progress_bar
 
     base = Path(base) if base is not None else real_data_dir()
     if not (base / "tetra3").is_dir() or not (base / "creusot").is_dir():
@@ -533,16 +544,16 @@ def real_data_markdown(result: dict, command: str, plots: list[str] = ()) -> str
         "",
         "## creusot images (808 x 608, 8-bit; every PNG under `creusot/`)",
         "",
-        "Three passes (`pipelines/real_data.py: run_real_data`):",
+        "Three passes (`rollingstar.studies/real_data.py: run_real_data`):",
         "",
         "1. *Per image* (`DISCOVERY_PARAMS` = `" + json.dumps(result.get("discovery", {})) + "`): `lost-in-space` with "
         "`fit_distortion: radial`: after tetra3rs' pattern match the focal length and radial distortion k1, k2 "
         "(`sensors/effects/radial_distortion.py` convention, principal point at the detector centre) are fitted with the attitude "
         "to the matched stars, the catalogue re-matched with the fitted model until the match set is stable, then verified "
         "(>= 4 stars, RMS <= 4 px, false-match probability <= 1e-9). Focal length starts from each folder's `log.json` field "
-        "of view (diagonal, `logs.importers.corr.focal_px_from_fov`; the malformed `Nunki/nunki.json` is read by the "
+        "of view (diagonal, `rollingstar.logs.importers.corr.focal_px_from_fov`; the malformed `Nunki/nunki.json` is read by the "
         "importer's tolerant reader). Last column of the table.",
-        "2. *Per lens folder* (`pipelines/real_calibration.py`): one focal length, k1, k2 and principal point shared by the "
+        "2. *Per lens folder* (`rollingstar.studies/real_calibration.py`): one focal length, k1, k2 and principal point shared by the "
         "folder's images, one attitude per image, fitted jointly to the stars pass 1 identified (5-sigma clipping, one refit); "
         "1-sigma from the fit's scatter-scaled covariance. Table below.",
         "3. *Final* (`FINAL_PARAMS` = `" + json.dumps(result.get("final", {})) + "`): every image identified again with the "

@@ -9,7 +9,7 @@ and a random catalogue id. That is what a planet, satellite or hot pixel matched
 star, or a misidentified star, looks like to a solver: a direction off by up to the field width.
 
 The error of an estimate is the rotation angle of ``truth(t)^-1 * estimate`` (arcsec,
-:func:`sensors.conventions.attitude_error_body_arcsec`); per case the RMS over the valid estimates.
+:func:`rollingstar.sensors.conventions.attitude_error_body_arcsec`); per case the RMS over the valid estimates.
 Used by ``benchmarks/outliers.py`` (the table in docs/reliability.md) and by the reliability tests.
 """
 from __future__ import annotations
@@ -19,14 +19,14 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from estimators.data import FrameData, StarTable
-from pipelines import build
-from pipelines.config import load_scenario
-from pipelines.registry import get_plugin_class
-from pipelines.simulate import build_simulator
-from sensors.conventions import attitude_error_body_arcsec
+from rollingstar.config import CONFIGS
+from rollingstar.estimators.data import FrameData, SensorContext, StarTable
+from rollingstar.pipelines.registry import get_plugin_class
+from rollingstar.pipelines.simulate import build_simulator
+from rollingstar.sensors.conventions import attitude_error_body_arcsec
+from rollingstar.sensors.scenario import load_scenario
 
-SCENARIO = "configs/scenarios/he2021b_table2.yaml"
+SCENARIO = CONFIGS / "scenarios" / "he2021b_table2.yaml"
 SOLVERS = {  # kind -> params (besides the gate)
     "quest": {},
     "request": {"group_size": "frame", "rate_source": "fixed", "rate_deg_s": (0.05, 0.0, 0.0)},
@@ -49,7 +49,7 @@ def clean_scene(n_frames: int, seed: int, root=".") -> Scene:
     cfg = load_scenario(Path(root) / SCENARIO)
     cfg = cfg.model_copy(update={"frames": n_frames, "seed": seed})
     sim = build_simulator(cfg)
-    ctx = build.build_context(cfg)
+    ctx = SensorContext.from_scenario(cfg)
     frames = []
     for f in sim.frames(n_frames):
         c, tr = f.centroids, f.truth

@@ -9,7 +9,7 @@ frame's identified raw centroids.
 Every experiment runs in two motion modes, side by side:
 
 - ``drift`` -- the paper's own assumption, eq (19): every star moves at the same image velocity
-  ``V = omega / IFOV`` (:class:`sensors.uniform_drift.UniformDriftSimulator`; attitude fixed, the
+  ``V = omega / IFOV`` (:class:`rollingstar.sensors.uniform_drift.UniformDriftSimulator`; attitude fixed, the
   whole image translates; stars labelled from the truth, as the paper's simulated stars are known).
 - ``sky`` -- a rigid rotation of a pinhole camera over the real sky (the project simulator,
   tracking identification): image velocity depends on the position, so stars accelerate.
@@ -31,7 +31,7 @@ Experiments (each trial = one simulator seed ``seed * 1000 + offset + trial``; n
   stars >= ``EDGE_PX`` inside the detector (a streak cut by the edge biases any centroid).
 - Fig 12 (star-pair distance, offset 100): centroid level, rates 0-3 deg/s about x and y,
   R = 0.05 and 0.1. Pair distance of two identified stars minus the true distance at the pair's
-  common time (mean of the two claimed times), as ``pipelines.evaluate``. "After": pairs of
+  common time (mean of the two claimed times), as ``rollingstar.pipelines.evaluate``. "After": pairs of
   corrected stars whose tracks are >= 10 frames old. Statistics: RMS over all pair-frames ("per
   frame"), and RMS over pairs of each pair's mean error over its frames ("systematic").
 - Figs 14-15 (attitude): the same runs, QUEST on five well-spread stars per frame (the one nearest
@@ -48,24 +48,29 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-
-from estimators.data import FrameData, StarTable
-from estimators.filters.kf_cv import KfCvFilter
-from pipelines import build
-from pipelines.config import load_pipeline, load_scenario
-from pipelines.reproduce import Row, paper_values
-from pipelines.runner import build_stages
-from pipelines.progress import progress_bar
-from pipelines.simulate import build_simulator
-from pipelines.truth import true_positions
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
-from sensors.conventions import attitude_error_body_arcsec
-from sensors.uniform_drift import UniformDriftSimulator, drift_reference_vectors, image_velocity_px_s
 
-ROOT = Path(__file__).resolve().parents[2]
-SCENARIO = ROOT / "configs" / "scenarios" / "he2021a.yaml"
-PIPELINE = ROOT / "configs" / "pipelines" / "he2021a.yaml"
+from rollingstar.config import CONFIGS
+from rollingstar.estimators.data import FrameData, SensorContext, StarTable
+from rollingstar.estimators.filters.kf_cv import KfCvFilter
+from rollingstar.pipelines.config import load_pipeline
+from rollingstar.pipelines.runner import build_stages
+from rollingstar.pipelines.simulate import build_simulator
+from rollingstar.pipelines.truth import true_positions
+from rollingstar.progress import progress_bar
+from rollingstar.sensors import build
+from rollingstar.sensors.conventions import attitude_error_body_arcsec
+from rollingstar.sensors.scenario import load_scenario
+from rollingstar.sensors.uniform_drift import (
+    UniformDriftSimulator,
+    drift_reference_vectors,
+    image_velocity_px_s,
+)
+from rollingstar.studies.reproduce import Row, paper_values
+
+SCENARIO = CONFIGS / "scenarios" / "he2021a.yaml"
+PIPELINE = CONFIGS / "pipelines" / "he2021a.yaml"
 AGE_CONVERGED = 50  # "after 50 frames" (Figs 6-7)
 AGE_MIN = 10  # tracks younger than this are excluded from the pair / smear statistics
 N_ATT_STARS = 5  # "five stars" for the QUEST part
@@ -209,7 +214,7 @@ def simulate_run(level: str, rate_xyz, r: float, seed: int, frames: int, mode: s
     """
     cfg = _scenario(level, rate_xyz, r, seed, frames)
     sim = build_run_simulator(cfg, mode)
-    ctx = build.build_context(cfg, catalog=sim.catalog)
+    ctx = SensorContext.from_scenario(cfg, catalog=sim.catalog)
     stages = _stages(r, level, q)
     for s in stages:
         s.setup(ctx)
@@ -615,11 +620,11 @@ def markdown_table(rows) -> str:
     return "\n".join(out)
 
 
-if __name__ == "__main__":  # python -m pipelines.reproduce.he2021a RESULT.json: the doc's table from a --json run
+if __name__ == "__main__":  # python -m rollingstar.studies.reproduce.he2021a RESULT.json: the doc's table from a --json run
     import json
     import sys
 
-    from pipelines.reproduce import Row as _Row
+    from rollingstar.studies.reproduce import Row as _Row
 
     with open(sys.argv[1]) as fh:
         _rows = [_Row(**{k: v for k, v in r.items() if k != "ratio"}) for r in json.load(fh)["rows"]]

@@ -8,8 +8,8 @@ Set-up (our choices where the paper is silent, stated in ``docs/reproductions/he
   300 frames (10 Hz), centroid-level simulation with 0.05 px Gaussian centroid noise per axis.
 - Pipeline: tracking identifier + ``request`` (``estimators/attitude/request.py``) with the true
   rate (``rate_source: truth``), ``forgetting`` 1 (the paper's eqs 30-31) unless stated. The
-  stages are driven in-process exactly as ``pipelines.runner`` drives them (no MCAP I/O); the
-  attitude error is evaluated as ``pipelines.evaluate`` does, at each estimate's own ``t_ns``.
+  stages are driven in-process exactly as ``rollingstar.pipelines.runner`` drives them (no MCAP I/O); the
+  attitude error is evaluated as ``rollingstar.pipelines.evaluate`` does, at each estimate's own ``t_ns``.
 - Monte Carlo: ``trials`` noise realisations, scenario seeds ``seed, seed + 1, ...``; RMSE pooled
   over every valid update of every trial.
 - Fig 12 "global exposure": the same scenario with a global shutter, QUEST once per frame.
@@ -31,20 +31,27 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from estimators.attitude.quest import QuestSolver
-from estimators.attitude.request import RequestSolver
-from estimators.data import FrameData, GyroSamples, StarTable, TruthSamples
-from estimators.identifiers.tracking import TrackingIdentifier
-from estimators.rates.pso import PsoRateEstimator
-from pipelines import build
-from pipelines.config import load_scenario
-from pipelines.reproduce import Row, paper_values
-from pipelines.simulate import build_simulator, truth_sample_times
-from pipelines.truth import attitude_crb_rad2
-from sensors.conventions import RAD_TO_ARCSEC, attitude_error_body_arcsec
-from sensors.gyro import simulate_gyro
+from rollingstar.config import CONFIGS
+from rollingstar.estimators.attitude.quest import QuestSolver
+from rollingstar.estimators.attitude.request import RequestSolver
+from rollingstar.estimators.data import (
+    FrameData,
+    GyroSamples,
+    SensorContext,
+    StarTable,
+    TruthSamples,
+)
+from rollingstar.estimators.identifiers.tracking import TrackingIdentifier
+from rollingstar.estimators.rates.pso import PsoRateEstimator
+from rollingstar.pipelines.simulate import build_simulator, truth_sample_times
+from rollingstar.pipelines.truth import attitude_crb_rad2
+from rollingstar.sensors import build
+from rollingstar.sensors.conventions import RAD_TO_ARCSEC, attitude_error_body_arcsec
+from rollingstar.sensors.gyro import simulate_gyro
+from rollingstar.sensors.scenario import load_scenario
+from rollingstar.studies.reproduce import Row, paper_values
 
-CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs" / "scenarios"
+CONFIG_DIR = CONFIGS / "scenarios"
 AXES = ("x", "y", "z")
 GROUPS = (1, 3, 5)
 STAR1000_GROUPS = (4, 2, 1)
@@ -121,12 +128,12 @@ def star1000_scenario(frames: int, seed: int, sigma_px: float = 0.05):
 def simulate(cfg):
     """Input frames (centroid tables, truth samples as the runner would pass them) and the truth motion."""
     sim = build_simulator(cfg)
-    context = build.build_context(cfg)
+    context = SensorContext.from_scenario(cfg)
     period = int(sim.timing.frame_period_ns)
     frames, crb = [], []
     gyro_model = build.build_gyro(cfg)
     gyro = None
-    if gyro_model is not None:  # as pipelines.simulate: each frame carries the samples of (t0 - period, t0]
+    if gyro_model is not None:  # as rollingstar.pipelines.simulate: each frame carries the samples of (t0 - period, t0]
         gyro = simulate_gyro(gyro_model, sim.motion, sim.timing.frame_start_ns(0) - period,
                              sim.timing.frame_start_ns(cfg.frames), cfg.seed)
     for f in sim.frames(cfg.frames):
@@ -148,7 +155,7 @@ def simulate(cfg):
 
 
 def run_stages(stages, frames, context):
-    """Drive the stages as ``pipelines.runner`` does (process in order, then ``update_prior``)."""
+    """Drive the stages as ``rollingstar.pipelines.runner`` does (process in order, then ``update_prior``)."""
     for s in stages:
         s.setup(context)
     out = []

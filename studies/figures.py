@@ -17,16 +17,21 @@ from pathlib import Path
 
 import numpy as np
 
-from logs.reader import LogReader
-from logs.records import stars_to_arrays
-from pipelines.config import PipelineConfig, ScenarioConfig, load_pipeline, load_scenario
-from pipelines.evaluate import evaluate_log
-from pipelines.runner import run_pipeline
-from pipelines.simulate import TOPIC_TRUTH_STARS, build_simulator, simulate_to_log
+from rollingstar.config import CONFIGS
+from rollingstar.logs.reader import LogReader
+from rollingstar.logs.records import stars_to_arrays
+from rollingstar.pipelines.config import PipelineConfig, load_pipeline
+from rollingstar.pipelines.evaluate import evaluate_log
+from rollingstar.pipelines.runner import run_pipeline
+from rollingstar.pipelines.simulate import (
+    TOPIC_TRUTH_STARS,
+    build_simulator,
+    simulate_to_log,
+)
+from rollingstar.sensors.scenario import ScenarioConfig, load_scenario
 
-ROOT = Path(__file__).resolve().parents[1]
-SCENARIOS = ROOT / "configs" / "scenarios"
-BASELINE = ROOT / "configs" / "pipelines" / "baseline.yaml"
+SCENARIOS = CONFIGS / "scenarios"
+BASELINE = CONFIGS / "pipelines" / "baseline.yaml"
 
 
 def _with(cfg: ScenarioConfig, **changes) -> ScenarioConfig:
@@ -299,8 +304,12 @@ def write_foundation_docs(result: dict, docs_dir: Path, command: str) -> Path:
 
 def real_data_figures(out_dir: Path | None, as_json: bool = False, repeats: int = 3) -> dict:
     """``rollingstar figures real-data [--out docs]``: the same measurement as ``benchmarks/real_data.py``
-    (:func:`pipelines.real_data.run_real_data`), written to ``<out>/real-data.md``, ``.json`` and PNGs."""
-    from pipelines.real_data import real_data_markdown, run_real_data, write_real_data_docs
+    (:func:`rollingstar.studies.real_data.run_real_data`), written to ``<out>/real-data.md``, ``.json`` and PNGs."""
+    from rollingstar.studies.real_data import (
+        real_data_markdown,
+        run_real_data,
+        write_real_data_docs,
+    )
 
     command = "rollingstar figures real-data" + (f" --out {out_dir}" if out_dir is not None else "")
     result = run_real_data(repeats=repeats, show_progress=not as_json)

@@ -1,10 +1,10 @@
 """Reproductions of the seed papers' experiments: ``rollingstar reproduce <paper>``.
 
-Each paper has a module ``pipelines/reproduce/<paper>.py`` with
+Each paper has a module ``rollingstar.studies/reproduce/<paper>.py`` with
 
     def run(quick: bool, plots_dir: Path | None, seed: int) -> list[Row]
 
-and one data file ``pipelines/reproduce/data/<paper>.yaml`` holding the values the paper reports,
+and one data file ``rollingstar.studies/reproduce/data/<paper>.yaml`` holding the values the paper reports,
 each with the table or figure it comes from. Paper values are only ever printed in the "paper"
 column; "ours" is always measured by the run that prints it.
 """
@@ -54,10 +54,10 @@ def paper_values(paper: str) -> dict:
 
 def run_reproduction(paper: str, quick: bool = False, plots_dir: Path | None = None, seed: int = 1) -> list[Row]:
     if paper not in PAPERS:
-        from pipelines.errors import UserError
+        from rollingstar.errors import UserError
 
         raise UserError(f"unknown paper {paper!r}; choose one of: {', '.join(PAPERS)}")
-    module = importlib.import_module(f"pipelines.reproduce.{paper}")
+    module = importlib.import_module(f"rollingstar.studies.reproduce.{paper}")
     if plots_dir is not None:
         Path(plots_dir).mkdir(parents=True, exist_ok=True)
     return module.run(quick=quick, plots_dir=plots_dir, seed=seed)

@@ -2,7 +2,7 @@
 
 One lens (one folder of images) has one focal length, radial distortion and principal point; each
 image has its own attitude. :func:`calibrate_lens` fits them together
-(:func:`estimators.identifiers.camera_fit.fit_camera`) to the stars each image's lost-in-space
+(:func:`rollingstar.estimators.identifiers.camera_fit.fit_camera`) to the stars each image's lost-in-space
 identification matched, rejects matches whose residual exceeds ``clip`` robust standard
 deviations (``1.4826 * median |r|``, at least ``min_clip_px``) and refits once. Uncertainties are
 the fit's ``s^2 (J^T J)^-1`` (scatter-scaled). :func:`leave_one_out` gives, for every image, the
@@ -16,7 +16,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from estimators.identifiers.camera_fit import INTRINSICS, CameraFit, RadialCamera, fit_camera
+from rollingstar.estimators.identifiers.camera_fit import (
+    INTRINSICS,
+    CameraFit,
+    RadialCamera,
+    fit_camera,
+)
 
 
 @dataclass(frozen=True)

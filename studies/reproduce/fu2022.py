@@ -1,7 +1,7 @@
 """fu2022 reproduction: single-frame PSO angular rate on the Table 1 sensor (centroid-level simulation).
 
 Every trial: a random boresight (uniform on the sky) and roll, constant body rate, frame 0 simulated
-by :class:`sensors.simulate.StarTrackerSimulator` (exact rolling shutter: each centroid is the star's
+by :class:`rollingstar.sensors.simulate.StarTrackerSimulator` (exact rolling shutter: each centroid is the star's
 position at the mid-exposure of its own row; line delay 20 us, our assumption), Gaussian centroid
 noise ``sigma`` per axis added here, the stars' times those of their *measured* rows, identities
 from the truth (the paper assumes identified stars). Pointings with fewer than three stars brighter
@@ -22,18 +22,17 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from estimators.data import FrameData, StarTable
-from estimators.rates.pso import PsoRateEstimator, image_velocity_px_s
-from pipelines import build
-from pipelines.config import load_scenario
-from pipelines.reproduce import Row, paper_values
-from sensors.conventions import attitude_from_radec_roll
-from sensors.motion import constant_rate
-from sensors.simulate import StarTrackerSimulator
+from rollingstar.config import CONFIGS
+from rollingstar.estimators.data import FrameData, SensorContext, StarTable
+from rollingstar.estimators.rates.pso import PsoRateEstimator, image_velocity_px_s
+from rollingstar.sensors.conventions import attitude_from_radec_roll
+from rollingstar.sensors.motion import constant_rate
+from rollingstar.sensors.scenario import load_scenario
+from rollingstar.sensors.simulate import StarTrackerSimulator
+from rollingstar.studies.reproduce import Row, paper_values
 
-ROOT = Path(__file__).resolve().parents[2]
-SCENARIO = ROOT / "configs" / "scenarios" / "fu2022.yaml"
-PIPELINE = ROOT / "configs" / "pipelines" / "fu2022.yaml"
+SCENARIO = CONFIGS / "scenarios" / "fu2022.yaml"
+PIPELINE = CONFIGS / "pipelines" / "fu2022.yaml"
 RATES = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 5.0)  # section 3.2 / Fig 11
 FIELD_RATES = (0.5, 1.0, 3.0, 5.0)  # section 3.3 / Fig 14
 SIGMAS = (0.01, 0.02, 0.03, 0.04, 0.05)  # Fig 12
@@ -55,7 +54,7 @@ SWEEP = (("fig9_noisy", (1, 1, 0), 0.02, "fig9_rate_error_median_noisy", "median
 @lru_cache(maxsize=1)
 def _setup():
     cfg = load_scenario(SCENARIO)
-    ctx = build.build_context(cfg)
+    ctx = SensorContext.from_scenario(cfg)
     with open(PIPELINE) as fh:
         pipe = yaml.safe_load(fh)
     params = next(s.get("params", {}) for s in pipe["stages"] if s["kind"] == "pso-rate")

@@ -1,4 +1,8 @@
-"""The ``rollingstar`` command line (typer). Bad input exits 2 with a one-paragraph message."""
+"""The ``rollingstar`` command line (typer). Bad input exits 2 with a one-paragraph message.
+
+The commands import the library inside their bodies: ``main`` sets the BLAS thread count before
+numpy is first imported, and ``rollingstar --help`` or ``--version`` stays instant.
+"""
 from __future__ import annotations
 
 import functools
@@ -12,25 +16,30 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from pipelines.errors import UserError
+from rollingstar import __version__
+from rollingstar.config import find_config
+from rollingstar.errors import UserError
 
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, no_args_is_help=True,
-                  help="Star-tracker estimation with rolling-shutter CMOS sensors.")
+                  help="Star-tracker estimation with rolling-shutter CMOS rollingstar.sensors.")
 out = Console(width=None if sys.stdout.isatty() else 200)  # no truncated cells when piped
 err = Console(stderr=True)
 
 
-def _add_import_app() -> None:
-    from logs.importers.cli import import_app
+def _print_version(value: bool) -> None:
+    if value:
+        print(f"rollingstar {__version__}")
+        raise typer.Exit()
 
-    app.add_typer(import_app, name="import")
 
-
-_add_import_app()
+@app.callback()
+def _options(version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                          help="print the version and exit")):
+    """Star-tracker estimation with rolling-shutter CMOS rollingstar.sensors."""
 
 
 def _user_errors():
-    from logs.errors import LogFormatError, LogWriteError
+    from rollingstar.logs.errors import LogFormatError, LogWriteError
 
     return (UserError, LogFormatError, LogWriteError, FileNotFoundError, IsADirectoryError, PermissionError)
 
@@ -60,16 +69,16 @@ def handle_errors(fn):
 
 @app.command()
 @handle_errors
-def simulate(scenario: Path = typer.Argument(..., help="scenario YAML"),
+def simulate(scenario: str = typer.Argument(..., help="scenario YAML, or a shipped scenario's name (he2021b)"),
              output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write"),
              frames: int = typer.Option(None, "--frames", min=1, help="override the scenario's frame count"),
              seed: int = typer.Option(None, "--seed", help="override the scenario's seed"),
              quiet: bool = typer.Option(False, "--quiet", "-q")):
     """Simulate a recording from a scenario."""
-    from pipelines.config import load_scenario
-    from pipelines.simulate import simulate_to_log
+    from rollingstar.pipelines.simulate import simulate_to_log
+    from rollingstar.sensors.scenario import load_scenario
 
-    cfg = load_scenario(scenario)
+    cfg = load_scenario(find_config(scenario, "scenario"))
     summary = simulate_to_log(cfg, output, frames=frames, seed=seed, show_progress=not quiet)
     out.print(f"wrote {summary.path}: {summary.frames} frames ({summary.level} level), "
               f"{summary.stars_per_frame_mean:.1f} stars per frame, {summary.duration_s:.2f} s")
@@ -77,7 +86,7 @@ def simulate(scenario: Path = typer.Argument(..., help="scenario YAML"),
 
 @app.command()
 @handle_errors
-def run(pipeline: Path = typer.Argument(..., help="pipeline YAML"),
+def run(pipeline: str = typer.Argument(..., help="pipeline YAML, or a shipped pipeline's name (baseline)"),
         recording: Path = typer.Argument(..., help="input MCAP recording"),
         output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write"),
         resume: bool = typer.Option(False, "--resume", help="continue from a partial output (killed or interrupted run)"),
@@ -85,9 +94,10 @@ def run(pipeline: Path = typer.Argument(..., help="pipeline YAML"),
                                              help="save the stages' state every N frames for --resume (0: never)"),
         quiet: bool = typer.Option(False, "--quiet", "-q")):
     """Run a pipeline over a recording."""
-    from pipelines.config import load_pipeline
-    from pipelines.runner import run_pipeline
+    from rollingstar.pipelines.config import load_pipeline
+    from rollingstar.pipelines.runner import run_pipeline
 
+    pipeline = find_config(pipeline, "pipeline")
     cfg = load_pipeline(pipeline)
     s = run_pipeline(recording, cfg, output, pipeline_source=str(pipeline), show_progress=not quiet, resume=resume,
                      checkpoint_every=checkpoint_every)
@@ -103,7 +113,7 @@ def run(pipeline: Path = typer.Argument(..., help="pipeline YAML"),
 def evaluate(log: Path = typer.Argument(..., help="output MCAP of `rollingstar run`"),
              as_json: bool = typer.Option(False, "--json", help="print one JSON object")):
     """Metrics of an output log against the truth it carries."""
-    from pipelines.evaluate import evaluate_log
+    from rollingstar.pipelines.evaluate import evaluate_log
 
     metrics = evaluate_log(log)
     if as_json:
@@ -154,7 +164,7 @@ def print_metrics(m: dict, title: str = "") -> None:
 @handle_errors
 def info(log: Path = typer.Argument(..., help="MCAP file")):
     """Topics, message counts, time range, schemas and metadata of a log."""
-    from logs.reader import LogReader
+    from rollingstar.logs.reader import LogReader
 
     reader = LogReader(log)
     s = reader.summary_info()
@@ -180,7 +190,7 @@ def info(log: Path = typer.Argument(..., help="MCAP file")):
 @handle_errors
 def plugins():
     """Every registered plugin by role, with its parameters and defaults."""
-    from pipelines.registry import available_kinds, plugins_by_role
+    from rollingstar.pipelines.registry import available_kinds, plugins_by_role
 
     kinds = {target: kind for kind, target in available_kinds().items()}
     for role, classes in plugins_by_role().items():
@@ -202,11 +212,13 @@ def plugins():
 @handle_errors
 def demo(frames: int = typer.Option(None, "--frames", min=2)):
     """Simulate the embedded default scenario, run the baseline pipeline, print its evaluation."""
-    from pipelines.config import PipelineConfig, ScenarioConfig, parse_yaml, validate
-    from pipelines.demo import DEMO_PIPELINE_YAML, DEMO_SCENARIO_YAML
-    from pipelines.evaluate import evaluate_log
-    from pipelines.runner import run_pipeline
-    from pipelines.simulate import simulate_to_log
+    from rollingstar.config import parse_yaml, validate
+    from rollingstar.pipelines.config import PipelineConfig
+    from rollingstar.pipelines.demo import DEMO_PIPELINE_YAML, DEMO_SCENARIO_YAML
+    from rollingstar.pipelines.evaluate import evaluate_log
+    from rollingstar.pipelines.runner import run_pipeline
+    from rollingstar.pipelines.simulate import simulate_to_log
+    from rollingstar.sensors.scenario import ScenarioConfig
 
     scenario = validate(ScenarioConfig, parse_yaml(DEMO_SCENARIO_YAML, "<demo scenario>"), "<demo scenario>")
     pipeline = validate(PipelineConfig, parse_yaml(DEMO_PIPELINE_YAML, "<demo pipeline>"), "<demo pipeline>")
@@ -228,7 +240,7 @@ def reproduce(paper: str = typer.Argument(..., help="he2021a | he2021b | fu2022 
               plots: Path = typer.Option(None, "--plots", help="write the paper's figures redrawn from our runs here"),
               seed: int = typer.Option(1, "--seed")):
     """Reproduce a seed paper's experiment: paper value, ours (measured now), ratio."""
-    from pipelines.reproduce import run_reproduction
+    from rollingstar.studies.reproduce import run_reproduction
 
     rows = run_reproduction(paper, quick=quick, plots_dir=plots, seed=seed)
     if as_json:
@@ -256,10 +268,14 @@ def figures(name: str = typer.Argument("foundation", help="foundation | real-dat
             seed: int = typer.Option(1, "--seed")):
     """Measure the foundation figures (static vs Cramér–Rao bound, rolling shutter, image level) or the
     real-sky figures (real-data: identification, per-lens calibration; same as benchmarks/real_data.py)."""
-    from pipelines.figures import foundation_markdown, run_foundation, write_foundation_docs
+    from rollingstar.studies.figures import (
+        foundation_markdown,
+        run_foundation,
+        write_foundation_docs,
+    )
 
     if name == "real-data":
-        from pipelines.figures import real_data_figures
+        from rollingstar.studies.figures import real_data_figures
 
         real_data_figures(out_dir, as_json)
         return
@@ -278,21 +294,78 @@ def figures(name: str = typer.Argument("foundation", help="foundation | real-dat
 @app.command()
 @handle_errors
 def diagnose(recording: Path = typer.Option(..., "--recording", help="MCAP recording to diagnose"),
-             sim: Path = typer.Option(None, "--sim", help="scenario YAML (default: the sensor model the recording declares)"),
-             pipeline: Path = typer.Option(None, "--pipeline", help="pipeline YAML (default: cog, tracking, quest)"),
+             sim: str = typer.Option(None, "--sim", help="scenario YAML or shipped name (default: the sensor model the recording declares)"),
+             pipeline: str = typer.Option(None, "--pipeline", help="pipeline YAML or shipped name (default: cog, tracking, quest)"),
              out_dir: Path = typer.Option(None, "-o", "--output", help="report directory (index.html, PNGs, scenario_updated.yaml)"),
              as_json: bool = typer.Option(False, "--json", help="print one JSON object"),
              seed: int = typer.Option(0, "--seed", help="held-out split and bootstrap seed"),
              quiet: bool = typer.Option(False, "--quiet", "-q")):
     """Locate a simulation/recording mismatch, name the physics left out, model it, show the fit improve."""
-    from pipelines.diagnose import DiagnoseOptions, print_summary, run_diagnose
+    from rollingstar.pipelines.diagnose import (
+        DiagnoseOptions,
+        print_summary,
+        run_diagnose,
+    )
 
+    sim = None if sim is None else find_config(sim, "scenario")
+    pipeline = None if pipeline is None else find_config(pipeline, "pipeline")
     result = run_diagnose(recording, sim, pipeline, out_dir, DiagnoseOptions(seed=seed, show_progress=not quiet and not as_json))
     if as_json:
         print(json.dumps(result, indent=2))
     else:
         print_summary(result, out)
 
+
+import_app = typer.Typer(
+    no_args_is_help=True,
+                         help="Import real recordings (images, astrometry.net corr tables, centroid CSVs) as MCAP rollingstar.logs.")
+
+
+def _done(path: Path) -> None:
+    from rollingstar.logs.importers.common import describe_log
+
+    out.print(describe_log(path), highlight=False)
+
+
+@import_app.command("images")
+@handle_errors
+def images(folder: Path = typer.Argument(..., help="folder of TIFF/PNG/JPEG frames (with an optional recording.yaml)"),
+           output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write"),
+           camera: str = typer.Option(None, "--camera", help="camera.yaml or a shipped camera's name (required "
+                                                             "when the folder has no recording.yaml with a camera)"),
+           sidecar: Path = typer.Option(None, "--sidecar", help="recording.yaml kept outside the folder "
+                                                                "(default: FOLDER/recording.yaml if present)"),
+           quiet: bool = typer.Option(False, "--quiet", "-q")):
+    """A folder of 8/16-bit images -> an image-level recording (foxglove.RawImage frames)."""
+    from rollingstar.logs.importers.images import import_images
+
+    camera = None if camera is None else find_config(camera, "camera")
+    _done(import_images(folder, output, camera=camera, sidecar=sidecar, show_progress=not quiet))
+
+
+@import_app.command("corr")
+@handle_errors
+def corr(folder: Path = typer.Argument(..., help="folder with an astrometry.net corr *.fits and log.json, "
+                                                 "or a folder of such folders"),
+         output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write")):
+    """astrometry.net corr tables -> a centroid-level recording of identified stars (one frame per table)."""
+    from rollingstar.logs.importers.corr import import_corr
+
+    _done(import_corr(folder, output))
+
+
+@import_app.command("centroids")
+@handle_errors
+def centroids(table: Path = typer.Argument(..., help="CSV: frame, t_ns or time_s, x, y, flux [, optional columns]"),
+              output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write"),
+              camera: str = typer.Option(..., "--camera", help="camera.yaml or a shipped camera's name")):
+    """A centroid CSV -> a centroid-level recording."""
+    from rollingstar.logs.importers.centroids import import_centroids
+
+    _done(import_centroids(table, output, find_config(camera, "camera")))
+
+
+app.add_typer(import_app, name="import")
 
 bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks that score an analysis against known truth.")
 app.add_typer(bench_app, name="bench")
@@ -306,7 +379,7 @@ def bench_discrepancy(quick: bool = typer.Option(False, "--quick", help="the red
                       cases: int = typer.Option(None, "--cases", min=1, help="number of recordings (default 12 quick, 120 full)"),
                       out_md: Path = typer.Option(None, "--markdown", help="also write the results table here")):
     """Diagnose simulated recordings with concealed effects; score naming, nulls, parameters, held-out gain."""
-    from pipelines.bench.discrepancy import format_markdown, run_benchmark
+    from rollingstar.studies.bench.discrepancy import format_markdown, run_benchmark
 
     result = run_benchmark(quick=quick, seed=seed, n_cases=cases, show_progress=not as_json)
     if out_md is not None:
@@ -324,7 +397,7 @@ def bench_perf(quick: bool = typer.Option(False, "--quick", help="tiny sizes (th
                only: list[str] = typer.Option(None, "--only", help="run only these lines: quest kf rate centroid replay compare"),
                markdown: bool = typer.Option(False, "--markdown", help="print the markdown table of docs/performance.md")):
     """Hot paths side by side with a peer or the frame.sum() floor, as ratios (issue 7); docs/performance.md."""
-    from pipelines.bench.perf import format_markdown, render_table, run_perf
+    from rollingstar.studies.bench.perf import format_markdown, render_table, run_perf
 
     result = run_perf(quick=quick, show_progress=not (as_json or markdown), only=only)
     if as_json:
@@ -339,7 +412,7 @@ def bench_perf(quick: bool = typer.Option(False, "--quick", help="tiny sizes (th
 
 @app.command()
 @handle_errors
-def compare(config: Path = typer.Argument(..., help="comparison YAML (configs/compare/*.yaml)"),
+def compare(config: str = typer.Argument(..., help="comparison YAML, or a shipped comparison's name (ci)"),
             output: Path = typer.Option(..., "-o", "--output", help="directory for results.json, results.md, report.html"),
             executor: str = typer.Option(None, "--executor", help="serial | dask (default: dask when --workers > 1)"),
             scheduler: str = typer.Option(None, "--scheduler", help="address of an existing dask scheduler, tcp://host:8786"),
@@ -349,12 +422,12 @@ def compare(config: Path = typer.Argument(..., help="comparison YAML (configs/co
                                                     help="exit 1 naming every gated metric worse than --baseline"),
             quiet: bool = typer.Option(False, "--quiet", "-q")):
     """Scenarios x pipelines x seeds: metrics, spread, CPU time, efficiency vs the bound; optional regression gate."""
-    from pipelines.compare import run_compare
+    from rollingstar.pipelines.compare import run_compare
 
     if fail_on_regression and baseline is None:
         raise UserError("--fail-on-regression needs --baseline FILE")
     command = "rollingstar " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["compare"] else ""
-    res = run_compare(config, output, executor, workers, scheduler, baseline, show_progress=not quiet, command=command)
+    res = run_compare(find_config(config, "compare"), output, executor, workers, scheduler, baseline, show_progress=not quiet, command=command)
     run = res.results["run"]
     out.print(f"wrote {res.output}/results.json, results.md, report.html: {run['tasks']} simulations, "
               f"{run['pipeline_runs']} pipeline runs, {run['executor']}, {run['wall_time_s']:.1f} s wall", highlight=False)

@@ -1,6 +1,6 @@
 """``rollingstar bench discrepancy``: can ``diagnose`` name physics concealed in a recording?
 
-Each case is a recording simulated by :func:`pipelines.simulate.simulate_to_log` from a base
+Each case is a recording simulated by :func:`rollingstar.pipelines.simulate.simulate_to_log` from a base
 scenario (he2021b sensor: 24.09 mm, 1024 x 1024 px of 5.5 um, Hipparcos stars to Hp 6, centroid
 noise 0.05 px) with a random motion design and zero, one or two effects switched on; the
 diagnosing side is given only the base scenario. Designs: inertial hold, constant single-axis
@@ -12,7 +12,7 @@ the gyro effects are drawn too.
 
 Effect magnitudes. For the drawn design, the *detection limit* of a parameter is the value whose
 image signature, with the per-frame attitude projected out, reaches 5 sigma of the centroid noise
-over the recording (:func:`sensors.effects.design.detection_limit` on the noise-free truth of
+over the recording (:func:`rollingstar.sensors.effects.design.detection_limit` on the noise-free truth of
 the same design). One parameter of the effect is set to ``m`` times its limit, ``m`` log-uniform
 in [0.3, 30], random sign. An effect whose signature the attitude absorbs entirely (limit inf) is
 recorded as invisible in that design. The *alias* of a case: every other library effect whose
@@ -40,17 +40,21 @@ from typing import ClassVar
 
 import numpy as np
 
-from estimators.diagnosis.selection import canonical_correlation
-from pipelines import build
-from pipelines.config import ScenarioConfig, parse_yaml, validate
-from pipelines.diagnose import DiagnoseOptions, diagnose
-from pipelines.errors import UserError
-from pipelines.progress import progress_bar
-from pipelines.simulate import build_simulator, simulate_to_log
-from sensors.effects import EFFECTS, Effect, EffectParameter
-from sensors.effects.base import STAGE_DETECTOR, as_positions, stack_jacobian
-from sensors.effects.context import context_from_attitude
-from sensors.effects.design import detection_limit, project_out
+from rollingstar.config import parse_yaml, validate
+from rollingstar.errors import UserError
+from rollingstar.estimators.diagnosis.selection import canonical_correlation
+from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose
+from rollingstar.pipelines.simulate import build_simulator, simulate_to_log
+from rollingstar.progress import progress_bar
+from rollingstar.sensors.effects import EFFECTS, Effect, EffectParameter
+from rollingstar.sensors.effects.base import (
+    STAGE_DETECTOR,
+    as_positions,
+    stack_jacobian,
+)
+from rollingstar.sensors.effects.context import context_from_attitude
+from rollingstar.sensors.effects.design import detection_limit, project_out
+from rollingstar.sensors.scenario import ScenarioConfig
 
 BASE_YAML = """
 name: bench-discrepancy-base
@@ -90,7 +94,7 @@ class StitchStep(Effect):
     stage: ClassVar[int] = STAGE_DETECTOR
     parameters: ClassVar[tuple[EffectParameter, ...]] = (
         EffectParameter("dy", "px", 0.0, 0.05, (-50.0, 50.0), "row offset of the right half"),)
-    explanation: ClassVar[str] = "benchmark-only out-of-library perturbation (not in sensors.effects)"
+    explanation: ClassVar[str] = "benchmark-only out-of-library perturbation (not in rollingstar.sensors.effects)"
 
     def apply(self, x, y, ctx):
         x, y = as_positions(x, y)
@@ -108,7 +112,7 @@ class ColumnRipple(Effect):
     stage: ClassVar[int] = STAGE_DETECTOR
     parameters: ClassVar[tuple[EffectParameter, ...]] = (
         EffectParameter("amplitude", "px", 0.0, 0.05, (-50.0, 50.0), "ripple amplitude along x"),)
-    explanation: ClassVar[str] = "benchmark-only out-of-library perturbation (not in sensors.effects)"
+    explanation: ClassVar[str] = "benchmark-only out-of-library perturbation (not in rollingstar.sensors.effects)"
 
     def apply(self, x, y, ctx):
         x, y = as_positions(x, y)
@@ -207,10 +211,10 @@ def simulate_mixed(cfg: ScenarioConfig, output: Path) -> None:
     ``t_ns`` (mid-exposure of its row) and ``row_time_ns`` of its own exposure, so the recording
     states the exposure of every frame; its declared scenario is the first exposure's.
     """
-    from logs.reader import LogReader
-    from logs.writer import LogWriter
-    from pipelines.config import to_yaml
-    from pipelines.simulate import TOPIC_CENTROIDS, TOPIC_TRUTH_STARS
+    from rollingstar.config import to_yaml
+    from rollingstar.logs.reader import LogReader
+    from rollingstar.logs.writer import LogWriter
+    from rollingstar.pipelines.simulate import TOPIC_CENTROIDS, TOPIC_TRUTH_STARS
 
     (cfg_a, _), (cfg_b, odd) = mixed_parts(cfg)
     pa, pb = output.with_suffix(".a.mcap"), output.with_suffix(".b.mcap")
@@ -237,7 +241,7 @@ class DesignContext:
 
     parts: list
     whole: object
-    gyro: object = None  # estimators.diagnosis.gyro_channel.GyroData (noise-free rates)
+    gyro: object = None  # rollingstar.estimators.diagnosis.gyro_channel.GyroData (noise-free rates)
     t_ref_ns: np.ndarray | None = None  # (F,) per frame (frames numbered 0..F-1 in `whole.frame`)
 
     def jacobian(self, eff) -> np.ndarray:
@@ -245,9 +249,9 @@ class DesignContext:
 
     def design_matrix(self, eff, sigma: float) -> np.ndarray:
         """Whitened, attitude-projected image rows and, with a gyro, the whitened attitude-increment
-        rows (:mod:`estimators.diagnosis.gyro_channel`) of ``eff``'s parameters, (N, p)."""
-        from estimators.diagnosis import gyro_channel as gc
-        from sensors.effects.geometry import rotation_jacobian
+        rows (:mod:`rollingstar.estimators.diagnosis.gyro_channel`) of ``eff``'s parameters, (N, p)."""
+        from rollingstar.estimators.diagnosis import gyro_channel as gc
+        from rollingstar.sensors.effects.geometry import rotation_jacobian
 
         for c in self.parts:
             c.check([eff])
@@ -269,7 +273,8 @@ class DesignContext:
 
 
 def _concat_contexts(parts):
-    from dataclasses import fields, replace as dc_replace
+    from dataclasses import fields
+    from dataclasses import replace as dc_replace
 
     from scipy.spatial.transform import Rotation
 
@@ -301,8 +306,8 @@ def design_context(cfg: ScenarioConfig, design: str = "") -> DesignContext:
         whole = parts[0]
     gyro = t_ref = None
     if cfg.gyro.enabled:
-        from estimators.diagnosis import gyro_channel as gc
-        from sensors.gyro import sample_times_ns
+        from rollingstar.estimators.diagnosis import gyro_channel as gc
+        from rollingstar.sensors.gyro import sample_times_ns
 
         sim = build_simulator(cfg)
         timing = sim.timing
@@ -343,7 +348,7 @@ def _frame_context(cfg: ScenarioConfig, keep=None):
 
 def candidate_classes() -> dict[str, type[Effect]]:
     """Library effects the benchmark draws: image-plane ones whose context needs the recording meets."""
-    from estimators.diagnosis.library import Candidate
+    from rollingstar.estimators.diagnosis.library import Candidate
 
     out = {}
     for name, cls in sorted(EFFECTS.items()):
@@ -364,7 +369,7 @@ def projected(cls, ctx: DesignContext) -> np.ndarray:
 
 
 def design_detection_limit(eff, ctx: DesignContext, sigma: float, n_sigma: float = N_SIGMA) -> dict[str, float]:
-    """:func:`sensors.effects.design.detection_limit` over the exposure groups and channels of a
+    """:func:`rollingstar.sensors.effects.design.detection_limit` over the exposure groups and channels of a
     design: the value whose whitened signature (image rows with the attitude projected out, plus
     the gyro increment rows when the design has a gyro) reaches ``n_sigma``."""
     if len(ctx.parts) == 1 and ctx.gyro is None:
