@@ -265,19 +265,19 @@ def figures(name: str = typer.Argument("foundation", help="foundation | real-dat
             quick: bool = typer.Option(False, "--quick"),
             as_json: bool = typer.Option(False, "--json"),
             out_dir: Path = typer.Option(None, "--out", help="write <out>/foundation.md (real-data.md), .json and img/*.png"),
-            seed: int = typer.Option(1, "--seed")):
+            seed: int = typer.Option(1, "--seed"),
+            repeats: int = typer.Option(3, "--repeats", min=1, help="real-data: timings are the minimum of this many calls")):
     """Measure the foundation figures (static vs Cramér–Rao bound, rolling shutter, image level) or the
-    real-sky figures (real-data: identification, per-lens calibration; same as benchmarks/real_data.py)."""
+    real-sky figures (real-data: identification, per-lens calibration, vs astrometry.net)."""
     from rollingstar.studies.figures import (
         foundation_markdown,
+        real_data_figures,
         run_foundation,
         write_foundation_docs,
     )
 
     if name == "real-data":
-        from rollingstar.studies.figures import real_data_figures
-
-        real_data_figures(out_dir, as_json)
+        real_data_figures(out_dir, as_json, repeats=repeats)
         return
     if name != "foundation":
         raise UserError(f"unknown figure set {name!r}; available: foundation, real-data")
