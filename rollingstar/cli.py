@@ -396,7 +396,7 @@ def bench_perf(quick: bool = typer.Option(False, "--quick", help="tiny sizes (th
                as_json: bool = typer.Option(False, "--json", help="print one JSON object"),
                only: list[str] = typer.Option(None, "--only", help="run only these lines: quest kf rate centroid replay compare"),
                markdown: bool = typer.Option(False, "--markdown", help="print the markdown table of docs/performance.md")):
-    """Hot paths side by side with a peer or the frame.sum() floor, as ratios (issue 7); docs/performance.md."""
+    """Hot paths side by side with a peer or the frame.sum() floor, as ratios; docs/performance.md."""
     from rollingstar.studies.bench.perf import format_markdown, render_table, run_perf
 
     result = run_perf(quick=quick, show_progress=not (as_json or markdown), only=only)

@@ -89,7 +89,7 @@ def kf_cv_predict(X: np.ndarray, P: np.ndarray, dt, q: float) -> tuple[np.ndarra
     """Eq (11) prediction for all stars at once: ``X = F X``, ``P = F P F^T + Q``.
 
     ``F = I + dt (e_0 e_1^T + e_2 e_3^T)`` is applied as row/column updates instead of 4 x 4
-    products (same arithmetic, ~5x less overhead for the few tracks of a frame; issue 7 bench).
+    products (same arithmetic, ~5x less overhead for the few tracks of a frame; ``rollingstar bench perf --only kf``).
     """
     X = np.asarray(X, dtype=float)
     dt = np.broadcast_to(np.asarray(dt, dtype=float).reshape(-1), (X.shape[0],))
@@ -119,7 +119,7 @@ def kf_cv_update(X: np.ndarray, P: np.ndarray, z: np.ndarray, r: float) -> tuple
     the Joseph form ``(I - K H) P (I - K H)^T + r K K^T`` is evaluated as ``A = P - K (H P)``,
     ``A - (A H^T) K^T + r K K^T`` (the same expression multiplied out; no 4 x 4 ``I - K H``).
     The 2 x 2 innovation covariance is inverted in closed form (``np.linalg.inv``'s per-call
-    overhead is most of an update for the few tracks of a frame; issue 7 bench).
+    overhead is most of an update for the few tracks of a frame; ``rollingstar bench perf --only kf``).
     """
     X = np.asarray(X, dtype=float)
     P = np.asarray(P, dtype=float)

@@ -7,7 +7,7 @@ the Joseph-form covariance update); the tests check the kernels against them and
 Why compiled code: a frame has 5-40 tracks of 4 states, so one vectorised numpy step is ~25 array
 operations on (n, 4, 4) arrays whose cost is the fixed per-call overhead (~1 us each), not the
 ~300 flops per track. Measured by ``rollingstar bench perf --only kf`` (docs/performance.md): the
-numpy step gave 9.95x filterpy on 20 stars x 5,000 frames, just short of the issue 7 target; this
+numpy step gave 9.95x filterpy on 20 stars x 5,000 frames, short of the target of >= 10x; this
 loop removes the per-call overhead.
 """
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """``rollingstar bench perf --quick --json``: structure, ratio arithmetic and the equality checks.
 
-No timing is asserted (issue 7: performance targets live in the benchmark, not in tests); what is
+No timing is asserted (performance targets live in the benchmark, not in tests); what is
 asserted is that every line compares the same answers (QUEST vs scipy, batched KF vs filterpy,
-windowed vs full-frame centroids, the noise generator before vs after, replayed frame counts) and
+windowed vs full-frame centroids, guide-table shot noise vs Generator.poisson, replayed frame counts) and
 that the reported ratios and pass/fail follow from the reported numbers.
 """
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The issue 7 speed rewrites compute the same mathematics as the textbook forms they replaced.
+"""The fast forms in QUEST and the star-motion KF compute the same mathematics as the textbook forms.
 
 - QUEST's degeneracy test (Sylvester's criterion on ``info - t I``) decides as the smallest
   eigenvalue of ``info`` against ``t`` does, on frames spanning the threshold;
