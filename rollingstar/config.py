@@ -59,7 +59,7 @@ def format_validation_error(source: str, err: ValidationError, prefix: tuple = (
     for e in err.errors():
         path = _key_path(tuple(prefix) + tuple(e["loc"]))
         got = e.get("input")
-        hint = "" if e["type"] == "missing" else f" (got {got!r})"
+        hint = "" if e["type"] == "missing" else f" (got {excerpt(got)})"
         msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
         if e["type"] == "extra_forbidden" and model is not None:
             close = difflib.get_close_matches(str(e["loc"][-1]), _known_keys(model, tuple(e["loc"])), n=1, cutoff=0.6)
@@ -71,26 +71,115 @@ def format_validation_error(source: str, err: ValidationError, prefix: tuple = (
     return "\n".join(lines)
 
 
+#: Limits on a YAML document: its size on disk, the number of nodes once every alias is expanded
+#: (a few hundred bytes of nested aliases can stand for billions of nodes) and its nesting depth.
+#: The largest shipped config has about 400 nodes and depth 6.
+MAX_YAML_BYTES = 4 << 20
+MAX_YAML_NODES = 200_000
+MAX_YAML_DEPTH = 64
+
+
+def excerpt(value, limit: int = 80) -> str:
+    """``repr(value)`` cut to ``limit`` characters, for error messages about values of any size."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit - 5]} ...{text[-1]}"
+
+
 def read_yaml(path: str | Path) -> dict:
-    """Parse a YAML mapping; syntax errors name the file and line."""
+    """Parse a YAML mapping from a regular file; errors name the file and line."""
     path = Path(path)
     try:
+        if not path.exists():
+            raise ConfigError(f"{path}: config file not found")
+        if not path.is_file():
+            raise ConfigError(f"{path}: not a regular file (a config must be a YAML file)")
+        if path.stat().st_size > MAX_YAML_BYTES:
+            raise ConfigError(f"{path}: {path.stat().st_size} bytes; a config may be at most {MAX_YAML_BYTES} bytes")
         text = path.read_text()
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: config file not found") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}): a config must be a YAML file") from None
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read config file: {exc.strerror}") from None
     return parse_yaml(text, str(path))
 
 
-def parse_yaml(text: str, source: str) -> dict:
+class _BoundedLoader(yaml.SafeLoader):
+    """PyYAML's safe loader that refuses duplicate keys (PyYAML keeps the last one silently)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = {}
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = self.construct_object(key_node, deep=True)
+            if isinstance(key, (str, int, float, bool)) and key in seen:
+                raise ConfigError(f"{self.name}: line {key_node.start_mark.line + 1}: duplicate key {excerpt(key)} "
+                                  f"(first at line {seen[key]}); each key may appear once")
+            seen[key] = key_node.start_mark.line + 1
+        return super().construct_mapping(node, deep)
+
+
+def _node_children(node) -> list:
+    if isinstance(node, yaml.MappingNode):
+        return [n for pair in node.value for n in pair]
+    return node.value if isinstance(node, yaml.SequenceNode) else []
+
+
+def _check_expanded_size(root, source: str) -> None:
+    """Refuse a document whose alias-expanded tree is too large, too deep or recursive.
+
+    Sizes and depths are computed once per node (aliases share nodes), so the check costs the size
+    of the document as written, not as expanded."""
+    size, depth, visiting = {}, {}, set()
+    stack = [(root, False)]
+    while stack:
+        node, children_done = stack.pop()
+        key = id(node)
+        if key in size:
+            continue
+        children = _node_children(node)
+        if not children_done:
+            if key in visiting:
+                raise ConfigError(f"{source}: a YAML alias refers to a node that contains it (recursive structure)")
+            visiting.add(key)
+            stack.append((node, True))
+            stack.extend((child, False) for child in children if id(child) not in size)
+            continue
+        visiting.discard(key)
+        size[key] = 1 + sum(size[id(c)] for c in children)
+        depth[key] = 1 + max((depth[id(c)] for c in children), default=0)
+        if size[key] > MAX_YAML_NODES or depth[key] > MAX_YAML_DEPTH:
+            raise ConfigError(f"{source}: the YAML document expands to more than {MAX_YAML_NODES} nodes or nests "
+                              f"deeper than {MAX_YAML_DEPTH} levels (aliases included); a config is far smaller")
+
+
+def _load_bounded(text: str, source: str):
+    loader = _BoundedLoader(text)
+    loader.name = source
     try:
-        data = yaml.safe_load(text)
+        root = loader.get_single_node()
+        if root is None:
+            return None
+        _check_expanded_size(root, source)
+        return loader.construct_document(root)
+    finally:
+        loader.dispose()
+
+
+def parse_yaml(text: str, source: str) -> dict:
+    """A YAML mapping from text, within :data:`MAX_YAML_BYTES`, :data:`MAX_YAML_NODES` and
+    :data:`MAX_YAML_DEPTH`, without duplicate keys."""
+    if len(text) > MAX_YAML_BYTES:
+        raise ConfigError(f"{source}: {len(text)} characters; a config may be at most {MAX_YAML_BYTES}")
+    try:
+        data = _load_bounded(text, source)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(exc, "problem", None) or str(exc)
         raise ConfigError(f"{source}:{where}: YAML syntax error: {problem}") from None
+    except RecursionError:
+        raise ConfigError(f"{source}: the YAML document nests deeper than {MAX_YAML_DEPTH} levels") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: expected a YAML mapping at the top level, got {type(data).__name__}")
     return data
