@@ -254,26 +254,10 @@ class RequestSolver(AttitudeSolver):
     def process(self, frame: FrameData) -> FrameData:
         p = self.params
         frame = apply_robust(frame, self.context.camera, p, self._sigma_px, p.use_star_sigma)
-        t_frame = int(self.context.timing.frame_reference_ns(frame.t0_ns))
-        stars = frame.stars
-        if stars is None or stars.n == 0 or not stars.identified.any():
-            n = 0 if stars is None else int(stars.identified.sum())
-            return self._append(frame, [AttitudeEstimate.invalid(t_frame, n, "no identified stars")], ("attitude_invalid",))
-        sel = stars.take(stars.identified)
-        finite = np.isfinite(sel.x) & np.isfinite(sel.y) & np.isfinite(sel.ref_icrs).all(axis=1)
-        flags: tuple[str, ...] = ()
-        if not finite.all():
-            flags += (f"non_finite_star:{int((~finite).sum())}",)
-            sel = sel.take(finite)
-        if sel.n == 0:
-            return self._append(frame, [AttitudeEstimate.invalid(t_frame, 0, "no identified star with finite position and reference")],
-                                flags + ("attitude_invalid",))
-        sel = sel.take(np.argsort(sel.t_ns, kind="stable"))
-        n = sel.n
-        g = n if p.group_size == "frame" else int(p.group_size)
-        starts = np.arange(0, n, g)
-        ends = np.minimum(starts + g, n)  # exclusive
-        group_of = np.repeat(np.arange(starts.size), ends - starts)
+        sel, flags, invalid = self._usable_stars(frame)
+        if invalid is not None:
+            return self._append(frame, [invalid], flags + ("attitude_invalid",))
+        starts, ends, group_of, width = _groups(sel.n, p.group_size)
         t_ref = sel.t_ns[ends - 1].astype(np.int64)  # eq (5) k: the group's last star's row
 
         reason, rate_flags = self._prepare_rate(frame)
@@ -282,10 +266,39 @@ class RequestSolver(AttitudeSolver):
             ests = [AttitudeEstimate.invalid(int(t), int(m), reason) for t, m in zip(t_ref, ends - starts)]
             return self._append(frame, ests, flags + ("attitude_invalid",))
 
+        w_c, a, good_star, theta_i = self._corrected_stars(sel, t_ref[group_of])
+        dK, db, dJ, m_good = _group_information(w_c, sel.ref_icrs, a, good_star, starts, group_of, width)
+        Ks, Js, valid, reasons = self._fuse(t_ref, theta_i, group_of, dK, db, dJ, m_good)
+        ests = _estimates(Ks, Js, valid, reasons, t_ref, ends - starts)
+        if not valid.all():
+            flags += ("attitude_invalid",)
+        return self._append(frame, ests, flags)
+
+    def _usable_stars(self, frame: FrameData):
+        """The identified stars with finite position and reference, sorted by time; returns
+        ``(stars, flags, None)``, or ``(None, flags, invalid estimate)`` when there are none."""
+        t_frame = int(self.context.timing.frame_reference_ns(frame.t0_ns))
+        stars = frame.stars
+        if stars is None or stars.n == 0 or not stars.identified.any():
+            n = 0 if stars is None else int(stars.identified.sum())
+            return None, (), AttitudeEstimate.invalid(t_frame, n, "no identified stars")
+        sel = stars.take(stars.identified)
+        finite = np.isfinite(sel.x) & np.isfinite(sel.y) & np.isfinite(sel.ref_icrs).all(axis=1)
+        flags: tuple[str, ...] = ()
+        if not finite.all():
+            flags += (f"non_finite_star:{int((~finite).sum())}",)
+            sel = sel.take(finite)
+        if sel.n == 0:
+            return None, flags, AttitudeEstimate.invalid(t_frame, 0, "no identified star with finite position and reference")
+        return sel.take(np.argsort(sel.t_ns, kind="stable")), flags, None
+
+    def _corrected_stars(self, sel, t_k: np.ndarray):
+        """Camera vectors of the stars moved to their group's reference time ``t_k`` (eqs 5-6,
+        Algorithm 1 line 7), their weights ``a_i = 1 / sigma_rad^2``, which of them are finite,
+        and the rotation vectors ``theta_i`` over ``[t_i, t_k]`` (NaN where the rate is unknown)."""
+        p = self.params
         cam = self.context.camera
-        # --- star correction to the group's reference row (eqs 5-6, Algorithm 1 line 7)
         t_i = sel.t_ns.astype(np.int64)
-        t_k = t_ref[group_of]
         dt = (t_i - t_k).astype(float) * 1e-9  # t_i - t_ref <= 0
         w_raw = cam.unproject(sel.x, sel.y)
         theta_i = self._increments(t_i, t_k)  # R(t_k) = R(t_i) Exp(theta_i)
@@ -300,28 +313,19 @@ class RequestSolver(AttitudeSolver):
         yc = sel.y - dt * vel[:, 1]
         w_c = cam.unproject(xc, yc)
 
-        # --- weights a_i = 1 / sigma_rad^2
-        sigma_px = np.full(n, self._sigma_px)
+        sigma_px = np.full(sel.n, self._sigma_px)
         if p.use_star_sigma:
             sigma_px = np.where(np.isfinite(sel.sigma_px) & (sel.sigma_px > 0), sel.sigma_px, sigma_px)
         sig2 = sigma_px**2 + (self._focal_px * np.radians(p.rate_sigma_deg_s) * dt) ** 2
         a = self._focal_px**2 / sig2
-        good_star = np.isfinite(w_c).all(axis=1)
+        return w_c, a, np.isfinite(w_c).all(axis=1), theta_i
 
-        # --- Delta K per group (eqs 24-29), vectorised with a padded (G, g, 3) layout
-        G = starts.size
-        slot = np.arange(n) - starts[group_of]
-        W = np.zeros((G, g, 3))
-        V = np.zeros((G, g, 3))
-        A = np.zeros((G, g))
-        W[group_of, slot] = np.where(good_star[:, None], w_c, 0.0)
-        V[group_of, slot] = sel.ref_icrs
-        A[group_of, slot] = np.where(good_star, a, 0.0)
-        dK, db = davenport_k(W, V, A)
-        dJ = np.einsum("gn,ij->gij", A, np.eye(3)) - np.einsum("gn,gni,gnj->gij", A, W, W)
-        m_good = np.bincount(group_of, weights=good_star.astype(float), minlength=G).astype(int)
-
-        # --- propagation increments between consecutive updates (eqs 9-16)
+    def _fuse(self, t_ref, theta_i, group_of, dK, db, dJ, m_good):
+        """Propagate and fuse the groups one after the other (eqs 9-16, 30-31), carrying the state
+        ``K, J, b`` and the fused star count across frames; returns per group the fused ``K`` and
+        information ``J``, whether its attitude is valid, and the reason where it is not."""
+        p = self.params
+        G = t_ref.size
         t_prev = np.concatenate([[t_ref[0] if self._t_last is None else self._t_last], t_ref[:-1]])
         theta = self._increments(t_prev, t_ref)
         Phi = transition_matrix(np.nan_to_num(theta))
@@ -358,24 +362,53 @@ class RequestSolver(AttitudeSolver):
             valid[j] = True
         self._K, self._J, self._b, self._n_fused = K, J, b, nf
         self._t_last = int(t_ref[-1])
-
-        q, _ = dominant_quaternion(Ks)  # eq (32), batched over the frame's updates
-        ests = []
-        for j in range(G):
-            m = int(ends[j] - starts[j])
-            if valid[j]:
-                cov = np.linalg.inv(Js[j])
-                ests.append(AttitudeEstimate(t_ns=int(t_ref[j]), q_xyzw=q[j].copy(), n_stars=m, valid=True,
-                                             covariance_rad2=0.5 * (cov + cov.T)))
-            else:
-                ests.append(AttitudeEstimate.invalid(int(t_ref[j]), m, reasons[j]))
-        if not valid.all():
-            flags += ("attitude_invalid",)
-        return self._append(frame, ests, flags)
+        return Ks, Js, valid, reasons
 
     @staticmethod
     def _append(frame: FrameData, ests: list[AttitudeEstimate], flags: tuple[str, ...]) -> FrameData:
         return frame.evolve(attitudes=frame.attitudes + tuple(ests), flags=frame.flags + flags)
+
+
+def _groups(n: int, group_size) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Consecutive groups of ``group_size`` of ``n`` time-sorted stars (``"frame"``: one group):
+    each group's first index, its end (exclusive), the group of every star and the group size."""
+    g = n if group_size == "frame" else int(group_size)
+    starts = np.arange(0, n, g)
+    ends = np.minimum(starts + g, n)
+    return starts, ends, np.repeat(np.arange(starts.size), ends - starts), g
+
+
+def _group_information(w_c, ref_icrs, a, good_star, starts, group_of, g: int):
+    """Per group ``Delta K``, ``Delta b`` (eqs 24-29), the information ``sum a_i (I - w_i w_i^T)``
+    and the number of finite stars, vectorised with a padded (G, g, 3) layout (g: the group size)."""
+    G, n = starts.size, group_of.size
+    slot = np.arange(n) - starts[group_of]
+    W = np.zeros((G, g, 3))
+    V = np.zeros((G, g, 3))
+    A = np.zeros((G, g))
+    W[group_of, slot] = np.where(good_star[:, None], w_c, 0.0)
+    V[group_of, slot] = ref_icrs
+    A[group_of, slot] = np.where(good_star, a, 0.0)
+    dK, db = davenport_k(W, V, A)
+    dJ = np.einsum("gn,ij->gij", A, np.eye(3)) - np.einsum("gn,gni,gnj->gij", A, W, W)
+    m_good = np.bincount(group_of, weights=good_star.astype(float), minlength=G).astype(int)
+    return dK, db, dJ, m_good
+
+
+def _estimates(Ks, Js, valid, reasons, t_ref, n_stars) -> list[AttitudeEstimate]:
+    """One estimate per group: the dominant eigenvector of its fused K (eq 32, batched over the
+    frame's updates) with the inverse information as covariance, or invalid with its reason."""
+    q, _ = dominant_quaternion(Ks)
+    ests = []
+    for j in range(len(t_ref)):
+        m = int(n_stars[j])
+        if valid[j]:
+            cov = np.linalg.inv(Js[j])
+            ests.append(AttitudeEstimate(t_ns=int(t_ref[j]), q_xyzw=q[j].copy(), n_stars=m, valid=True,
+                                         covariance_rad2=0.5 * (cov + cov.T)))
+        else:
+            ests.append(AttitudeEstimate.invalid(int(t_ref[j]), m, reasons[j]))
+    return ests
 
 
 def _merge_window(t_old, v_old, t_new, v_new, window_ns: int, unique: bool):

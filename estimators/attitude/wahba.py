@@ -55,7 +55,7 @@ def _quat_product(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product ``p q`` of scalar-last quaternions (F, 4): the rotation ``R_p * R_q`` (scipy).
 
     Written out (16 products) because building two scipy ``Rotation`` objects and composing them
-    costs more than the rest of QUEST for 10k frames (issue 7 bench).
+    costs more than the rest of QUEST for 10k frames (``rollingstar bench perf --only quest``).
     """
     px, py, pz, pw = p[:, 0], p[:, 1], p[:, 2], p[:, 3]
     qx, qy, qz, qw = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
@@ -121,7 +121,7 @@ def _flip_gammas(S, Z, sigma, delta, kappa, lam) -> np.ndarray:
     [w] ``det((lambda + sigma) I - S) = (lambda + sigma) alpha - Delta``; [x, y, z] the 3 x 3
     principal minor without row/column i, ``(lambda - sigma) det(A') - z'^T adj(A') z'`` with
     ``A = (lambda + sigma) I - S`` and ``A'``, ``z'`` ``A`` and ``Z`` without index i. Building only
-    the chosen variant instead of all four saves a quarter of QUEST's time (issue 7 bench).
+    the chosen variant instead of all four saves a quarter of QUEST's time (``bench perf --only quest``).
     """
     A = (lam + sigma)[:, None, None] * np.eye(3) - S
     dl = lam - sigma
@@ -171,37 +171,76 @@ def quest(ref_icrs, obs_cam, weights=None, mask=None, *, newton_tol: float = 1e-
     eigenvalue of ``sum a_i (I - b_i b_i^T)`` relative to its trace is below ``degenerate_tol``.
     """
     ref, obs, w, m, bad_frame = _prepare(ref_icrs, obs_cam, weights, mask)
-    F = ref.shape[0]
     n_used = m.sum(axis=1)
     wsum = w.sum(axis=1)
     safe_wsum = np.where(wsum > 0, wsum, 1.0)
     a = w / safe_wsum[:, None]  # normalised weights, sum 1 per usable frame
-
-    # Degeneracy: information matrix of the measurement model (normalised weights).
-    # (batched matmul rather than 3-operand einsum: same sums, ~10x faster for 10k frames)
     a_obs_t = np.swapaxes(a[..., None] * obs, 1, 2)  # (F, 3, N): a_i b_i
+    degenerate = _degenerate(a, a_obs_t, obs, degenerate_tol)
+
+    B0 = a_obs_t @ ref  # (F, 3, 3): sum a_i b_i r_i^T
+    S0, Z0, s0, d0, k0, SZ0, S2Z0 = _quest_terms(B0)
+    lam = _lambda_max(Z0, s0, d0, k0, SZ0, S2Z0, newton_tol, max_newton)
+
+    # The variant to solve: the one with the largest |gamma| (_flip_gammas); only it is built.
+    with np.errstate(invalid="ignore"):
+        g = _flip_gammas(S0, Z0, s0, d0, k0, lam)
+        best = np.argmax(np.where(np.isfinite(g), np.abs(g), -1.0), axis=1)  # (F,)
+    S, Z, sigma, delta, kappa, SZ, S2Z = _quest_terms(B0 * _FLIPS[best][:, None, :])
+    alpha = lam**2 - sigma**2 + kappa
+    beta = lam - sigma
+    gamma = (lam + sigma) * alpha - delta  # (F,)
+    X = alpha[:, None] * Z + beta[:, None] * SZ + S2Z  # (F, 3)
+    q_prime = np.concatenate([X, gamma[:, None]], axis=-1)
+    norm = np.linalg.norm(q_prime, axis=-1)
+    ok = np.isfinite(norm) & (norm > 0)
+    q_prime = q_prime / np.where(ok, norm, 1.0)[:, None]
+    q_prime[~ok] = [0.0, 0.0, 0.0, 1.0]
+    if refine:
+        q_prime = _inverse_iteration(q_prime, ok, S, Z, sigma, lam)
+    q = _canonical(_quat_product(_FLIP_QUATS[best], q_prime))  # = (R_flip * R').as_quat(canonical=True)
+
+    valid = ok & ~bad_frame & (n_used >= 2) & ~degenerate & np.isfinite(lam)
+    # Wahba loss at the solution, 1/2 sum a_i |b_i - A r_i|^2 (= sum a_i - lambda_max, but without
+    # the cancellation of that difference for small residuals).
+    Rm = Rotation.from_quat(q).as_matrix()
+    resid = obs - ref @ Rm  # b - R^T r (row n: r_n^T R = (R^T r_n)^T)
+    loss = np.where(valid, 0.5 * np.einsum("fn,fn->f", w, np.sum(resid**2, axis=-1)), np.nan)
+    q[~valid] = np.nan
+    return QuestResult(q_xyzw=q, loss=loss, valid=valid)
+
+
+def _degenerate(a: np.ndarray, a_obs_t: np.ndarray, obs: np.ndarray, degenerate_tol: float) -> np.ndarray:
+    """Frames whose observations do not fix all three axes: the smallest eigenvalue of the
+    information matrix ``sum a_i (I - b_i b_i^T)`` (normalised weights) is below ``degenerate_tol``
+    times its trace. ``a_obs_t`` (F, 3, N): the products ``a_i b_i``.
+
+    (Batched matmul rather than a 3-operand einsum: the same sums, ~10x faster for 10k frames.)
+    smallest eigenvalue <= t  <=>  info - t I is not positive definite  <=>  (Sylvester's
+    criterion) one of its leading principal minors is <= 0: three closed-form minors instead of
+    a batched eigvalsh (a sixth of QUEST's time for 10k frames, ``rollingstar bench perf --only quest``).
+    """
     info = a.sum(axis=1)[:, None, None] * np.eye(3) - a_obs_t @ obs
     trace = np.trace(info, axis1=1, axis2=2)
-    # smallest eigenvalue <= t  <=>  info - t I is not positive definite  <=>  (Sylvester's
-    # criterion) one of its leading principal minors is <= 0; three closed-form minors instead of
-    # a batched eigvalsh (a sixth of QUEST's time for 10k frames, issue 7 bench).
     M = info - (degenerate_tol * np.where(trace > 0, trace, 1.0))[:, None, None] * np.eye(3)
     minor2 = M[:, 0, 0] * M[:, 1, 1] - M[:, 0, 1] * M[:, 1, 0]
     minor3 = (M[:, 0, 0] * (M[:, 1, 1] * M[:, 2, 2] - M[:, 1, 2] * M[:, 2, 1])
               - M[:, 0, 1] * (M[:, 1, 0] * M[:, 2, 2] - M[:, 1, 2] * M[:, 2, 0])
               + M[:, 0, 2] * (M[:, 1, 0] * M[:, 2, 1] - M[:, 1, 1] * M[:, 2, 0]))
-    degenerate = (M[:, 0, 0] <= 0) | (minor2 <= 0) | (minor3 <= 0)
+    return (M[:, 0, 0] <= 0) | (minor2 <= 0) | (minor3 <= 0)
 
-    B0 = a_obs_t @ ref  # (F, 3, 3): sum a_i b_i r_i^T
-    S0, Z0, s0, d0, k0, SZ0, S2Z0 = _quest_terms(B0)
 
-    # lambda_max is invariant under the flips: solve the characteristic equation once (variant 0).
-    ca = s0**2 - k0
-    cb = s0**2 + np.einsum("fi,fi->f", Z0, Z0)
-    cc = d0 + np.einsum("fi,fi->f", Z0, SZ0)
-    cd = np.einsum("fi,fi->f", Z0, S2Z0)
+def _lambda_max(Z, sigma, delta, kappa, SZ, S2Z, newton_tol: float, max_newton: int) -> np.ndarray:
+    """Largest root of QUEST's characteristic equation (:func:`quest`) per frame, by Newton-Raphson
+    from ``lambda_0 = 1`` for all frames at once. ``lambda_max`` is invariant under the sequential
+    rotations, so it is solved once, for variant 0."""
+    ca = sigma**2 - kappa
+    cb = sigma**2 + np.einsum("fi,fi->f", Z, Z)
+    cc = delta + np.einsum("fi,fi->f", Z, SZ)
+    cd = np.einsum("fi,fi->f", Z, S2Z)
     c2 = -(ca + cb)
-    c0 = ca * cb + cc * s0 - cd
+    c0 = ca * cb + cc * sigma - cd
+    F = sigma.shape[0]
     lam = np.ones(F)
     active = np.ones(F, dtype=bool)
     prev = np.full(F, np.inf)
@@ -219,52 +258,32 @@ def quest(ref_icrs, obs_cam, weights=None, mask=None, *, newton_tol: float = 1e-
         prev = size
         if not active.any():
             break
+    return lam
 
-    # The variant to solve: the one with the largest |gamma| (_flip_gammas); only it is built.
-    with np.errstate(invalid="ignore"):
-        g = _flip_gammas(S0, Z0, s0, d0, k0, lam)
-        best = np.argmax(np.where(np.isfinite(g), np.abs(g), -1.0), axis=1)  # (F,)
-    S, Z, sigma, delta, kappa, SZ, S2Z = _quest_terms(B0 * _FLIPS[best][:, None, :])
-    alpha = lam**2 - sigma**2 + kappa
-    beta = lam - sigma
-    gamma = (lam + sigma) * alpha - delta  # (F,)
-    X = alpha[:, None] * Z + beta[:, None] * SZ + S2Z  # (F, 3)
-    q_prime = np.concatenate([X, gamma[:, None]], axis=-1)
-    norm = np.linalg.norm(q_prime, axis=-1)
-    ok = np.isfinite(norm) & (norm > 0)
-    q_prime = q_prime / np.where(ok, norm, 1.0)[:, None]
-    q_prime[~ok] = [0.0, 0.0, 0.0, 1.0]
-    if refine:
-        # One step of inverse iteration on Davenport's K of the chosen variant, shifted just above
-        # lambda_max: (lambda' I - K) q_new = q. It removes the error QUEST inherits from solving
-        # the characteristic equation in floating point (relative error ~ eps / gap^2 for close
-        # stars), leaving the eigenvector's own conditioning ~ eps / gap, as an SVD solution.
-        K = np.empty((F, 4, 4))
-        K[:, :3, :3] = S - sigma[:, None, None] * np.eye(3)
-        K[:, :3, 3] = Z
-        K[:, 3, :3] = Z
-        K[:, 3, 3] = sigma
-        shift = np.where(np.isfinite(lam), lam, 1.0) + 1e-12
-        M = shift[:, None, None] * np.eye(4) - K
-        M[~ok] = np.eye(4)
-        try:
-            q_new = np.linalg.solve(M, q_prime[..., None])[..., 0]
-        except np.linalg.LinAlgError:  # exactly singular somewhere: keep the QUEST answer
-            q_new = q_prime
-        n_new = np.linalg.norm(q_new, axis=-1)
-        use = ok & np.isfinite(n_new) & (n_new > 0)
-        q_new = q_new / np.where(use, n_new, 1.0)[:, None]
-        q_prime = np.where(use[:, None], np.where(np.sum(q_new * q_prime, axis=-1, keepdims=True) < 0, -q_new, q_new), q_prime)
-    q = _canonical(_quat_product(_FLIP_QUATS[best], q_prime))  # = (R_flip * R').as_quat(canonical=True)
 
-    valid = ok & ~bad_frame & (n_used >= 2) & ~degenerate & np.isfinite(lam)
-    # Wahba loss at the solution, 1/2 sum a_i |b_i - A r_i|^2 (= sum a_i - lambda_max, but without
-    # the cancellation of that difference for small residuals).
-    Rm = Rotation.from_quat(q).as_matrix()
-    resid = obs - ref @ Rm  # b - R^T r (row n: r_n^T R = (R^T r_n)^T)
-    loss = np.where(valid, 0.5 * np.einsum("fn,fn->f", w, np.sum(resid**2, axis=-1)), np.nan)
-    q[~valid] = np.nan
-    return QuestResult(q_xyzw=q, loss=loss, valid=valid)
+def _inverse_iteration(q_prime, ok, S, Z, sigma, lam) -> np.ndarray:
+    """One step of inverse iteration on Davenport's K of the chosen variant, shifted just above
+    lambda_max: ``(lambda' I - K) q_new = q``. It removes the error QUEST inherits from solving the
+    characteristic equation in floating point (relative error ~ eps / gap^2 for close stars),
+    leaving the eigenvector's own conditioning ~ eps / gap, as an SVD solution. Frames not ``ok``
+    (and a step that fails) keep ``q_prime``."""
+    F = q_prime.shape[0]
+    K = np.empty((F, 4, 4))
+    K[:, :3, :3] = S - sigma[:, None, None] * np.eye(3)
+    K[:, :3, 3] = Z
+    K[:, 3, :3] = Z
+    K[:, 3, 3] = sigma
+    shift = np.where(np.isfinite(lam), lam, 1.0) + 1e-12
+    M = shift[:, None, None] * np.eye(4) - K
+    M[~ok] = np.eye(4)
+    try:
+        q_new = np.linalg.solve(M, q_prime[..., None])[..., 0]
+    except np.linalg.LinAlgError:  # exactly singular somewhere: keep the QUEST answer
+        q_new = q_prime
+    n_new = np.linalg.norm(q_new, axis=-1)
+    use = ok & np.isfinite(n_new) & (n_new > 0)
+    q_new = q_new / np.where(use, n_new, 1.0)[:, None]
+    return np.where(use[:, None], np.where(np.sum(q_new * q_prime, axis=-1, keepdims=True) < 0, -q_new, q_new), q_prime)
 
 
 def quest_covariance(obs_cam, weights_rad2, mask=None) -> np.ndarray:

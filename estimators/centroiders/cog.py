@@ -1,7 +1,7 @@
 """Centre-of-gravity (CoG) centroider: threshold, connected components, intensity-weighted centroid."""
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -44,6 +44,21 @@ class CogParams(BaseModel):
     noise_floor_adu: float = Field(default=float(1.0 / np.sqrt(12.0)), gt=0,
                                    description="Smallest noise sigma used (ADU): the quantisation noise of integer pixels.")
 
+
+class _Spots(NamedTuple):
+    """Per-spot measurements of one frame (index: label - 1); ``keep``: the spots that become stars;
+    ``edge_cut``: spots whose profile the detector edge cuts (None when not computed)."""
+
+    keep: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    flux: np.ndarray
+    peak: np.ndarray
+    npix: np.ndarray
+    saturated: np.ndarray
+    snr: np.ndarray
+    sigma_px: np.ndarray
+    edge_cut: np.ndarray | None
 
 class CogCentroider(Centroider):
     """Thresholded centre-of-gravity centroiding (e.g. Liebe 2002, IEEE AES Magazine 17(1); he2021b sec 2).
@@ -122,6 +137,33 @@ class CogCentroider(Centroider):
         return float(np.finfo(image.dtype).max) if np.issubdtype(image.dtype, np.floating) else np.inf
 
     def process(self, frame: FrameData) -> FrameData:
+        raw, integer = self._checked_image(frame)
+        p = self.params
+
+        # 1-2. background and noise from a strided subsample; no full-size float copy or map of the frame
+        step = _subsample_step(raw.shape)
+        sub = raw[::step, ::step].astype(float)
+        if p.background == "median":
+            flat, noise, bg_flat = self._above_median(raw, sub, integer)
+        else:
+            flat, noise, bg_flat = self._above_tiles(raw, sub, integer)
+        if flat.size == 0:
+            return frame.evolve(stars=StarTable.empty())
+        # 3. spots; from here on everything works on the compact list of spot pixels (a few
+        # thousand), not the full frame
+        flat, labels, keep, saturated, sat_level = self._spots(raw, flat, bg_flat)
+        if flat.size == 0:
+            return frame.evolve(stars=StarTable.empty())
+        for _ in range(p.grow_px):
+            # a ring of below-threshold pixels around each spot reduces the CoG truncation bias;
+            # where two spots' rings meet the higher label wins
+            flat, labels = _grow(flat, labels, self._shape, p.connectivity == 8)
+        # 4. per-spot measurements
+        spots = self._measure(raw.ravel(), flat, labels, keep, saturated, sat_level, noise, bg_flat)
+        return self._with_stars(frame, spots)
+
+    def _checked_image(self, frame: FrameData) -> tuple[np.ndarray, bool]:
+        """The frame's image (bool as uint8) after checking its shape and values; and whether it is integer."""
         if frame.image is None:
             raise ValueError(f"frame {frame.index}: no image; the 'cog' centroider needs image-level recordings")
         raw = np.asarray(frame.image)
@@ -135,72 +177,85 @@ class CogCentroider(Centroider):
             raise ValueError(f"frame {frame.index}: image has {bad} non-finite pixel(s) (NaN/inf); cannot centroid")
         if raw.dtype == bool:
             raw = raw.astype(np.uint8)
-        H, W = self._shape
+        return raw, integer
+
+    def _above_median(self, raw: np.ndarray, sub: np.ndarray, integer: bool):
+        """Steps 1-3 with one global median background: the sorted flat indices of the pixels above
+        threshold, the noise sigma, and the background of given flat indices (a function)."""
         p = self.params
-
-        # 1-2. background and noise from a strided subsample; no full-size float copy or map of the frame
-        step = _subsample_step(raw.shape)
-        sub = raw[::step, ::step].astype(float)
-        raw_flat = raw.ravel()
-        if p.background == "median":
-            bg = float(np.median(sub))
-            noise = max(_robust_sigma(sub - bg), p.noise_floor_adu)
-            thr = p.threshold_sigma * noise
-            level = bg + thr
-            if integer:  # compare in the image's dtype (exact for integers, no float copy of the frame)
-                hi = np.iinfo(raw.dtype).max
-                mask = raw > int(min(np.floor(level), hi)) if level < hi else np.zeros(raw.shape, dtype=bool)
-            else:
-                mask = raw > level
-            flat = np.flatnonzero(mask)
-
-            def bg_flat(f):
-                return bg
+        bg = float(np.median(sub))
+        noise = max(_robust_sigma(sub - bg), p.noise_floor_adu)
+        thr = p.threshold_sigma * noise
+        level = bg + thr
+        if integer:  # compare in the image's dtype (exact for integers, no float copy of the frame)
+            hi = np.iinfo(raw.dtype).max
+            mask = raw > int(min(np.floor(level), hi)) if level < hi else np.zeros(raw.shape, dtype=bool)
         else:
-            t = p.tile_px
-            tiles = _tile_medians(raw, t)
-            if p.background == "map" and p.map_filter_tiles > 1:
-                tiles = ndimage.median_filter(tiles, size=p.map_filter_tiles, mode="nearest")
-            bg_sub = (self._wy_sub @ tiles) @ self._wxT_sub
-            noise = max(_robust_sigma(sub - bg_sub), p.noise_floor_adu)
-            thr = p.threshold_sigma * noise
-            A = self._wy @ tiles  # (H, nx) interpolated along y; then linear along x per pixel
-            A = np.concatenate([A, A[:, -1:]], axis=1)  # so that column k + 1 exists for the last k
+            mask = raw > level
 
-            def bg_flat(f):
-                r, c = np.divmod(f, W)
-                k, fx = self._kx[c], self._fx[c]
-                return A[r, k] * (1.0 - fx) + A[r, k + 1] * fx
+        def bg_flat(f):
+            return bg
 
-            # Candidates against a per-tile lower bound of the bilinear background (the minimum of
-            # the 3 x 3 neighbouring tile medians bounds every pixel's interpolation from below),
-            # then the exact test on the candidates only: no full-size background map (measured:
-            # building one costs 5-10 frame.sum() passes).
-            low = ndimage.minimum_filter(tiles, size=3, mode="nearest") + thr
-            mask = np.empty(raw.shape, dtype=bool)
-            if integer:  # raw > level <=> raw > floor(level) for integers: compare in the image's dtype
-                info = np.iinfo(raw.dtype)
-                low = np.clip(np.floor(low), info.min, info.max).astype(raw.dtype)
-            else:
-                low = low.astype(raw.dtype)
-            for i in range(low.shape[0]):
-                rows = slice(i * t, min((i + 1) * t, H))
-                np.greater(raw[rows], np.repeat(low[i], t)[:W], out=mask[rows])
-            cand = np.flatnonzero(mask)
-            if cand.size > raw.size // 16:
-                # a background far from flat within tiles (bloom, strong vignetting): the lower bound
-                # passes most pixels, so one full-size map is cheaper than per-candidate look-ups
-                full = (A[:, self._kx] * (1.0 - self._fx) + A[:, self._kx + 1] * self._fx).ravel()
+        return np.flatnonzero(mask), noise, bg_flat
 
-                def bg_flat(f):
-                    return full[f]
+    def _above_tiles(self, raw: np.ndarray, sub: np.ndarray, integer: bool):
+        """Steps 1-3 with the bilinear tile background (``tiles``, ``map``): as :meth:`_above_median`."""
+        p = self.params
+        W = self._shape[1]
+        tiles = _tile_medians(raw, p.tile_px)
+        if p.background == "map" and p.map_filter_tiles > 1:
+            tiles = ndimage.median_filter(tiles, size=p.map_filter_tiles, mode="nearest")
+        bg_sub = (self._wy_sub @ tiles) @ self._wxT_sub
+        noise = max(_robust_sigma(sub - bg_sub), p.noise_floor_adu)
+        thr = p.threshold_sigma * noise
+        A = self._wy @ tiles  # (H, nx) interpolated along y; then linear along x per pixel
+        A = np.concatenate([A, A[:, -1:]], axis=1)  # so that column k + 1 exists for the last k
 
-                flat = np.flatnonzero(raw_flat > full + thr)
-            else:
-                flat = cand[raw_flat[cand] - bg_flat(cand) > thr]
-        if flat.size == 0:
-            return frame.evolve(stars=StarTable.empty())
-        lab_core, n_lab = _components(flat, W, p.connectivity == 8)
+        def bg_flat(f):
+            r, c = np.divmod(f, W)
+            k, fx = self._kx[c], self._fx[c]
+            return A[r, k] * (1.0 - fx) + A[r, k + 1] * fx
+
+        raw_flat = raw.ravel()
+        cand = self._tile_candidates(raw, tiles, thr, integer)
+        if cand.size > raw.size // 16:
+            # a background far from flat within tiles (bloom, strong vignetting): the lower bound
+            # passes most pixels, so one full-size map is cheaper than per-candidate look-ups
+            full = (A[:, self._kx] * (1.0 - self._fx) + A[:, self._kx + 1] * self._fx).ravel()
+
+            def bg_full(f):
+                return full[f]
+
+            return np.flatnonzero(raw_flat > full + thr), noise, bg_full
+        return cand[raw_flat[cand] - bg_flat(cand) > thr], noise, bg_flat
+
+    def _tile_candidates(self, raw: np.ndarray, tiles: np.ndarray, thr: float, integer: bool) -> np.ndarray:
+        """Flat indices of the pixels above a per-tile lower bound of the bilinear background plus
+        ``thr`` (the minimum of the 3 x 3 neighbouring tile medians bounds every pixel's
+        interpolation from below). The exact test then runs on these candidates only: no
+        full-size background map (measured: building one costs 5-10 frame.sum() passes)."""
+        H, W = self._shape
+        t = self.params.tile_px
+        low = ndimage.minimum_filter(tiles, size=3, mode="nearest") + thr
+        mask = np.empty(raw.shape, dtype=bool)
+        if integer:  # raw > level <=> raw > floor(level) for integers: compare in the image's dtype
+            info = np.iinfo(raw.dtype)
+            low = np.clip(np.floor(low), info.min, info.max).astype(raw.dtype)
+        else:
+            low = low.astype(raw.dtype)
+        for i in range(low.shape[0]):
+            rows = slice(i * t, min((i + 1) * t, H))
+            np.greater(raw[rows], np.repeat(low[i], t)[:W], out=mask[rows])
+        return np.flatnonzero(mask)
+
+    def _spots(self, raw: np.ndarray, flat: np.ndarray, bg_flat):
+        """Step 3: connected components of the above-threshold pixels ``flat``, filtered by size and
+        sharpness. Returns the kept pixels and their labels (rejected components are dropped here
+        so that they do not grow into their neighbours), ``keep`` and ``saturated`` per label, and
+        the saturation level."""
+        p = self.params
+        raw_flat = raw.ravel()
+        lab_core, n_lab = _components(flat, self._shape[1], p.connectivity == 8)
         size = n_lab + 1
         n_above = np.bincount(lab_core, minlength=size)[1:]
         raw_core = raw_flat[flat].astype(float)
@@ -213,18 +268,14 @@ class CogCentroider(Centroider):
         if p.max_sharpness is not None:
             sharp = _sharpness(flat, raw_core - bg_flat(flat), lab_core, size, raw_flat, bg_flat, self._shape)
             keep &= ~(sharp > p.max_sharpness) | saturated
-        # Everything below works on the compact list of spot pixels (a few thousand), not the
-        # full frame; drop rejected components first so that they do not grow into their neighbours.
         sel = keep[lab_core - 1]
-        flat, lab_core = flat[sel], lab_core[sel]
-        if flat.size == 0:
-            return frame.evolve(stars=StarTable.empty())
-        for _ in range(p.grow_px):
-            # a ring of below-threshold pixels around each spot reduces the CoG truncation bias;
-            # where two spots' rings meet the higher label wins
-            flat, lab_core = _grow(flat, lab_core, self._shape, p.connectivity == 8)
+        return flat[sel], lab_core[sel], keep, saturated, sat_level
 
-        lab_on = lab_core
+    def _measure(self, raw_flat, flat, lab_on, keep, saturated, sat_level, noise, bg_flat) -> _Spots:
+        """Step 4 (class docstring) for the labelled pixels ``flat``, vectorised with ``np.bincount``."""
+        p = self.params
+        H, W = self._shape
+        size = keep.size + 1
         bg_on = np.broadcast_to(bg_flat(flat), flat.shape)
         d = raw_flat[flat].astype(float) - bg_on
         rows, cols = np.divmod(flat, W)
@@ -243,6 +294,7 @@ class CogCentroider(Centroider):
         if p.reject_border:
             keep &= ~border
 
+        edge_cut = None
         with np.errstate(invalid="ignore", divide="ignore"):
             x = sx / flux
             y = sy / flux
@@ -255,28 +307,31 @@ class CogCentroider(Centroider):
                 n_sat = np.bincount(lab_on, weights=raw_flat[flat] >= sat_level, minlength=size)[1:]
                 s_d = sat_level - np.bincount(lab_on, weights=bg_on, minlength=size)[1:] / npix
                 sigma_px = with_clipping(sigma_px, flux, n_sat, saturated, s_d)
-            edge = p.edge_sigma and border.any()
-            if edge:  # spots cut by the detector edge: add the CoG bias of the cut (edge.py)
+            if p.edge_sigma and border.any():  # spots cut by the detector edge: add the CoG bias of the cut (edge.py)
                 sigma_px, edge_cut = with_edge_bias(sigma_px, x, y, flux, peak, self._shape, only=border)
             var = npix * noise**2
             if p.gain_e_per_adu is not None:
                 var = var + np.maximum(flux, 0.0) / p.gain_e_per_adu
             snr = flux / np.sqrt(var)
+        return _Spots(keep, x, y, flux, peak, npix, saturated, snr, sigma_px, edge_cut)
 
-        order = np.flatnonzero(keep)
-        order = order[np.argsort(-flux[order], kind="stable")]
-        x, y = x[order], y[order]
+    def _with_stars(self, frame: FrameData, s: _Spots) -> FrameData:
+        """The frame with the kept spots as its star table, brightest first (step 5: times); flagged
+        ``edge_truncated_stars:N`` when N of them are cut by the detector edge."""
+        order = np.flatnonzero(s.keep)
+        order = order[np.argsort(-s.flux[order], kind="stable")]
+        x, y = s.x[order], s.y[order]
         timing = self.context.timing
         stars = StarTable.build(
             x, y,
             t_ns=timing.row_mid_exposure_ns(frame.t0_ns, y),
             row_time_ns=timing.row_start_ns(frame.t0_ns, y),
-            flux=flux[order], peak=peak[order], npix=npix[order],
-            saturated=saturated[order],
-            snr=snr[order], sigma_px=sigma_px[order],
+            flux=s.flux[order], peak=s.peak[order], npix=s.npix[order],
+            saturated=s.saturated[order],
+            snr=s.snr[order], sigma_px=s.sigma_px[order],
         )
         out = frame.evolve(stars=stars)
-        n_cut = int(edge_cut[order].sum()) if edge else 0
+        n_cut = int(s.edge_cut[order].sum()) if s.edge_cut is not None else 0
         return out.flagged(f"edge_truncated_stars:{n_cut}") if n_cut else out
 
 

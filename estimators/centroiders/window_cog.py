@@ -1,8 +1,8 @@
 """Centre-of-gravity centroiding of many small windows in one vectorised pass (liu2013 sec 2.1).
 
-The ``windowed`` centroider's ``kernel: numpy`` path (the previous default, kept as the "before" of
-``benchmarks/windowed_speed.py`` and as an independent check of the compiled kernel
-``window_kernel.py``, which gives the same spots for the same background and noise).
+The ``windowed`` centroider's ``kernel: numpy`` path: an independent check of the compiled kernel
+``window_kernel.py`` (which gives the same spots for the same background and noise) and the
+"before" of ``benchmarks/windowed_speed.py``.
 
 The windowed centroider (``estimators/centroiders/windowed.py``) reads a few ``h x w`` windows per
 frame. Centroiding them one ``cog`` call at a time costs a fixed Python/numpy overhead per window
@@ -123,13 +123,9 @@ def centroid_windows(stack: np.ndarray, px: np.ndarray, py: np.ndarray, *, thres
     bg = median_rows(img.reshape(n, -1))
     resid = img - bg[:, None, None]
     noise = np.maximum(robust_sigma_rows(resid.reshape(n, -1), np.zeros(n)), noise_floor_adu)
-    mask = resid > threshold_sigma * noise[:, None, None]
-    plane = np.ones((3, 3), dtype=bool) if connectivity == 8 else ndimage.generate_binary_structure(2, 1)
-    structure = np.zeros((3, 3, 3), dtype=bool)
-    structure[1] = plane  # no connection between windows
-    labels, n_lab = ndimage.label(mask, structure=structure)
-    empty = np.full(n, np.nan)
+    labels, n_lab = _label_windows(resid > threshold_sigma * noise[:, None, None], connectivity)
     if n_lab == 0:
+        empty = np.full(n, np.nan)
         return WindowSpots(np.zeros(n, dtype=bool), empty, empty.copy(), empty.copy(), empty.copy(),
                            np.zeros(n, dtype=int), np.zeros(n, dtype=bool), empty.copy(), empty.copy())
     size = n_lab + 1
@@ -178,13 +174,7 @@ def centroid_windows(stack: np.ndarray, px: np.ndarray, py: np.ndarray, *, thres
             sigma_px = with_clipping(sigma_px, flux, n_sat, saturated, saturation_adu - bg[win])
         shot = 0.0 if gain_e_per_adu is None else np.maximum(flux, 0.0) / gain_e_per_adu
         snr = flux / np.sqrt(npix * s**2 + shot)
-    # per window, the kept spot nearest to the prediction (ties: the brighter, as cog orders by flux)
-    cand = np.flatnonzero(keep)
-    d2 = (x[cand] - np.asarray(px, dtype=float)[win[cand]]) ** 2 + (y[cand] - np.asarray(py, dtype=float)[win[cand]]) ** 2
-    order = np.lexsort((-flux[cand], d2, win[cand]))
-    cand = cand[order]
-    first = np.concatenate([[True], win[cand][1:] != win[cand][:-1]]) if cand.size else np.zeros(0, dtype=bool)
-    pick = cand[first]
+    pick = _nearest_kept(keep, x, y, flux, win, px, py)
     found = np.zeros(n, dtype=bool)
     found[win[pick]] = True
 
@@ -196,3 +186,23 @@ def centroid_windows(stack: np.ndarray, px: np.ndarray, py: np.ndarray, *, thres
     return WindowSpots(found, per_window(x), per_window(y), per_window(flux), per_window(peak[1:]),
                        per_window(npix, 0, int), per_window(saturated, False, bool),
                        per_window(snr), per_window(sigma_px))
+
+
+def _label_windows(mask: np.ndarray, connectivity: int) -> tuple[np.ndarray, int]:
+    """Connected components of the above-threshold pixels of a window stack (n, h, w), labelled in
+    3-D with a structuring element that is empty across windows: no component joins two windows."""
+    plane = np.ones((3, 3), dtype=bool) if connectivity == 8 else ndimage.generate_binary_structure(2, 1)
+    structure = np.zeros((3, 3, 3), dtype=bool)
+    structure[1] = plane  # no connection between windows
+    return ndimage.label(mask, structure=structure)
+
+
+def _nearest_kept(keep, x, y, flux, win, px, py) -> np.ndarray:
+    """Per window, the kept spot nearest to the prediction ``(px, py)`` (ties: the brighter, as cog
+    orders by flux); spot indices, at most one per window."""
+    cand = np.flatnonzero(keep)
+    d2 = (x[cand] - np.asarray(px, dtype=float)[win[cand]]) ** 2 + (y[cand] - np.asarray(py, dtype=float)[win[cand]]) ** 2
+    order = np.lexsort((-flux[cand], d2, win[cand]))
+    cand = cand[order]
+    first = np.concatenate([[True], win[cand][1:] != win[cand][:-1]]) if cand.size else np.zeros(0, dtype=bool)
+    return cand[first]

@@ -155,40 +155,13 @@ def fit_camera(observations, attitudes, camera: RadialCamera, fit=("focal_px", "
         return np.concatenate(out)
 
     def jac(q):
-        """Analytic d(residual)/dq: ``w = Exp(delta)^T R0^T r`` so ``dw/d delta = [w]_x`` (to first order
-        in delta, which is what the iteration re-linearises about), then the chain rule through
-        ``xn = -w_x / w_z``, the radial factor and the pixel map (module docstring)."""
+        """Analytic d(residual)/dq, image by image (:func:`_image_jacobian`)."""
         cam, rots = unpack(q)
         J = np.zeros((2 * n, p))
         row = 0
         for i, (r, R) in enumerate(zip(refs, rots)):
-            w = R.inv().apply(r)
-            k = w.shape[0]
-            iz = 1.0 / w[:, 2]
-            xn, yn = -w[:, 0] * iz, -w[:, 1] * iz
-            r2 = xn * xn + yn * yn
-            s_ = 1.0 + cam.k1 * r2 + cam.k2 * r2 * r2
-            ds = cam.k1 + 2.0 * cam.k2 * r2  # d s / d r2
-            f = cam.focal_px
-            # d(x, y)/d(xn, yn)
-            a11 = f * (s_ + 2.0 * xn * xn * ds)
-            a12 = f * 2.0 * xn * yn * ds
-            a22 = f * (s_ + 2.0 * yn * yn * ds)
-            # d(xn, yn)/dw
-            dxn = np.column_stack([-iz, np.zeros(k), w[:, 0] * iz * iz])
-            dyn = np.column_stack([np.zeros(k), -iz, w[:, 1] * iz * iz])
-            dxdw = a11[:, None] * dxn + a12[:, None] * dyn
-            dydw = a12[:, None] * dxn + a22[:, None] * dyn
-            # dw/d delta = [w]_x : column j is w x e_j
-            skew = np.stack([np.cross(w, e) for e in np.eye(3)], axis=-1)  # (k, 3, 3)
-            J[row:row + 2 * k:2, 3 * i:3 * i + 3] = -np.einsum("kj,kjl->kl", dxdw, skew)
-            J[row + 1:row + 2 * k:2, 3 * i:3 * i + 3] = -np.einsum("kj,kjl->kl", dydw, skew)
-            d_int = {"focal_px": (xn * s_, yn * s_), "k1": (f * xn * r2, f * yn * r2),
-                     "k2": (f * xn * r2 * r2, f * yn * r2 * r2), "cx": (np.ones(k), np.zeros(k)),
-                     "cy": (np.zeros(k), np.ones(k))}
-            for c, name in enumerate(fit):
-                J[row:row + 2 * k:2, 3 * m + c] = -d_int[name][0]
-                J[row + 1:row + 2 * k:2, 3 * m + c] = -d_int[name][1]
+            k = r.shape[0]
+            J[row:row + 2 * k, 3 * i:3 * i + 3], J[row:row + 2 * k, 3 * m:] = _image_jacobian(cam, R.inv().apply(r), fit)
             row += 2 * k
         return J
 
@@ -212,3 +185,41 @@ def fit_camera(observations, attitudes, camera: RadialCamera, fit=("focal_px", "
     return CameraFit(camera=cam, attitudes=tuple(rots), fitted=fit, sigma=dict(zip(fit, sig[3 * m:].tolist())),
                      residuals=residuals, rms_px=float(np.sqrt(np.mean(np.sum(res2**2, axis=1)))), n_stars=n, dof=dof,
                      success=bool(sol.success))
+
+
+def _image_jacobian(cam: RadialCamera, w: np.ndarray, fit: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """d(residual)/d(attitude increment) (2k, 3) and d(residual)/d(fitted intrinsics) (2k, len(fit))
+    of one image's ``k`` stars with camera-frame directions ``w`` (k, 3), rows x0, y0, x1, y1, ...
+
+    ``w = Exp(delta)^T R0^T r`` so ``dw/d delta = [w]_x`` (to first order in delta, which is what
+    the iteration re-linearises about), then the chain rule through ``xn = -w_x / w_z``, the radial
+    factor and the pixel map (module docstring)."""
+    k = w.shape[0]
+    iz = 1.0 / w[:, 2]
+    xn, yn = -w[:, 0] * iz, -w[:, 1] * iz
+    r2 = xn * xn + yn * yn
+    s_ = 1.0 + cam.k1 * r2 + cam.k2 * r2 * r2
+    ds = cam.k1 + 2.0 * cam.k2 * r2  # d s / d r2
+    f = cam.focal_px
+    # d(x, y)/d(xn, yn)
+    a11 = f * (s_ + 2.0 * xn * xn * ds)
+    a12 = f * 2.0 * xn * yn * ds
+    a22 = f * (s_ + 2.0 * yn * yn * ds)
+    # d(xn, yn)/dw
+    dxn = np.column_stack([-iz, np.zeros(k), w[:, 0] * iz * iz])
+    dyn = np.column_stack([np.zeros(k), -iz, w[:, 1] * iz * iz])
+    dxdw = a11[:, None] * dxn + a12[:, None] * dyn
+    dydw = a12[:, None] * dxn + a22[:, None] * dyn
+    # dw/d delta = [w]_x : column j is w x e_j
+    skew = np.stack([np.cross(w, e) for e in np.eye(3)], axis=-1)  # (k, 3, 3)
+    d_att = np.empty((2 * k, 3))
+    d_att[0::2] = -np.einsum("kj,kjl->kl", dxdw, skew)
+    d_att[1::2] = -np.einsum("kj,kjl->kl", dydw, skew)
+    d_int = {"focal_px": (xn * s_, yn * s_), "k1": (f * xn * r2, f * yn * r2),
+             "k2": (f * xn * r2 * r2, f * yn * r2 * r2), "cx": (np.ones(k), np.zeros(k)),
+             "cy": (np.zeros(k), np.ones(k))}
+    d_fit = np.empty((2 * k, len(fit)))
+    for c, name in enumerate(fit):
+        d_fit[0::2, c] = -d_int[name][0]
+        d_fit[1::2, c] = -d_int[name][1]
+    return d_att, d_fit
