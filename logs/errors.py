@@ -1,4 +1,4 @@
-"""Errors and warnings raised when reading or writing rollingstar MCAP rollingstar.logs."""
+"""Errors and warnings raised when reading or writing rollingstar MCAP logs."""
 from __future__ import annotations
 
 

@@ -1,4 +1,4 @@
-"""rollingstar: star-tracker estimation with rolling-shutter CMOS rollingstar.sensors.
+"""rollingstar: star-tracker estimation with rolling-shutter CMOS sensors.
 
 The public Python API does what the command line does::
 

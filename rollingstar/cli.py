@@ -5,6 +5,7 @@ numpy is first imported, and ``rollingstar --help`` or ``--version`` stays insta
 """
 from __future__ import annotations
 
+import errno
 import functools
 import json
 import sys
@@ -21,7 +22,7 @@ from rollingstar.config import find_config
 from rollingstar.errors import UserError
 
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, no_args_is_help=True,
-                  help="Star-tracker estimation with rolling-shutter CMOS rollingstar.sensors.")
+                  help="Star-tracker estimation with rolling-shutter CMOS sensors.")
 out = Console(width=None if sys.stdout.isatty() else 200)  # no truncated cells when piped
 err = Console(stderr=True)
 
@@ -32,20 +33,49 @@ def _print_version(value: bool) -> None:
         raise typer.Exit()
 
 
+_state = {"debug": False}
+
+
 @app.callback()
 def _options(version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
-                                          help="print the version and exit")):
-    """Star-tracker estimation with rolling-shutter CMOS rollingstar.sensors."""
+                                          help="print the version and exit"),
+             debug: bool = typer.Option(False, "--debug", help="on an error, show the Python traceback "
+                                                               "(for a bug report) instead of the message")):
+    """Star-tracker estimation with rolling-shutter CMOS sensors."""
+    _state["debug"] = debug
 
 
-def _user_errors():
+def _error_message(exc: BaseException) -> str:
+    """One paragraph for an exception that reached the command line: what failed and what to do."""
+    from rollingstar.config import excerpt
     from rollingstar.logs.errors import LogFormatError, LogWriteError
 
-    return (UserError, LogFormatError, LogWriteError, FileNotFoundError, IsADirectoryError, PermissionError)
+    if isinstance(exc, (UserError, LogFormatError, LogWriteError)):
+        return str(exc)
+    if isinstance(exc, OSError):
+        where = f"{exc.filename}: " if exc.filename else ""
+        advice = {errno.ENOSPC: " (the disk is full: free space and run the command again)",
+                  errno.EROFS: " (a read-only file system: write the output somewhere else)",
+                  errno.EACCES: " (no permission: choose a path you may write, or fix its permissions)"}
+        return f"{where}{exc.strerror or exc}{advice.get(exc.errno, '')}"
+    if isinstance(exc, MemoryError):
+        return "ran out of memory: ask for fewer frames, a smaller image or fewer tasks"
+    if isinstance(exc, RecursionError):
+        return "an input is nested too deeply to read (a JSON or YAML value inside thousands of brackets)"
+    if isinstance(exc, OverflowError):
+        return f"a number in the input is too large: {excerpt(str(exc), 200)}"
+    return (f"unexpected {type(exc).__name__}: {excerpt(str(exc), 300)}. This is a bug or an input rollingstar "
+            "does not check yet; run the command again with --debug (rollingstar --debug ...) and report the "
+            "traceback with the input that caused it")
 
 
-def handle_errors(fn):
-    """Turn bad input into ``error: <message>`` on stderr and exit code 2 (no traceback)."""
+def _guarded(fn):
+    """The command line's one error boundary, put around every command by :func:`command`.
+
+    Every exception becomes a one-paragraph message on stderr and exit code 2 (130 on Ctrl-C, after
+    the message of what was kept); ``--debug`` shows the traceback instead. Exit code 1 is reserved
+    for commands that ran fine but whose check failed (the regression gate, ``bench perf``).
+    Warnings are printed as one line each."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
@@ -54,21 +84,26 @@ def handle_errors(fn):
                 warnings.simplefilter("always")
                 warnings.showwarning = lambda message, category, *a, **k: err.print(f"[yellow]warning:[/] {message}")
                 return fn(*args, **kwargs)
-        except _user_errors() as exc:
-            text = str(exc)
-            if isinstance(exc, OSError) and exc.filename:
-                text = f"{exc.filename}: {exc.strerror}"
-            err.print(f"[bold red]error:[/] {text}", highlight=False, soft_wrap=True)
-            raise typer.Exit(2) from None
+        except (typer.Exit, typer.Abort):
+            raise
         except KeyboardInterrupt as exc:  # SIGINT: the output was finalised (pipelines/interrupt.py)
             err.print(str(exc) or "interrupted", highlight=False, soft_wrap=True)
             raise typer.Exit(130) from None
+        except Exception as exc:
+            if _state["debug"]:
+                raise
+            err.print(f"[bold red]error:[/] {_error_message(exc)}", highlight=False, soft_wrap=True)
+            raise typer.Exit(2) from None
 
     return wrapper
 
 
-@app.command()
-@handle_errors
+def command(group: typer.Typer | None = None, name: str | None = None):
+    """Register a command on ``group`` (default: the top-level app) inside the error boundary."""
+    return lambda fn: (group or app).command(name)(_guarded(fn))
+
+
+@command()
 def simulate(scenario: str = typer.Argument(..., help="scenario YAML, or a shipped scenario's name (he2021b)"),
              output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write"),
              frames: int = typer.Option(None, "--frames", min=1, help="override the scenario's frame count"),
@@ -84,8 +119,7 @@ def simulate(scenario: str = typer.Argument(..., help="scenario YAML, or a shipp
               f"{summary.stars_per_frame_mean:.1f} stars per frame, {summary.duration_s:.2f} s")
 
 
-@app.command()
-@handle_errors
+@command()
 def run(pipeline: str = typer.Argument(..., help="pipeline YAML, or a shipped pipeline's name (baseline)"),
         recording: Path = typer.Argument(..., help="input MCAP recording"),
         output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write"),
@@ -108,8 +142,7 @@ def run(pipeline: str = typer.Argument(..., help="pipeline YAML, or a shipped pi
               f"estimates, {s.flagged_frames} flagged frames")
 
 
-@app.command()
-@handle_errors
+@command()
 def evaluate(log: Path = typer.Argument(..., help="output MCAP of `rollingstar run`"),
              as_json: bool = typer.Option(False, "--json", help="print one JSON object")):
     """Metrics of an output log against the truth it carries."""
@@ -160,8 +193,7 @@ def print_metrics(m: dict, title: str = "") -> None:
     out.print(summary)
 
 
-@app.command()
-@handle_errors
+@command()
 def info(log: Path = typer.Argument(..., help="MCAP file")):
     """Topics, message counts, time range, schemas and metadata of a log."""
     from rollingstar.logs.reader import LogReader
@@ -186,8 +218,7 @@ def info(log: Path = typer.Argument(..., help="MCAP file")):
             out.print(f"  {k}: {text}", highlight=False)
 
 
-@app.command()
-@handle_errors
+@command()
 def plugins():
     """Every registered plugin by role, with its parameters and defaults."""
     from rollingstar.pipelines.registry import available_kinds, plugins_by_role
@@ -208,8 +239,7 @@ def plugins():
         out.print(table)
 
 
-@app.command()
-@handle_errors
+@command()
 def demo(frames: int = typer.Option(None, "--frames", min=2)):
     """Simulate the embedded default scenario, run the baseline pipeline, print its evaluation."""
     from rollingstar.config import parse_yaml, validate
@@ -232,8 +262,7 @@ def demo(frames: int = typer.Option(None, "--frames", min=2)):
         print_metrics(evaluate_log(res), title=f"{scenario.name}: baseline vs truth")
 
 
-@app.command()
-@handle_errors
+@command()
 def reproduce(paper: str = typer.Argument(..., help="he2021a | he2021b | fu2022 | liu2013"),
               quick: bool = typer.Option(False, "--quick", help="the reduced version the test suite runs"),
               as_json: bool = typer.Option(False, "--json", help="print one JSON object {rows: [...]}"),
@@ -259,8 +288,7 @@ def reproduce(paper: str = typer.Argument(..., help="he2021a | he2021b | fu2022 
             out.print(f"[dim]{r.quantity} ({r.condition}): {r.note}[/]")
 
 
-@app.command()
-@handle_errors
+@command()
 def figures(name: str = typer.Argument("foundation", help="foundation | real-data"),
             quick: bool = typer.Option(False, "--quick"),
             as_json: bool = typer.Option(False, "--json"),
@@ -291,8 +319,7 @@ def figures(name: str = typer.Argument("foundation", help="foundation | real-dat
         out.print(foundation_markdown(result, command), highlight=False)
 
 
-@app.command()
-@handle_errors
+@command()
 def diagnose(recording: Path = typer.Option(..., "--recording", help="MCAP recording to diagnose"),
              sim: str = typer.Option(None, "--sim", help="scenario YAML or shipped name (default: the sensor model the recording declares)"),
              pipeline: str = typer.Option(None, "--pipeline", help="pipeline YAML or shipped name (default: cog, tracking, quest)"),
@@ -318,7 +345,7 @@ def diagnose(recording: Path = typer.Option(..., "--recording", help="MCAP recor
 
 import_app = typer.Typer(
     no_args_is_help=True,
-                         help="Import real recordings (images, astrometry.net corr tables, centroid CSVs) as MCAP rollingstar.logs.")
+                         help="Import real recordings (images, astrometry.net corr tables, centroid CSVs) as MCAP logs.")
 
 
 def _done(path: Path) -> None:
@@ -327,8 +354,7 @@ def _done(path: Path) -> None:
     out.print(describe_log(path), highlight=False)
 
 
-@import_app.command("images")
-@handle_errors
+@command(import_app, "images")
 def images(folder: Path = typer.Argument(..., help="folder of TIFF/PNG/JPEG frames (with an optional recording.yaml)"),
            output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write"),
            camera: str = typer.Option(None, "--camera", help="camera.yaml or a shipped camera's name (required "
@@ -343,8 +369,7 @@ def images(folder: Path = typer.Argument(..., help="folder of TIFF/PNG/JPEG fram
     _done(import_images(folder, output, camera=camera, sidecar=sidecar, show_progress=not quiet))
 
 
-@import_app.command("corr")
-@handle_errors
+@command(import_app, "corr")
 def corr(folder: Path = typer.Argument(..., help="folder with an astrometry.net corr *.fits and log.json, "
                                                  "or a folder of such folders"),
          output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write")):
@@ -354,8 +379,7 @@ def corr(folder: Path = typer.Argument(..., help="folder with an astrometry.net 
     _done(import_corr(folder, output))
 
 
-@import_app.command("centroids")
-@handle_errors
+@command(import_app, "centroids")
 def centroids(table: Path = typer.Argument(..., help="CSV: frame, t_ns or time_s, x, y, flux [, optional columns]"),
               output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write"),
               camera: str = typer.Option(..., "--camera", help="camera.yaml or a shipped camera's name")):
@@ -371,8 +395,7 @@ bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks that score an ana
 app.add_typer(bench_app, name="bench")
 
 
-@bench_app.command("discrepancy")
-@handle_errors
+@command(bench_app, "discrepancy")
 def bench_discrepancy(quick: bool = typer.Option(False, "--quick", help="the reduced set the test suite runs"),
                       as_json: bool = typer.Option(False, "--json", help="print one JSON object"),
                       seed: int = typer.Option(1, "--seed"),
@@ -390,8 +413,7 @@ def bench_discrepancy(quick: bool = typer.Option(False, "--quick", help="the red
         out.print(format_markdown(result), highlight=False)
 
 
-@bench_app.command("perf")
-@handle_errors
+@command(bench_app, "perf")
 def bench_perf(quick: bool = typer.Option(False, "--quick", help="tiny sizes (the test suite's run; ratios not meaningful)"),
                as_json: bool = typer.Option(False, "--json", help="print one JSON object"),
                only: list[str] = typer.Option(None, "--only", help="run only these lines: quest kf rate centroid replay compare"),
@@ -410,8 +432,7 @@ def bench_perf(quick: bool = typer.Option(False, "--quick", help="tiny sizes (th
         raise typer.Exit(1)
 
 
-@app.command()
-@handle_errors
+@command()
 def compare(config: str = typer.Argument(..., help="comparison YAML, or a shipped comparison's name (ci)"),
             output: Path = typer.Option(..., "-o", "--output", help="directory for results.json, results.md, report.html"),
             executor: str = typer.Option(None, "--executor", help="serial | dask (default: dask when --workers > 1)"),
@@ -451,7 +472,7 @@ def main() -> None:
 
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
-    app()
+    return app()
 
 
 if __name__ == "__main__":

@@ -91,7 +91,7 @@ def attitude_error_body_arcsec(truth: Rotation, estimate: Rotation) -> np.ndarra
 
 
 def quat_to_fields(q_xyzw) -> dict[str, float]:
-    """Scalar-last array quaternion to the named fields used in rollingstar.logs."""
+    """Scalar-last array quaternion to the named fields used in logs."""
     x, y, z, w = (float(v) for v in np.asarray(q_xyzw, dtype=float))
     return {"x": x, "y": y, "z": z, "w": w}
 

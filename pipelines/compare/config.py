@@ -129,7 +129,7 @@ class Comparison:
     pipeline_paths: dict[str, str]
 
     def tasks(self) -> list[Task]:
-        """One task per (variant, seed), in config order; each runs the variant's rollingstar.pipelines."""
+        """One task per (variant, seed), in config order; each runs the variant's pipelines."""
         out = []
         for v in self.variants:
             scenario_yaml = to_yaml(v.config)

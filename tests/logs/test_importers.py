@@ -1,4 +1,4 @@
-"""`rollingstar import`: images, astrometry.net corr tables and centroid CSVs into rollingstar rollingstar.logs."""
+"""`rollingstar import`: images, astrometry.net corr tables and centroid CSVs into rollingstar logs."""
 from __future__ import annotations
 
 import json

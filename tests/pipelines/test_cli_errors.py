@@ -3,6 +3,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 SCENARIO = ROOT / "configs" / "scenarios" / "he2021b.yaml"
 BASELINE = ROOT / "configs" / "pipelines" / "baseline.yaml"
@@ -56,3 +58,54 @@ def test_recording_missing_required_topic(tmp_path, small_output):
 
 def test_unwritable_output(tmp_path, small_recording):
     assert_clean_error(cli("run", BASELINE, small_recording, "-o", tmp_path / "no_such_dir" / "o.mcap"), "no_such_dir")
+
+
+def test_configs_are_found_by_name_from_any_directory(tmp_path):
+    proc = cli("simulate", "he2021b", "-o", tmp_path / "rec.mcap", "--frames", "3", "-q", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert_clean_error(cli("simulate", "he2021", "-o", tmp_path / "x.mcap", cwd=tmp_path),
+                       "he2021", "not the name of a shipped scenario config", "he2021b")
+
+
+def _in_process(monkeypatch, *args):
+    """Run the CLI's app in this process (so a test can make a command fail in a chosen way)."""
+    from typer.testing import CliRunner
+
+    from rollingstar import cli as cli_module
+
+    monkeypatch.setitem(cli_module._state, "debug", False)
+    return CliRunner().invoke(cli_module.app, [str(a) for a in args])
+
+
+@pytest.mark.parametrize("exc, needle", [
+    (RuntimeError("boom"), "unexpected RuntimeError: 'boom'"),
+    (OverflowError("int too large to convert"), "a number in the input is too large"),
+    (RecursionError("maximum recursion depth"), "nested too deeply"),
+    (MemoryError(), "ran out of memory"),
+    (OSError(28, "No space left on device", "out.mcap"), "out.mcap: No space left on device (the disk is full"),
+    (OSError(30, "Read-only file system", "out.mcap"), "read-only file system: write the output somewhere else"),
+])
+def test_every_exception_becomes_exit_2_with_a_message(monkeypatch, tmp_path, exc, needle):
+    import rollingstar.pipelines.evaluate as evaluate
+
+    def fail(path):
+        raise exc
+
+    monkeypatch.setattr(evaluate, "evaluate_log", fail)
+    res = _in_process(monkeypatch, "evaluate", tmp_path / "out.mcap")
+    assert res.exit_code == 2, res.output
+    assert needle in res.output and "Traceback" not in res.output
+
+
+def test_debug_shows_the_traceback(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "rollingstar", "--debug", "info", tmp_path / "missing.mcap"],
+                          capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert proc.returncode != 0 and "Traceback" in proc.stderr
+
+
+def test_version(tmp_path):
+    import rollingstar
+
+    proc = subprocess.run([sys.executable, "-m", "rollingstar", "--version"], capture_output=True, text=True,
+                          cwd=tmp_path, timeout=300)
+    assert proc.returncode == 0 and proc.stdout.strip() == f"rollingstar {rollingstar.__version__}"
