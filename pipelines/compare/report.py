@@ -65,65 +65,87 @@ def tables(results: dict) -> list[tuple[str, list[str], list[list[str]]]]:
 _X_KEY = {"rate_norm": ("rate_norm_deg_s", "|rate| (deg/s)"), "rate_xy_norm": ("rate_xy_norm_deg_s", "|(w_x, w_y)| (deg/s)")}
 
 
-def figures(results: dict, img_dir: Path) -> list[tuple[str, str]]:
-    """Write the PNGs; returns (file name relative to the output dir, caption)."""
+def _pyplot():
+    """matplotlib's pyplot on the Agg backend, imported on first use (a slow import that only
+    figure-writing callers pay)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def figures(results: dict, img_dir: Path) -> list[tuple[str, str]]:
+    """Write the PNGs; returns (file name relative to the output dir, caption)."""
     img_dir.mkdir(parents=True, exist_ok=True)
     made = []
     rows = results["results"]
     x_key, x_label = _X_KEY[results["comparison"].get("plot_x", "rate_norm")]
-
-    def _x_of(row: dict) -> float:
-        return row[x_key]
-
     pipelines = list(dict.fromkeys(r["pipeline"] for r in rows))
     colours = {p: f"C{k % 10}" for k, p in enumerate(pipelines)}
     for sc in dict.fromkeys(r["scenario"] for r in rows):
         sub = [r for r in rows if r["scenario"] == sc]
         if len({r["variant"] for r in sub}) < 2:
             continue
-        has_rate = any(_m(r, "rate_error_deg_s.x_rmse")[0] is not None for r in sub)
-        nrows = 2 if has_rate else 1
-        fig, axs = plt.subplots(nrows, 4, figsize=(16, 3.6 * nrows), squeeze=False)
-        panels = [(axs[0][k], f"attitude_error_arcsec.{a}_rmse", f"attitude_crb_arcsec.{a}", f"attitude error {a} RMSE (arcsec)")
-                  for k, a in enumerate(AXES)]
-        panels.append((axs[0][3], "star_pair_distance_error_px.rmse", None, "star-pair distance error RMSE (px)"))
-        if has_rate:
-            panels += [(axs[1][k], f"rate_error_deg_s.{a}_rmse", f"rate_crb_deg_s.{a}", f"rate error {a} RMSE (deg/s)")
-                       for k, a in enumerate(AXES)]
-            panels.append((axs[1][3], "rate_error_deg_s.rmse", None, "rate error |.| RMSE (deg/s)"))
-        for ax, key, bound, title in panels:
-            for p in pipelines:
-                pr = sorted((r for r in sub if r["pipeline"] == p), key=_x_of)
-                pts = [(_x_of(r), *_m(r, key)) for r in pr if _m(r, key)[0] is not None]
-                if pts:
-                    x, m, s = map(np.array, zip(*pts))
-                    ax.errorbar(x, m, yerr=s, marker="o", ms=3, capsize=2, color=colours[p], label=p)
-                if bound:
-                    bpts = [(_x_of(r), _m(r, bound)[0]) for r in pr if _m(r, bound)[0] is not None and _m(r, key)[0] is not None]
-                    if bpts:
-                        bx, bm = zip(*bpts)
-                        ax.plot(bx, bm, ls="--", lw=1, color=colours[p], alpha=0.7)
-            ax.set_title(title, fontsize=9)
-            ax.set_xlabel(x_label)
-            if ax.has_data():
-                ax.set_yscale("log")  # pipelines differ by orders of magnitude
-            ax.grid(alpha=0.3)
-        for ax in axs.flat:
-            if not ax.has_data():
-                ax.set_visible(False)
-        axs[0][0].legend(fontsize=7)
-        fig.suptitle(f"{sc}: error vs rate (mean ± std over seeds; dashed: single-frame Cramér–Rao bound)", fontsize=10)
-        fig.tight_layout()
         name = f"img/error_vs_rate_{_slug(sc)}.png"
-        fig.savefig(img_dir.parent / name, dpi=110)
-        plt.close(fig)
+        _error_vs_rate_figure(sc, sub, pipelines, colours, x_key, x_label, img_dir.parent / name)
         made.append((name, f"{sc}: error vs rate per axis"))
+    _update_rate_figure(rows, pipelines, colours, img_dir / "update_rate_vs_accuracy.png")
+    made.append(("img/update_rate_vs_accuracy.png", "update rate vs accuracy"))
+    _cpu_time_figure(rows, pipelines, colours, img_dir / "cpu_time.png")
+    made.append(("img/cpu_time.png", "CPU time per frame"))
+    return made
 
+
+def _error_vs_rate_figure(sc: str, sub: list[dict], pipelines: list[str], colours: dict, x_key: str, x_label: str,
+                          path: Path) -> None:
+    """Scenario ``sc``'s errors (and bounds) against the variants' rate, one panel per quantity."""
+    plt = _pyplot()
+
+    def _x_of(row: dict) -> float:
+        return row[x_key]
+
+    has_rate = any(_m(r, "rate_error_deg_s.x_rmse")[0] is not None for r in sub)
+    nrows = 2 if has_rate else 1
+    fig, axs = plt.subplots(nrows, 4, figsize=(16, 3.6 * nrows), squeeze=False)
+    panels = [(axs[0][k], f"attitude_error_arcsec.{a}_rmse", f"attitude_crb_arcsec.{a}", f"attitude error {a} RMSE (arcsec)")
+              for k, a in enumerate(AXES)]
+    panels.append((axs[0][3], "star_pair_distance_error_px.rmse", None, "star-pair distance error RMSE (px)"))
+    if has_rate:
+        panels += [(axs[1][k], f"rate_error_deg_s.{a}_rmse", f"rate_crb_deg_s.{a}", f"rate error {a} RMSE (deg/s)")
+                   for k, a in enumerate(AXES)]
+        panels.append((axs[1][3], "rate_error_deg_s.rmse", None, "rate error |.| RMSE (deg/s)"))
+    for ax, key, bound, title in panels:
+        for p in pipelines:
+            pr = sorted((r for r in sub if r["pipeline"] == p), key=_x_of)
+            pts = [(_x_of(r), *_m(r, key)) for r in pr if _m(r, key)[0] is not None]
+            if pts:
+                x, m, s = map(np.array, zip(*pts))
+                ax.errorbar(x, m, yerr=s, marker="o", ms=3, capsize=2, color=colours[p], label=p)
+            if bound:
+                bpts = [(_x_of(r), _m(r, bound)[0]) for r in pr if _m(r, bound)[0] is not None and _m(r, key)[0] is not None]
+                if bpts:
+                    bx, bm = zip(*bpts)
+                    ax.plot(bx, bm, ls="--", lw=1, color=colours[p], alpha=0.7)
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel(x_label)
+        if ax.has_data():
+            ax.set_yscale("log")  # pipelines differ by orders of magnitude
+        ax.grid(alpha=0.3)
+    for ax in axs.flat:
+        if not ax.has_data():
+            ax.set_visible(False)
+    axs[0][0].legend(fontsize=7)
+    fig.suptitle(f"{sc}: error vs rate (mean ± std over seeds; dashed: single-frame Cramér–Rao bound)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _update_rate_figure(rows: list[dict], pipelines: list[str], colours: dict, path: Path) -> None:
+    """Attitude updates per second against the attitude error, one marker per (variant, pipeline)."""
+    plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     for p in pipelines:
         pts = []
@@ -143,10 +165,13 @@ def figures(results: dict, img_dir: Path) -> list[tuple[str, str]]:
     ax.legend(fontsize=7)
     ax.set_title("update rate vs accuracy (one point per scenario variant)", fontsize=10)
     fig.tight_layout()
-    fig.savefig(img_dir / "update_rate_vs_accuracy.png", dpi=110)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
-    made.append(("img/update_rate_vs_accuracy.png", "update rate vs accuracy"))
 
+
+def _cpu_time_figure(rows: list[dict], pipelines: list[str], colours: dict, path: Path) -> None:
+    """CPU time per frame of the run stage, per pipeline and scenario (bars)."""
+    plt = _pyplot()
     scen = list(dict.fromkeys(r["scenario"] for r in rows))
     fig, ax = plt.subplots(figsize=(max(6.5, 1.2 * len(scen) * max(1, len(pipelines)) * 0.4), 4.5))
     width = 0.8 / max(1, len(pipelines))
@@ -163,10 +188,8 @@ def figures(results: dict, img_dir: Path) -> list[tuple[str, str]]:
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3, axis="y")
     fig.tight_layout()
-    fig.savefig(img_dir / "cpu_time.png", dpi=110)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
-    made.append(("img/cpu_time.png", "CPU time per frame"))
-    return made
 
 
 def markdown(results: dict, images: list[tuple[str, str]], command: str) -> str:
