@@ -13,7 +13,6 @@ from scipy.spatial.transform import Rotation
 
 from rollingstar.sensors import build
 
-_FLOAT_COLUMNS = ("x", "y", "flux", "peak", "snr", "sigma_px", "vx", "vy")
 _INT_COLUMNS = ("t_ns", "row_time_ns", "catalog_id", "npix")
 
 

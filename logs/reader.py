@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
+import numpy as np
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.reader import FOOTER_SIZE, SeekingReader
@@ -27,14 +28,25 @@ from mcap.stream_reader import MAGIC_SIZE, breakup_chunk
 from mcap_protobuf.decoder import DecoderFactory
 from pydantic import ValidationError
 
+from rollingstar.errors import UserError
+from rollingstar.sensors.scenario import ScenarioConfig, scenario_from_yaml
+
 from .errors import LogFormatError, TruncatedLogWarning
-from .records import FORMAT_VERSION, RECORD_TYPES, TOPIC_RECORDS
+from .records import (
+    FORMAT_VERSION,
+    RECORD_TYPES,
+    TOPIC_RECORDS,
+    join_attitude_samples,
+    join_gyro_samples,
+    stars_to_arrays,
+)
+from .topics import TOPIC_EST_POSE, TOPIC_EST_SPOTS, TOPIC_GYRO, TOPIC_IMAGE, TOPIC_TRUTH_ATTITUDE
 
 MAGIC = b"\x89MCAP0\r\n"
 # The schema of every standard topic (docs/log-format.md); another schema there is an unknown version.
 STANDARD_SCHEMAS = {**{topic: model.SCHEMA_NAME for topic, model in TOPIC_RECORDS.items()},
-                    "/camera/image": "foxglove.RawImage", "/estimate/pose": "foxglove.PoseInFrame",
-                    "/estimate/spots": "foxglove.ImageAnnotations"}
+                    TOPIC_IMAGE: "foxglove.RawImage", TOPIC_EST_POSE: "foxglove.PoseInFrame",
+                    TOPIC_EST_SPOTS: "foxglove.ImageAnnotations"}
 _KNOWN_MAJOR, _KNOWN_MINOR = (int(p) for p in FORMAT_VERSION.split("."))
 
 
@@ -111,7 +123,7 @@ class LogReader:
         self._streamed: tuple[dict[int, Schema], dict[int, Channel], list[McapMessage], list[Metadata]] | None = None
         if size >= 2 * MAGIC_SIZE + FOOTER_SIZE and tail == MAGIC:
             try:
-                self._summary = self._read_summary(size)
+                self._summary = self._read_summary()
             except Exception:  # any garbage where a footer should be means: not finished
                 self._summary = None
                 self._truncated = True
@@ -132,7 +144,7 @@ class LogReader:
             self._check_version()
 
     # --- low level: summary, records ------------------------------------------------------------
-    def _read_summary(self, size: int):
+    def _read_summary(self):
         """The summary section (schemas, channels, chunk and metadata indexes), or None."""
         with open(self.path, "rb") as f:
             return SeekingReader(f).get_summary()
@@ -363,6 +375,44 @@ class LogReader:
         """Decoded messages in log-time order (file order among equal times), optionally only some topics."""
         for raw in self._raw_messages(topics):
             yield self._decode(raw)
+
+    # --- typed accessors -------------------------------------------------------------------------
+    def scenario(self, missing_hint: str = "") -> ScenarioConfig:
+        """The recording's sensor model: the scenario in its ``scenario`` metadata record.
+
+        Raises :class:`~rollingstar.errors.UserError` naming the file when the recording declares
+        none (``missing_hint``, what to do instead, ends the message) and
+        :class:`~rollingstar.errors.ConfigError` naming the file and the key when the YAML is not a
+        valid scenario.
+        """
+        record = self._metadata.get("scenario", {})
+        if "yaml" not in record:
+            hint = f"; {missing_hint}" if missing_hint else ""
+            raise UserError(f"{self.path}: the recording declares no sensor model (metadata record 'scenario' "
+                            f"with key 'yaml'){hint}")
+        return scenario_from_yaml(record["yaml"], f"{self.path} (metadata 'scenario')")
+
+    def stars(self, topic: str) -> dict[int, dict[str, Any]]:
+        """Frame index -> the stars of that frame on ``topic`` (a ``rollingstar.Stars`` topic).
+
+        Each value holds the numpy columns of the record (:func:`~rollingstar.logs.records.stars_to_arrays`)
+        and the frame time ``t0_ns`` (int). Frames are in log-time order; when a frame has two
+        records, the later one is kept.
+        """
+        out: dict[int, dict[str, Any]] = {}
+        for m in self.messages(topic):
+            out[m.record.frame] = {**stars_to_arrays(m.record), "t0_ns": m.record.t0_ns}
+        return out
+
+    def gyro(self) -> dict[str, np.ndarray]:
+        """Every ``/gyro`` sample in log-time order: ``{"t_ns": (n,), "omega_rad_s": (n, 3)}``, n = 0
+        without any (:func:`~rollingstar.logs.records.join_gyro_samples`)."""
+        return join_gyro_samples(m.record for m in self.messages(TOPIC_GYRO))
+
+    def truth_attitude(self) -> dict[str, np.ndarray]:
+        """Every ``/truth/attitude`` sample in log-time order: ``{"t_ns": (n,), "q_xyzw": (n, 4),
+        "omega_rad_s": (n, 3)}``, n = 0 without any (:func:`~rollingstar.logs.records.join_attitude_samples`)."""
+        return join_attitude_samples(m.record for m in self.messages(TOPIC_TRUTH_ATTITUDE))
 
     # --- decoding --------------------------------------------------------------------------------
     def _decode(self, raw: _Raw) -> Message:

@@ -11,10 +11,21 @@ end of this module convert NaN <-> null (``arrays_to_stars`` / ``stars_to_arrays
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any, ClassVar
+from typing import Annotated, Any, ClassVar, Iterable
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from .topics import (
+    TOPIC_CENTROIDS,
+    TOPIC_EST_ATTITUDE,
+    TOPIC_EST_FRAME,
+    TOPIC_EST_RATE,
+    TOPIC_EST_STARS,
+    TOPIC_GYRO,
+    TOPIC_TRUTH_ATTITUDE,
+    TOPIC_TRUTH_STARS,
+)
 
 FORMAT_VERSION = "1.0"
 """The version of the whole format (all topics and records); written in the ``rollingstar``
@@ -280,19 +291,18 @@ RECORD_TYPES: dict[str, type[_Record]] = {
 """Schema name -> record model, for every JSON schema of the format."""
 
 TOPIC_RECORDS: dict[str, type[_Record]] = {
-    "/camera/centroids": StarsRecord,
-    "/gyro": GyroSamplesRecord,
-    "/truth/attitude": AttitudeSamplesRecord,
-    "/truth/stars": StarsRecord,
-    "/estimate/stars": StarsRecord,
-    "/estimate/attitude": AttitudeEstimateRecord,
-    "/estimate/rate": RateEstimateRecord,
-    "/estimate/frame": FrameStatusRecord,
+    TOPIC_CENTROIDS: StarsRecord,
+    TOPIC_GYRO: GyroSamplesRecord,
+    TOPIC_TRUTH_ATTITUDE: AttitudeSamplesRecord,
+    TOPIC_TRUTH_STARS: StarsRecord,
+    TOPIC_EST_STARS: StarsRecord,
+    TOPIC_EST_ATTITUDE: AttitudeEstimateRecord,
+    TOPIC_EST_RATE: RateEstimateRecord,
+    TOPIC_EST_FRAME: FrameStatusRecord,
 }
 """The record model of every standard JSON topic."""
 
 # Short names (the schema names without the ``rollingstar.`` prefix).
-Stars = StarsRecord
 GyroSamples = GyroSamplesRecord
 AttitudeSamples = AttitudeSamplesRecord
 AttitudeEstimate = AttitudeEstimateRecord
@@ -441,3 +451,22 @@ def attitude_samples_to_arrays(record: AttitudeSamplesRecord | dict) -> dict[str
     return {"t_ns": np.array(rec.t_ns, dtype=np.int64),
             "q_xyzw": np.column_stack([rec.qx, rec.qy, rec.qz, rec.qw]).astype(float).reshape(n, 4),
             "omega_rad_s": omega}
+
+
+def join_gyro_samples(records: Iterable[GyroSamplesRecord | dict]) -> dict[str, np.ndarray]:
+    """The samples of several gyro records, in the order given: ``{"t_ns": (n,) int64,
+    "omega_rad_s": (n, 3)}`` (n = 0 without records)."""
+    parts = [gyro_samples_to_arrays(r) for r in records]
+    if not parts:
+        return {"t_ns": np.zeros(0, dtype=np.int64), "omega_rad_s": np.zeros((0, 3))}
+    return {name: np.concatenate([p[name] for p in parts]) for name in ("t_ns", "omega_rad_s")}
+
+
+def join_attitude_samples(records: Iterable[AttitudeSamplesRecord | dict]) -> dict[str, np.ndarray]:
+    """The samples of several truth-attitude records, in the order given: ``{"t_ns": (n,) int64,
+    "q_xyzw": (n, 4), "omega_rad_s": (n, 3)}`` (rates NaN where a record has none; n = 0 without
+    records)."""
+    parts = [attitude_samples_to_arrays(r) for r in records]
+    if not parts:
+        return {"t_ns": np.zeros(0, dtype=np.int64), "q_xyzw": np.zeros((0, 4)), "omega_rad_s": np.zeros((0, 3))}
+    return {name: np.concatenate([p[name] for p in parts]) for name in ("t_ns", "q_xyzw", "omega_rad_s")}

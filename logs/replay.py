@@ -14,8 +14,7 @@ import numpy as np
 
 from .errors import LogFormatError
 from .reader import LogReader, Message
-
-FRAME_TOPICS = ("/camera/image", "/camera/centroids")
+from .topics import TOPIC_IMAGE
 
 
 @dataclass(frozen=True)
@@ -37,7 +36,7 @@ class FrameMessages:
         return self.frame.log_time_ns
 
 
-def iter_frames(reader: LogReader, frame_topic: str = "/camera/image",
+def iter_frames(reader: LogReader, frame_topic: str = TOPIC_IMAGE,
                 side_topics: Iterable[str] = (), *, tolerate_bad_side: bool = False) -> Iterator[FrameMessages]:
     """Yield a :class:`FrameMessages` per message on ``frame_topic``, in log-time order.
 

@@ -50,14 +50,10 @@ from rollingstar.estimators.diagnosis.observations import (
     frame_reference_times,
 )
 from rollingstar.logs.reader import LogReader
-from rollingstar.logs.records import stars_to_arrays
+from rollingstar.logs.topics import TOPIC_EST_ATTITUDE, TOPIC_EST_STARS
 from rollingstar.pipelines.config import PipelineConfig, load_pipeline
 from rollingstar.sensors import build
-from rollingstar.sensors.scenario import (
-    ScenarioConfig,
-    load_scenario,
-    scenario_from_yaml,
-)
+from rollingstar.sensors.scenario import ScenarioConfig, load_scenario
 
 # Tracking gate 30 px: the second frame is predicted without a rate (the identifier extrapolates
 # from two estimates), and 2 deg/s over a 130 ms frame period moves stars ~20 px on a 4380 px focal
@@ -99,10 +95,7 @@ class DiagnoseOptions:
 
 # ---------------------------------------------------------------------------------------- loading
 def recording_scenario(recording: Path) -> ScenarioConfig:
-    meta = LogReader(recording).metadata()
-    if "scenario" not in meta or "yaml" not in meta["scenario"]:
-        raise UserError(f"{recording}: the recording declares no sensor model (metadata 'scenario'); pass --sim SCENARIO.yaml")
-    return scenario_from_yaml(meta["scenario"]["yaml"], f"{recording} (metadata 'scenario')")
+    return LogReader(recording).scenario("pass --sim SCENARIO.yaml")
 
 
 def default_pipeline() -> PipelineConfig:
@@ -116,21 +109,17 @@ def fallback_pipeline() -> PipelineConfig:
 
 def run_and_read(recording: Path, pipeline: PipelineConfig, source: str, show_progress: bool):
     """Run ``pipeline`` on the recording; per frame the identified stars and the first valid attitude."""
-    from rollingstar.pipelines.runner import (
-        TOPIC_EST_ATTITUDE,
-        TOPIC_EST_STARS,
-        run_pipeline,
-    )
+    from rollingstar.pipelines.runner import run_pipeline
 
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "diagnose_run.mcap"
         run_pipeline(recording, pipeline, out, pipeline_source=source, show_progress=show_progress)
-        stars, att = {}, {}
-        for m in LogReader(out).messages([TOPIC_EST_STARS, TOPIC_EST_ATTITUDE]):
+        reader = LogReader(out)
+        stars = {k: (s["t0_ns"], s) for k, s in reader.stars(TOPIC_EST_STARS).items()}
+        att = {}
+        for m in reader.messages([TOPIC_EST_ATTITUDE]):
             d = m.data
-            if m.topic == TOPIC_EST_STARS:
-                stars[int(d["frame"])] = (int(d["t0_ns"]), stars_to_arrays(d))
-            elif d.get("valid") and d.get("q") is not None and int(d["frame"]) not in att:
+            if d.get("valid") and d.get("q") is not None and int(d["frame"]) not in att:
                 q = d["q"]
                 att[int(d["frame"])] = np.array([q["x"], q["y"], q["z"], q["w"]], dtype=float)
     return stars, att
@@ -215,19 +204,10 @@ def read_gyro(recording: Path, scenario: ScenarioConfig):
 
     The angle random walk comes from the scenario's gyro model (0 when it declares none: the
     increment noise is then the attitude error of the image fit alone)."""
-    from rollingstar.pipelines.simulate import TOPIC_GYRO
-
-    reader = LogReader(recording)
-    if TOPIC_GYRO not in reader.topics():
+    gyro = LogReader(recording).gyro()
+    if gyro["t_ns"].size == 0:
         return None
-    t, w = [], []
-    for m in reader.messages([TOPIC_GYRO]):
-        d = m.data
-        t.append(np.asarray(d["t_ns"], dtype=np.int64))
-        w.append(np.stack([d["x"], d["y"], d["z"]], axis=-1).astype(float))
-    if not t:
-        return None
-    t, w = np.concatenate(t), np.concatenate(w)
+    t, w = gyro["t_ns"], gyro["omega_rad_s"]
     order = np.argsort(t, kind="stable")
     t, w = t[order], w[order]
     keep = np.concatenate([[True], np.diff(t) > 0])  # a sample published twice at a frame boundary

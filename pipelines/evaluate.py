@@ -16,22 +16,19 @@ that combine frames, which the single-frame bound does not cover).
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from rollingstar.errors import UserError
 from rollingstar.logs.reader import LogReader
-from rollingstar.logs.records import stars_to_arrays
-from rollingstar.pipelines.runner import (
+from rollingstar.logs.topics import (
     TOPIC_EST_ATTITUDE,
     TOPIC_EST_FRAME,
     TOPIC_EST_RATE,
     TOPIC_EST_STARS,
+    TOPIC_TRUTH_STARS,
 )
-from rollingstar.pipelines.simulate import TOPIC_TRUTH_ATTITUDE, TOPIC_TRUTH_STARS
 from rollingstar.pipelines.truth import (
     TruthTrajectory,
     attitude_crb_rad2,
@@ -40,7 +37,6 @@ from rollingstar.pipelines.truth import (
 )
 from rollingstar.sensors import build
 from rollingstar.sensors.conventions import RAD_TO_ARCSEC, attitude_error_body_arcsec
-from rollingstar.sensors.scenario import scenario_from_yaml
 
 PAIR_MATCH_RADIUS_PX = 3.0
 
@@ -53,47 +49,23 @@ def _stats(values: np.ndarray) -> dict[str, float | None]:
     return {"rmse": float(np.sqrt(np.mean(v**2))), "max": float(np.max(np.abs(v)))}
 
 
-def _num(x) -> float | None:
-    return None if x is None or not math.isfinite(x) else float(x)
-
-
 def evaluate_log(path: str | Path) -> dict:
     """Compute the metrics dictionary (``rollingstar evaluate --json``) for an output log."""
     reader = LogReader(path)
-    meta = reader.metadata()
-    if "scenario" not in meta:
-        raise UserError(f"{path}: no 'scenario' metadata: cannot evaluate without the sensor model")
-    scenario = scenario_from_yaml(meta["scenario"]["yaml"], f"{path} (metadata 'scenario')")
+    scenario = reader.scenario("cannot evaluate without it")
     camera = build.build_camera(scenario)
     timing = build.build_timing(scenario)
     effects = build.build_effects(scenario)
     reader.require_topics([TOPIC_EST_FRAME])
 
-    truth_t, truth_q, truth_w = [], [], []
-    truth_stars: dict[int, dict] = {}
-    est_stars: dict[int, dict] = {}
-    attitudes, rates, frames = [], [], []
-    for m in reader.messages([TOPIC_TRUTH_ATTITUDE, TOPIC_TRUTH_STARS, TOPIC_EST_STARS, TOPIC_EST_ATTITUDE,
-                              TOPIC_EST_RATE, TOPIC_EST_FRAME]):
-        d = m.data
-        if m.topic == TOPIC_TRUTH_ATTITUDE:
-            truth_t.append(np.asarray(d["t_ns"], dtype=np.int64))
-            truth_q.append(np.column_stack([d["qx"], d["qy"], d["qz"], d["qw"]]))
-            truth_w.append(np.column_stack([d["wx"], d["wy"], d["wz"]]))
-        elif m.topic == TOPIC_TRUTH_STARS:
-            truth_stars[int(d["frame"])] = stars_to_arrays(d)
-        elif m.topic == TOPIC_EST_STARS:
-            est_stars[int(d["frame"])] = {**stars_to_arrays(d), "t0_ns": d.get("t0_ns")}  # t0: effects' context
-        elif m.topic == TOPIC_EST_ATTITUDE:
-            attitudes.append(d)
-        elif m.topic == TOPIC_EST_RATE:
-            rates.append(d)
-        else:
-            frames.append(d)
-
-    truth = None
-    if truth_t:
-        truth = TruthTrajectory(np.concatenate(truth_t), np.concatenate(truth_q), np.concatenate(truth_w))
+    samples = reader.truth_attitude()
+    truth = TruthTrajectory(**samples) if samples["t_ns"].size else None
+    truth_stars = reader.stars(TOPIC_TRUTH_STARS)
+    est_stars = reader.stars(TOPIC_EST_STARS)  # with each frame's t0_ns: the effects' context needs it
+    records: dict[str, list[dict]] = {TOPIC_EST_ATTITUDE: [], TOPIC_EST_RATE: [], TOPIC_EST_FRAME: []}
+    for m in reader.messages(list(records)):
+        records[m.topic].append(m.data)
+    attitudes, rates, frames = records[TOPIC_EST_ATTITUDE], records[TOPIC_EST_RATE], records[TOPIC_EST_FRAME]
 
     valid = [a for a in attitudes if a.get("valid") and a.get("q") is not None]
     n_frames = len(frames)

@@ -25,8 +25,7 @@ from pathlib import Path
 from rollingstar.errors import UserError
 from rollingstar.logs.errors import LogFormatError, TruncatedLogWarning
 from rollingstar.logs.reader import LogReader, Message
-
-TRUTH_TOPICS = ("/truth/attitude", "/truth/stars")
+from rollingstar.logs.topics import TOPIC_EST_ATTITUDE, TOPIC_EST_FRAME, TOPIC_EST_POSE, TOPIC_EST_SPOTS, TRUTH_TOPICS
 
 
 @dataclass
@@ -60,10 +59,10 @@ def load_partial(output: Path, metadata: dict[str, dict[str, str]]) -> Partial:
                 raise UserError(f"--resume: {output} was written by a different {name} "
                                 f"(its metadata '{name}' differs from this run's); remove it or choose another -o")
         messages = list(reader.messages())
-    done = {int(m.data["frame"]) for m in messages if m.topic == "/estimate/frame"}
-    t0_done = {int(m.data["t0_ns"]) for m in messages if m.topic == "/estimate/frame"}
+    done = {int(m.data["frame"]) for m in messages if m.topic == TOPIC_EST_FRAME}
+    t0_done = {int(m.data["t0_ns"]) for m in messages if m.topic == TOPIC_EST_FRAME}
     att_times = {int(m.data["t_ns"]) for m in messages
-                 if m.topic == "/estimate/attitude" and int(m.data["frame"]) in done and m.data["valid"]}
+                 if m.topic == TOPIC_EST_ATTITUDE and int(m.data["frame"]) in done and m.data["valid"]}
     part = Partial(done=done)
     for m in messages:
         if m.topic in TRUTH_TOPICS:
@@ -71,9 +70,9 @@ def load_partial(output: Path, metadata: dict[str, dict[str, str]]) -> Partial:
             part.truth_keys.add((m.topic, m.log_time_ns))
         elif isinstance(m.data, dict) and "frame" in m.data:
             keep = int(m.data["frame"]) in done
-        elif m.topic == "/estimate/spots":
+        elif m.topic == TOPIC_EST_SPOTS:
             keep = m.log_time_ns in t0_done
-        elif m.topic == "/estimate/pose":
+        elif m.topic == TOPIC_EST_POSE:
             keep = m.log_time_ns in att_times
         else:
             keep = False

@@ -14,6 +14,13 @@ import numpy as np
 
 from rollingstar.config import to_yaml
 from rollingstar.logs.records import AttitudeSamples, GyroSamples, arrays_to_stars
+from rollingstar.logs.topics import (
+    TOPIC_CENTROIDS,
+    TOPIC_GYRO,
+    TOPIC_IMAGE,
+    TOPIC_TRUTH_ATTITUDE,
+    TOPIC_TRUTH_STARS,
+)
 from rollingstar.logs.writer import LogWriter
 from rollingstar.pipelines.interrupt import Interrupted, stop_on_sigint
 from rollingstar.progress import progress_bar
@@ -21,12 +28,6 @@ from rollingstar.sensors import build
 from rollingstar.sensors.gyro import simulate_gyro
 from rollingstar.sensors.scenario import ScenarioConfig
 from rollingstar.sensors.simulate import ImageModel, StarTrackerSimulator
-
-TOPIC_IMAGE = "/camera/image"
-TOPIC_CENTROIDS = "/camera/centroids"
-TOPIC_GYRO = "/gyro"
-TOPIC_TRUTH_ATTITUDE = "/truth/attitude"
-TOPIC_TRUTH_STARS = "/truth/stars"
 
 
 @dataclass(frozen=True)

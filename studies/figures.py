@@ -19,15 +19,11 @@ import numpy as np
 
 from rollingstar.config import CONFIGS
 from rollingstar.logs.reader import LogReader
-from rollingstar.logs.records import stars_to_arrays
+from rollingstar.logs.topics import TOPIC_TRUTH_STARS
 from rollingstar.pipelines.config import PipelineConfig, load_pipeline
 from rollingstar.pipelines.evaluate import evaluate_log
 from rollingstar.pipelines.runner import run_pipeline
-from rollingstar.pipelines.simulate import (
-    TOPIC_TRUTH_STARS,
-    build_simulator,
-    simulate_to_log,
-)
+from rollingstar.pipelines.simulate import build_simulator, simulate_to_log
 from rollingstar.sensors.scenario import ScenarioConfig, load_scenario
 
 SCENARIOS = CONFIGS / "scenarios"
@@ -71,8 +67,8 @@ def _predicted_pair_rms(rec: Path, cfg: ScenarioConfig) -> float:
     v = rate * cfg.sensor.focal_length_mm / (cfg.sensor.pixel_size_um * 1e-3)  # px/s along y at the centre
     ld = cfg.shutter.line_delay_us * 1e-6 if cfg.shutter.mode == "rolling" else 0.0
     diffs = []
-    for m in LogReader(rec).messages([TOPIC_TRUTH_STARS]):
-        y = stars_to_arrays(m.data)["y"]
+    for stars in LogReader(rec).stars(TOPIC_TRUTH_STARS).values():
+        y = stars["y"]
         i, j = np.triu_indices(len(y), k=1)
         dy = y[i] - y[j]
         diffs.append(np.abs(dy) * v * ld * np.abs(dy) / np.maximum(np.abs(dy), 1e-12))
@@ -116,9 +112,8 @@ def rolling_sweep(rates: list[float], frames: int, seed: int, tmp: Path) -> dict
 def _row_time_error_ns(rec: Path, cfg: ScenarioConfig) -> int:
     ld_ns = round(cfg.shutter.line_delay_us * 1000)
     worst = 0
-    for m in LogReader(rec).messages([TOPIC_TRUTH_STARS]):
-        s = stars_to_arrays(m.data)
-        expected = int(m.data["t0_ns"]) + np.rint(s["y"] * ld_ns).astype(np.int64)
+    for s in LogReader(rec).stars(TOPIC_TRUTH_STARS).values():
+        expected = s["t0_ns"] + np.rint(s["y"] * ld_ns).astype(np.int64)
         worst = max(worst, int(np.max(np.abs(s["row_time_ns"] - expected), initial=0)))
     return worst
 

@@ -18,7 +18,6 @@ from rollingstar.logs.importers.common import (
 from rollingstar.logs.importers.corr import (
     boresight_offsets,
     import_corr,
-    pointing_centre,
     pointing_centres,
 )
 from rollingstar.logs.importers.images import import_images, read_image
@@ -31,6 +30,6 @@ from rollingstar.logs.importers.sidecar import (
 
 __all__ = [
     "CameraSpec", "ImportDataError", "ImportDataWarning", "RecordingSidecar", "boresight_offsets",
-    "import_centroids", "import_corr", "import_images", "import_warnings", "load_camera", "load_sidecar", "pointing_centre",
+    "import_centroids", "import_corr", "import_images", "import_warnings", "load_camera", "load_sidecar",
     "pointing_centres", "read_image",
 ]

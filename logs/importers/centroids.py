@@ -36,10 +36,11 @@ from rollingstar.logs.importers.common import (
 )
 from rollingstar.logs.importers.sidecar import CameraSpec, load_camera, scenario_for
 from rollingstar.logs.records import arrays_to_stars
+from rollingstar.logs.topics import TOPIC_CENTROIDS
 from rollingstar.logs.writer import LogWriter
+from rollingstar.sensors.build import build_timing
 from rollingstar.sensors.conventions import radec_to_unit
 
-TOPIC_CENTROIDS = "/camera/centroids"
 REQUIRED = ("frame", "x", "y", "flux")
 OPTIONAL = ("sigma_px", "snr", "peak", "npix", "saturated", "catalog_id", "ra_deg", "dec_deg", "magnitude")
 
@@ -122,8 +123,6 @@ def read_centroid_table(path: str | Path, camera: CameraSpec, log: WarningLog | 
 
 def import_centroids(csv: str | Path, out: str | Path, camera: CameraSpec | str | Path) -> Path:
     """Import the centroid table ``csv`` into the recording ``out`` with ``camera``; returns ``out``."""
-    from rollingstar.sensors.build import build_timing
-
     csv = Path(csv)
     out = output_path(out)
     if camera is None:

@@ -17,6 +17,7 @@ from typing import Iterable
 import numpy as np
 
 from rollingstar.errors import UserError
+from rollingstar.logs.reader import LogReader
 from rollingstar.sensors.conventions import seconds_to_ns
 
 
@@ -214,8 +215,6 @@ def output_path(out: str | Path) -> Path:
 
 def import_warnings(recording: str | Path) -> list[str]:
     """The warnings an import emitted, as kept in the log's ``import.warnings`` metadata."""
-    from rollingstar.logs.reader import LogReader
-
     meta = LogReader(recording).metadata().get("import")
     if meta is None:
         raise ImportDataError(f"{recording}: not a log written by `rollingstar import` (no 'import' metadata)")
@@ -224,8 +223,6 @@ def import_warnings(recording: str | Path) -> list[str]:
 
 def describe_log(out: Path) -> str:
     """One line about an imported log (for the CLI): messages per topic and the camera's focal length."""
-    from rollingstar.logs.reader import LogReader
-
     reader = LogReader(out)
     details = json.loads(reader.metadata().get("import", {}).get("details", "{}"))
     parts = ", ".join(f"{t.message_count} on {t.topic}" for t in reader.summary_info().topics.values())

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from scipy.spatial.transform import Rotation
 
 from rollingstar.config import format_validation_error, to_yaml
 from rollingstar.logs.importers.common import (
@@ -45,12 +46,14 @@ from rollingstar.logs.importers.sidecar import (
     CameraSpec,
     scenario_for,
 )
+from rollingstar.logs.reader import LogReader
 from rollingstar.logs.records import arrays_to_stars
+from rollingstar.logs.topics import TOPIC_CENTROIDS, TOPIC_EST_ATTITUDE
 from rollingstar.logs.writer import LogWriter
-from rollingstar.sensors.conventions import radec_to_unit
+from rollingstar.sensors.build import build_timing
+from rollingstar.sensors.conventions import quat_from_fields, radec_roll_from_attitude, radec_to_unit
 from rollingstar.sensors.scenario import AttitudeConfig
 
-TOPIC_CENTROIDS = "/camera/centroids"
 FRAME_SPACING_NS = 1_000_000_000
 FOV_TOLERANCE = 0.01
 """Largest relative spread of log.json fields of view within one recording (one camera)."""
@@ -220,7 +223,7 @@ def read_corr_table(path: str | Path, log: WarningLog | None = None) -> dict[str
     Required: ``field_x, field_y, index_ra, index_dec``; optional: ``index_id, FLUX, index_x,
     index_y, match_weight``. Rows with a non-finite required value are dropped with a warning.
     """
-    from astropy.io import fits
+    from astropy.io import fits  # here, not at the top: astropy takes ~0.3 s to import and only FITS tables need it
 
     path = Path(path)
     log = log or WarningLog()
@@ -353,8 +356,6 @@ def import_corr(folder: str | Path, out: str | Path) -> Path:
     scenario = scenario_for(cam, name=f"import:{root.name}", level="centroid", frames=len(frames),
                             description=f"astrometry.net corr tables imported from {root}",
                             centroid_sigma_px=sigma, initial_attitude=prior, frame_period_ms=FRAME_SPACING_NS * 1e-6)
-    from rollingstar.sensors.build import build_timing
-
     timing = build_timing(scenario)
     details = {
         "focal_px": cam.focal_px, "fov_deg": fov, "fov_rule": "focal_px = hypot(W, H) / radians(fov_deg)",
@@ -379,16 +380,8 @@ def import_corr(folder: str | Path, out: str | Path) -> Path:
     return out
 
 
-def pointing_centre(folder: str | Path) -> tuple[float, float]:
-    """(ra_deg, dec_deg) of the pointing centre astrometry.net found, from the folder's log.json."""
-    meta = read_log_json(_json_in(Path(folder)))
-    return meta.center.ra_degrees, meta.center.dec_degrees
-
-
 def pointing_centres(recording: str | Path) -> dict[int, dict]:
     """Frame index -> that frame's ``import.details.frames`` entry (folder, ra_deg, dec_deg, ...)."""
-    from rollingstar.logs.reader import LogReader
-
     meta = LogReader(recording).metadata().get("import", {})
     if meta.get("format") != "corr":
         raise ImportDataError(f"{recording}: not a recording made by `rollingstar import corr`")
@@ -402,17 +395,9 @@ def boresight_offsets(recording: str | Path, run_output: str | Path) -> list[dic
     ``/estimate/attitude`` of each frame is used. Frames without a valid estimate get
     ``offset_deg = None`` and the estimate's reason.
     """
-    from scipy.spatial.transform import Rotation
-
-    from rollingstar.logs.reader import LogReader
-    from rollingstar.sensors.conventions import (
-        quat_from_fields,
-        radec_roll_from_attitude,
-    )
-
     centres = pointing_centres(recording)
     estimates: dict[int, dict] = {}
-    for msg in LogReader(run_output).messages("/estimate/attitude"):
+    for msg in LogReader(run_output).messages(TOPIC_EST_ATTITUDE):
         d = msg.data
         if d["frame"] not in estimates or (d["valid"] and not estimates[d["frame"]]["valid"]):
             estimates[d["frame"]] = d

@@ -27,6 +27,7 @@ from rollingstar.logs.importers.common import (
     output_path,
     read_csv,
     time_column,
+    warn,
 )
 from rollingstar.logs.importers.sidecar import (
     DEFAULT_FRAME_RATE_HZ,
@@ -38,13 +39,11 @@ from rollingstar.logs.importers.sidecar import (
     scenario_for,
 )
 from rollingstar.logs.records import AttitudeSamplesRecord, GyroSamplesRecord
+from rollingstar.logs.topics import TOPIC_GYRO, TOPIC_IMAGE, TOPIC_TRUTH_ATTITUDE
 from rollingstar.logs.writer import LogWriter
 from rollingstar.progress import progress_bar
 
 SIDECAR_NAMES = ("recording.yaml", "recording.yml")
-TOPIC_IMAGE = "/camera/image"
-TOPIC_GYRO = "/gyro"
-TOPIC_TRUTH_ATTITUDE = "/truth/attitude"
 
 _MODES_16 = ("I;16", "I;16L", "I;16B", "I;16N")
 
@@ -67,8 +66,6 @@ def read_image(path: str | Path) -> np.ndarray:
             elif mode == "I":
                 arr = np.asarray(im)
             elif mode in ("RGB", "RGBA", "P", "LA", "CMYK", "YCbCr", "PA", "La"):
-                from rollingstar.logs.importers.common import warn
-
                 warn(f"{path}: colour image (mode {mode}) converted to 8-bit luminance; "
                      "star trackers normally record raw greyscale")
                 arr = np.asarray(im.convert("L"))

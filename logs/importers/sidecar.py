@@ -5,7 +5,7 @@ docs/log-format.md "Importing recordings"). A camera file describes the sensor (
 detector size, shutter); a recording sidecar describes one folder of images (which files, their
 times, optional gyro and truth CSVs) and either holds the camera inline or names a camera file.
 
-:func:`scenario_for` turns a camera into the :class:`~rollingstar.pipelines.config.ScenarioConfig` a log must
+:func:`scenario_for` turns a camera into the :class:`~rollingstar.sensors.scenario.ScenarioConfig` a log must
 declare (metadata ``scenario``) so that ``rollingstar run`` builds the sensor context from it.
 """
 from __future__ import annotations
@@ -161,8 +161,6 @@ class RecordingSidecar(_Strict):
 
 def load_model(model: type[_Strict], path: str | Path):
     """Read and validate a YAML file; errors name the file and the key path."""
-    from pydantic import ValidationError
-
     data = read_yaml(path)
     try:
         return model.model_validate(data)

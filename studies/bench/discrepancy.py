@@ -213,8 +213,8 @@ def simulate_mixed(cfg: ScenarioConfig, output: Path) -> None:
     """
     from rollingstar.config import to_yaml
     from rollingstar.logs.reader import LogReader
+    from rollingstar.logs.topics import TOPIC_CENTROIDS, TOPIC_TRUTH_STARS
     from rollingstar.logs.writer import LogWriter
-    from rollingstar.pipelines.simulate import TOPIC_CENTROIDS, TOPIC_TRUTH_STARS
 
     (cfg_a, _), (cfg_b, odd) = mixed_parts(cfg)
     pa, pb = output.with_suffix(".a.mcap"), output.with_suffix(".b.mcap")
