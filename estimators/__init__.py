@@ -2,5 +2,6 @@
 
 Roles: ``centroider``, ``identifier``, ``filter`` (star motion), ``correction`` (rolling shutter),
 ``attitude`` (solvers and smoothers), ``rate`` (angular-rate estimators).
-Every plugin passes its role's shared conformance suite (``tests/conformance``).
+Every plugin passes its role's conformance checks (:mod:`rollingstar.estimators.conformance`, which
+third-party plugins run in their own tests).
 """

@@ -6,8 +6,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from rollingstar.estimators.centroiders.cog import CogCentroider
+from rollingstar.estimators.conformance.scenes import make_scene, render
 from rollingstar.estimators.data import FrameData
-from tests.conformance.scene import make_scene, render
 
 NOISE = 5.0  # ADU, Gaussian read noise of the rendered images
 PSF = 1.2  # px

@@ -7,8 +7,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from rollingstar.estimators.centroiders.cog import CogCentroider, _robust_sigma
+from rollingstar.estimators.conformance.scenes import make_scene, render
 from rollingstar.estimators.data import FrameData
-from tests.conformance.scene import make_scene, render
 
 NOISE = 5.0
 TOL_PX = 0.1  # bright stars (>= 5000 ADU): measured max error 0.062 px over seeds 21..40 (median 0.03)

@@ -18,8 +18,8 @@ from rollingstar.estimators.centroiders.edge import (
 )
 from rollingstar.estimators.centroiders.window_kernel import any_near_edge
 from rollingstar.estimators.centroiders.windowed import WindowedCentroider
+from rollingstar.estimators.conformance.scenes import make_scene, render
 from rollingstar.estimators.data import FrameData
-from tests.conformance.scene import make_scene, render
 
 SHAPE = (64, 96)  # rows, columns
 

@@ -9,9 +9,9 @@ from scipy.spatial.transform import Rotation
 
 from rollingstar.estimators.attitude.quest import QuestSolver
 from rollingstar.estimators.attitude.wahba import quest, quest_covariance, wahba_loss
+from rollingstar.estimators.conformance.scenes import identified, make_scene
 from rollingstar.estimators.corrections.none import NoCorrection
 from rollingstar.estimators.data import FrameData
-from tests.conformance.scene import identified, make_scene
 
 MIN_SEP_RAD = np.radians(2.0)
 

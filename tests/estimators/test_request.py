@@ -13,6 +13,7 @@ from rollingstar.estimators.attitude.request import (
     propagate_k,
     transition_matrix,
 )
+from rollingstar.estimators.conformance.scenes import frames_for_role, make_scene
 from rollingstar.estimators.data import (
     FrameData,
     RateEstimate,
@@ -23,7 +24,6 @@ from rollingstar.estimators.data import (
 from rollingstar.pipelines.simulate import build_simulator, truth_sample_times
 from rollingstar.sensors.conventions import attitude_error_body_arcsec
 from rollingstar.sensors.scenario import load_scenario
-from tests.conformance.scene import frames_for_role, make_scene
 
 SCENARIO = "configs/scenarios/he2021b_table2.yaml"
 

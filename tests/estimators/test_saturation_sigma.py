@@ -8,8 +8,8 @@ from scipy.special import erf
 
 from rollingstar.estimators.centroiders.cog import CogCentroider
 from rollingstar.estimators.centroiders.saturation import clipped_cog_sigma_px
+from rollingstar.estimators.conformance.scenes import make_scene, render
 from rollingstar.estimators.data import FrameData
-from tests.conformance.scene import make_scene, render
 
 SAT, BG = 4095.0, 100.0
 S_D = SAT - BG

@@ -9,10 +9,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from rollingstar.estimators.conformance.scenes import detections, make_scene
 from rollingstar.estimators.data import AttitudeEstimate, FrameData, StarTable
 from rollingstar.estimators.identifiers.tracking import TrackingIdentifier
 from rollingstar.sensors.conventions import radec_roll_from_attitude
-from tests.conformance.scene import detections, make_scene
 
 
 def _ident(scene, **params):

@@ -7,9 +7,9 @@ from scipy.spatial.transform import Rotation
 
 from rollingstar.estimators.centroiders.cog import CogCentroider
 from rollingstar.estimators.centroiders.windowed import WindowedCentroider
+from rollingstar.estimators.conformance.scenes import make_scene, render
 from rollingstar.estimators.data import FrameData, GyroSamples
 from rollingstar.estimators.filters.gyro_kf import star_motion_jacobian
-from tests.conformance.scene import make_scene, render
 
 
 def _image(scene, x, y, flux=None, noise=0.0, seed=0):
