@@ -23,7 +23,23 @@ class NoParams(BaseModel):
 
 
 class Plugin:
-    """Base class of all plugins. Subclasses set ``role``, ``name``, ``Params`` and a docstring."""
+    """Base class of all plugins. Subclasses set ``role``, ``name``, ``Params`` and a docstring.
+
+    What the runner calls, in order, and what a plugin may override (each has a default here):
+
+    - :meth:`setup` once before the first frame (``ValueError``: the plugin cannot run on this
+      recording; the message says why);
+    - :meth:`process` for every frame, and for a stage with ``defers_output`` (a smoother)
+      :meth:`release` right after it;
+    - :meth:`finish` once at the end of the recording (not when the run was interrupted);
+    - :meth:`update_prior` on every stage with each frame once the frame's stages have run (up to
+      and including a ``defers_output`` stage, whose provisional estimate it then carries); a
+      tracking identifier takes its prior for the next frame from it. Default: nothing, False;
+    - ``needs_truth``: read before the first frame; when a stage of the pipeline declares it True,
+      every frame carries ``frame.truth`` (the recording's truth attitude samples of that frame;
+      oracle baselines on simulated recordings only). Default False; a subclass may set it as a
+      class attribute or compute it from its parameters as a property.
+    """
 
     role: ClassVar[str] = ""
     name: ClassVar[str] = ""
@@ -31,6 +47,8 @@ class Plugin:
     #: True for stages that hold frames back (smoothers): the runner then drops the provisional
     #: frame :meth:`process` returns and passes on the frames of :meth:`release` and :meth:`finish`.
     defers_output: ClassVar[bool] = False
+    #: True for oracle stages that read ``frame.truth`` (see the class docstring).
+    needs_truth: bool = False
 
     def __init__(self, **params):
         self.params = self.Params(**params)
@@ -49,6 +67,13 @@ class Plugin:
     def release(self) -> list[FrameData]:
         """Frames a ``defers_output`` stage has finalised since the last call (in frame order)."""
         return []
+
+    def update_prior(self, frame: FrameData) -> bool:
+        """Take what the next frame needs from ``frame`` (the frame after its stages ran).
+
+        Returns True when the plugin took a new prior from it. Default: takes nothing, False.
+        """
+        return False
 
     def __repr__(self) -> str:
         args = ", ".join(f"{k}={v!r}" for k, v in self.params.model_dump().items())

@@ -117,7 +117,7 @@ class CheckpointWriter:
     def save(self, state: RunState) -> None:
         if not self.enabled:
             return
-        if any(getattr(s, "defers_output", False) for s in state.stages):
+        if any(s.defers_output for s in state.stages):
             self.enabled = False  # a smoother holds frames: resume runs from the start (module docstring)
             return
         buf = io.BytesIO()

@@ -268,7 +268,7 @@ def test_saturation_flags_count_detections_and_degrade_only_all_saturated_soluti
     """``saturated_stars:N`` counts saturated detections (matched and unmatched); the attitude is
     flagged degraded only when every identified star is saturated and the attitude is valid."""
     from rollingstar.estimators.data import AttitudeEstimate, FrameData, StarTable
-    from rollingstar.pipelines.runner import _finish_frame
+    from rollingstar.pipelines.stages import finish_frame as _finish_frame
 
     def frame(sat, ids, unmatched_sat=(), valid=True):
         n = len(sat)

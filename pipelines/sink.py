@@ -1,0 +1,104 @@
+"""The sink of a run: the output log's estimate topics, and the recording's truth passed through.
+
+:class:`EstimateSink` writes each finished frame (:func:`write_frame`: its stars, spot labels,
+attitude estimates and poses, rate, and last its ``/estimate/frame`` status, which marks the
+frame complete for ``run --resume``) and counts what it wrote. On a resumed run it is given what
+the partial output already holds (:class:`~rollingstar.pipelines.resume.Partial`): those messages
+are copied once, and the frames and truth messages among them are not written again.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+
+from rollingstar.estimators.data import FrameData, StarTable
+from rollingstar.logs.reader import Message
+from rollingstar.logs.records import AttitudeEstimate as AttitudeRecord
+from rollingstar.logs.records import FrameStatus, arrays_to_stars
+from rollingstar.logs.records import RateEstimate as RateRecord
+from rollingstar.logs.writer import LogWriter
+from rollingstar.pipelines.checkpoint import add_index
+from rollingstar.pipelines.resume import Partial
+from rollingstar.sensors.conventions import quat_to_fields
+
+TOPIC_EST_STARS = "/estimate/stars"
+TOPIC_EST_SPOTS = "/estimate/spots"
+TOPIC_EST_ATTITUDE = "/estimate/attitude"
+TOPIC_EST_POSE = "/estimate/pose"
+TOPIC_EST_RATE = "/estimate/rate"
+TOPIC_EST_FRAME = "/estimate/frame"
+
+
+def new_counts() -> dict[str, int]:
+    """The sink's counters before the first frame: attitude estimates, valid ones, flagged frames."""
+    return {"att": 0, "valid": 0, "flagged": 0}
+
+
+class EstimateSink:
+    """Writes finished frames and truth messages to ``writer``.
+
+    ``kept``: what the partial output of a resumed run already holds (nothing for a fresh run).
+    ``counts`` (see :func:`new_counts`) and ``written`` (the frame indices handed to :meth:`write`,
+    as ranges) go on from a checkpoint's when given.
+    """
+
+    def __init__(self, writer: LogWriter, kept: Partial | None = None, counts: dict[str, int] | None = None,
+                 written: list[tuple[int, int]] | None = None) -> None:
+        self.writer = writer
+        self.kept = kept if kept is not None else Partial()
+        self.counts = counts if counts is not None else new_counts()
+        self.written = written if written is not None else []
+
+    def copy_kept(self) -> None:
+        """Copy the partial output's messages (a resumed run, before the first frame)."""
+        for m in self.kept.copy:
+            self.writer.write_message(m)
+
+    def write_truth(self, messages: Iterable[Message]) -> None:
+        """Pass the recording's truth messages through (those the partial output holds already excepted)."""
+        for m in messages:
+            if (m.topic, m.log_time_ns) not in self.kept.truth_keys:
+                self.writer.write_json(m.topic, m.data, m.log_time_ns)
+
+    def write(self, frames: Iterable[FrameData]) -> None:
+        """Write and count finished frames (a frame the partial output holds complete is only counted)."""
+        for frame in frames:
+            if frame.index not in self.kept.done:
+                write_frame(self.writer, frame)
+            add_index(self.written, frame.index)
+            self.counts["att"] += len(frame.attitudes)
+            self.counts["valid"] += sum(a.valid for a in frame.attitudes)
+            self.counts["flagged"] += bool(frame.flags)
+
+
+def write_frame(writer: LogWriter, frame: FrameData) -> None:
+    """One finished frame's estimates; its ``/estimate/frame`` status last."""
+    t0 = int(frame.t0_ns)
+    stars = frame.stars if frame.stars is not None else StarTable.empty()
+    writer.write_json(TOPIC_EST_STARS, arrays_to_stars(
+        frame.index, t0, x=stars.x, y=stars.y, t_ns=stars.t_ns, row_time_ns=stars.row_time_ns, flux=stars.flux,
+        peak=stars.peak, npix=stars.npix, saturated=stars.saturated, snr=stars.snr, sigma_px=stars.sigma_px,
+        vx=stars.vx, vy=stars.vy, catalog_id=stars.catalog_id, ref_icrs=stars.ref_icrs), t0)
+    if stars.n:
+        labels = [str(int(c)) if c >= 0 else "?" for c in stars.catalog_id]
+        writer.write_annotations(TOPIC_EST_SPOTS, t0, stars.x, stars.y, labels)
+    for est in frame.attitudes:
+        cov = None if est.covariance_rad2 is None else np.asarray(est.covariance_rad2, dtype=float).reshape(-1).tolist()
+        writer.write_json(TOPIC_EST_ATTITUDE, AttitudeRecord(
+            frame=frame.index, t_ns=int(est.t_ns), q=quat_to_fields(est.q_xyzw) if est.valid else None, valid=bool(est.valid),
+            reason=est.reason, n_stars=int(est.n_stars), covariance_rad2=cov,
+            gyro_bias_rad_s=None if est.gyro_bias_rad_s is None else [float(v) for v in np.ravel(est.gyro_bias_rad_s)]),
+            int(est.t_ns))
+        if est.valid:
+            writer.write_pose(TOPIC_EST_POSE, int(est.t_ns), est.q_xyzw)
+    if frame.rate is not None:
+        r = frame.rate
+        writer.write_json(TOPIC_EST_RATE, RateRecord(
+            frame=frame.index, t_ns=int(r.t_ns),
+            omega=dict(zip("xyz", map(float, r.omega_rad_s))) if r.valid else None, valid=bool(r.valid), reason=r.reason,
+            covariance=None if r.covariance is None else np.asarray(r.covariance, dtype=float).reshape(-1).tolist(),
+            iterations=r.iterations), int(r.t_ns))
+    n_det = (stars.n + (frame.unmatched.n if frame.unmatched is not None else 0))
+    writer.write_json(TOPIC_EST_FRAME, FrameStatus(frame=frame.index, t0_ns=t0, flags=list(frame.flags),
+                                                   n_detected=int(n_det), n_identified=int(stars.identified.sum())), t0)

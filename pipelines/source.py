@@ -1,0 +1,194 @@
+"""The frame source of a run: a recording's frames in log-time order, checked, with their side data.
+
+:func:`open_recording` reads what a run needs to know about a recording before its first frame
+(the sensor model it declares, which topic holds its frames). :class:`FrameSource` then replays
+it: one :class:`RecordedFrame` per frame message, the frame built from the message, checked by
+the :class:`~rollingstar.pipelines.frame_checks.FrameChecker`, carrying the gyro samples logged
+since the previous frame (and the truth attitude samples, for pipelines with an oracle stage),
+with the truth messages to pass on to the output.
+"""
+from __future__ import annotations
+
+import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from rollingstar.errors import UserError
+from rollingstar.estimators.data import (
+    FrameData,
+    GyroSamples,
+    SensorContext,
+    StarTable,
+    TruthSamples,
+)
+from rollingstar.logs.errors import LogFormatError
+from rollingstar.logs.reader import LogReader, Message
+from rollingstar.logs.records import stars_to_arrays
+from rollingstar.logs.replay import FrameMessages, image_from_raw, iter_frames
+from rollingstar.pipelines.frame_checks import FrameChecker
+from rollingstar.pipelines.interrupt import StopFlag
+from rollingstar.pipelines.simulate import (
+    TOPIC_CENTROIDS,
+    TOPIC_GYRO,
+    TOPIC_IMAGE,
+    TOPIC_TRUTH_ATTITUDE,
+    TOPIC_TRUTH_STARS,
+)
+from rollingstar.sensors.scenario import scenario_from_yaml
+
+TRUTH_TOPICS = (TOPIC_TRUTH_ATTITUDE, TOPIC_TRUTH_STARS)
+
+
+@dataclass(frozen=True)
+class Recording:
+    """An opened recording and what a run needs from it before the first frame."""
+
+    path: str | Path  # as given (messages name it so)
+    reader: LogReader
+    scenario: dict  # the metadata record 'scenario' (its 'yaml' is the sensor model)
+    context: SensorContext
+    frame_topic: str  # images, or centroids when the recording holds no images
+    n_frame_messages: int | None  # for the progress bar; None when the summary does not say
+
+    @property
+    def holds_centroids(self) -> bool:
+        """True for a centroid-level recording: the centroiders of a pipeline have nothing to do."""
+        return self.frame_topic == TOPIC_CENTROIDS
+
+
+def open_recording(path: str | Path) -> Recording:
+    """Open ``path``; a :class:`UserError` when it declares no sensor model (or holds no frames)."""
+    reader = LogReader(path)
+    meta = reader.metadata()
+    if "scenario" not in meta or "yaml" not in meta["scenario"]:
+        raise UserError(f"{path}: the recording declares no sensor model (metadata record 'scenario' with key 'yaml'); "
+                        "import real data with `rollingstar import` so that it does")
+    scenario = scenario_from_yaml(meta["scenario"]["yaml"], f"{path} (metadata 'scenario')")
+    context = SensorContext.from_scenario(scenario)
+    info = reader.summary_info()
+    topics = set(info.topics) if hasattr(info, "topics") else set(info)
+    frame_topic = TOPIC_IMAGE if TOPIC_IMAGE in topics else TOPIC_CENTROIDS
+    reader.require_topics([frame_topic])
+    counts = getattr(info, "message_counts", None)
+    total = counts.get(frame_topic) if isinstance(counts, dict) else None
+    return Recording(path, reader, meta["scenario"], context, frame_topic, total)
+
+
+@dataclass(frozen=True)
+class RecordedFrame:
+    """One frame message of the recording.
+
+    ``truth``: the truth messages logged with it, to pass on to the output. ``frame``: the frame for
+    the stages, or None when it is not to be processed: it was processed before the checkpoint the
+    run resumed from, or it is an exact duplicate of the previous frame (``duplicate``, warned).
+    """
+
+    truth: tuple[Message, ...]
+    frame: FrameData | None
+    duplicate: bool = False
+
+
+class FrameSource:
+    """The frames of ``recording`` in log-time order, checked by ``checker``.
+
+    ``with_truth``: frames carry the recording's truth attitude samples (``frame.truth``).
+    ``skip``: the first ``skip`` frame messages were processed before a checkpoint: only their truth
+    is passed on (the checker's state comes from the same checkpoint). ``delivered``: frames handed
+    to the stages before that checkpoint (it numbers the frames of an image recording).
+
+    ``frames_read`` counts the frame messages read (duplicates and skipped ones included),
+    ``delivered`` the frames handed on.
+    """
+
+    def __init__(self, recording: Recording, checker: FrameChecker, with_truth: bool = False, skip: int = 0,
+                 delivered: int = 0) -> None:
+        self.recording = recording
+        self.checker = checker
+        self.with_truth = with_truth
+        self.skip = skip
+        self.frames_read = 0
+        self.delivered = delivered
+
+    def frames(self, max_frames: int | None, stop: StopFlag) -> Iterator[RecordedFrame]:
+        """Every frame message in turn; ends before the next one once ``max_frames`` frames were
+        delivered or ``stop.requested`` (SIGINT)."""
+        groups = iter_frames(self.recording.reader, self.recording.frame_topic, [TOPIC_GYRO, *TRUTH_TOPICS],
+                             tolerate_bad_side=True)
+        for group in groups:
+            if (max_frames is not None and self.delivered >= max_frames) or stop.requested:
+                return
+            self.frames_read += 1
+            truth = tuple(m for topic in TRUTH_TOPICS for m in group.side.get(topic, []))
+            if self.frames_read <= self.skip:
+                yield RecordedFrame(truth, None)
+                continue
+            frame = self._frame(group)
+            if frame is None:
+                yield RecordedFrame(truth, None, duplicate=True)
+                continue
+            self.delivered += 1
+            yield RecordedFrame(truth, frame)
+
+    def _frame(self, group: FrameMessages) -> FrameData | None:
+        """The checked frame of ``group`` with its side data; None for a duplicate of the previous frame."""
+        msg, topic = group.frame, self.recording.frame_topic
+        try:
+            frame = frame_from_message(msg, topic, self.delivered)
+        except LogFormatError as exc:  # a record that cannot be a frame: name the file and frame
+            raise LogFormatError(f"{self.recording.path}: {topic} frame {self.delivered}: {exc}") from None
+        frame = self.checker.check(frame, msg.data)
+        if frame is None:
+            return None
+        frame = frame.evolve(gyro=gyro_from_messages(group.side.get(TOPIC_GYRO, [])))
+        for side_topic in sorted({t for t, _ in group.dropped}):  # undecodable side messages were skipped (warned)
+            frame = frame.flagged(f"side_message_invalid:{side_topic}")
+        if self.with_truth:
+            frame = frame.evolve(truth=truth_from_messages(group.side.get(TOPIC_TRUTH_ATTITUDE, [])))
+        return frame
+
+
+def frame_from_message(msg: Message, frame_topic: str, ordinal: int) -> FrameData:
+    """The frame a recording's image or centroid message holds (``ordinal``: the index of an image frame)."""
+    if frame_topic == TOPIC_IMAGE:
+        image = image_from_raw(msg)
+        return FrameData(index=ordinal, t0_ns=int(msg.log_time_ns), image=image)
+    index = int(msg.data.get("frame", ordinal))
+    stars, dropped = stars_from_record(msg.data)
+    frame = FrameData(index=index, t0_ns=int(msg.data.get("t0_ns", msg.log_time_ns)), stars=stars)
+    if dropped:
+        warnings.warn(f"{frame_topic} frame {index}: {dropped} centroid(s) with NaN/inf position dropped")
+        frame = frame.flagged(f"non_finite_input:{dropped}")
+    return frame
+
+
+def stars_from_record(data: dict) -> tuple[StarTable, int]:
+    """The centroids of a star record with a finite position, and how many were dropped."""
+    cols = stars_to_arrays(data)
+    n = len(cols["x"])
+    keep = np.isfinite(cols["x"]) & np.isfinite(cols["y"])
+    fields = {k: v for k, v in cols.items()
+              if k in StarTable.__dataclass_fields__ and k not in ("x", "y", "t_ns", "row_time_ns")}
+    table = StarTable.build(cols["x"], cols["y"], cols["t_ns"], cols.get("row_time_ns"), **fields)
+    return table.take(keep), int(n - keep.sum())
+
+
+def gyro_from_messages(messages) -> GyroSamples:
+    """The gyro samples of ``/gyro`` messages, in message order."""
+    if not messages:
+        return GyroSamples.empty()
+    t = np.concatenate([np.asarray(m.data["t_ns"], dtype=np.int64) for m in messages])
+    w = np.concatenate([np.column_stack([m.data["x"], m.data["y"], m.data["z"]]) for m in messages]).astype(float)
+    return GyroSamples(t, w)
+
+
+def truth_from_messages(messages) -> TruthSamples | None:
+    """The truth attitude samples of ``/truth/attitude`` messages; None without any."""
+    if not messages:
+        return None
+    t = np.concatenate([np.asarray(m.data["t_ns"], dtype=np.int64) for m in messages])
+    q = np.concatenate([np.column_stack([m.data[k] for k in ("qx", "qy", "qz", "qw")]) for m in messages]).astype(float)
+    w = np.concatenate([np.column_stack([m.data[k] for k in ("wx", "wy", "wz")]) for m in messages]).astype(float)
+    return TruthSamples(t, q, w)

@@ -1,0 +1,158 @@
+"""The stage pipeline of a run: a pipeline's stages applied to one frame at a time, in order.
+
+A stage may hold frames back (``defers_output``, a smoother): the frame it returns is provisional
+(a causal estimate) and is not written, but it feeds every stage's ``update_prior`` hook (e.g. the
+tracking identifier's prior for the next frame); the frames the stage releases (``release()``
+after each frame, ``finish()`` at the end of the recording) continue through the later stages
+and are written, without feeding the priors again (they are late).
+
+On a centroid recording the centroiders are skipped (the recording holds their output), and so
+are the identifiers on a frame whose stars all arrive identified (``rollingstar import`` of
+astrometry.net tables).
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+
+import numpy as np
+
+from rollingstar.errors import PipelineError, UserError
+from rollingstar.estimators.centroiders.base import Centroider
+from rollingstar.estimators.data import FrameData, SensorContext
+from rollingstar.estimators.identifiers.base import Identifier
+from rollingstar.estimators.plugin import Plugin
+
+
+def setup_stages(stages: list[Plugin], context: SensorContext, pipeline_source: str, recording) -> None:
+    """Call every stage's ``setup``; a stage that cannot work with the recording says why (no traceback)."""
+    for i, stage in enumerate(stages):
+        try:
+            stage.setup(context)
+        except ValueError as exc:
+            raise PipelineError(f"{pipeline_source}: stages[{i}] ({stage.name!r}) cannot run on {recording}: {exc}") from exc
+
+
+def zero_stage_seconds(stages: list[Plugin]) -> dict[str, float]:
+    """Each stage's time before the first frame, keyed ``"<index>:<name>"`` (the run summary's keys)."""
+    return {f"{i}:{stage.name}": 0.0 for i, stage in enumerate(stages)}
+
+
+class StagePipeline:
+    """Runs ``stages`` over frames and times them.
+
+    ``holds_centroids``: the recording holds centroids, not images (centroiders are skipped).
+    ``stage_seconds``: seconds spent in each stage so far (:func:`zero_stage_seconds` when not given).
+    """
+
+    def __init__(self, stages: list[Plugin], holds_centroids: bool, stage_seconds: dict[str, float] | None = None):
+        self.stages = stages
+        self.holds_centroids = holds_centroids
+        self.stage_seconds = stage_seconds if stage_seconds is not None else zero_stage_seconds(stages)
+
+    @property
+    def needs_truth(self) -> bool:
+        """True when a stage reads ``frame.truth`` (an oracle stage)."""
+        return any(stage.needs_truth for stage in self.stages)
+
+    def process(self, frame: FrameData) -> list[FrameData]:
+        """The frames to write after ``frame``: normally ``frame`` processed; with a smoother, the
+        frames it released (maybe none)."""
+        skip_identifiers = self._skips_identifiers(frame)
+        frame, deferred_at, released = self._run_from(0, frame, skip_identifiers)
+        for stage in self.stages:
+            stage.update_prior(frame)
+        if deferred_at is None:
+            return [finish_frame(frame)]
+        return self._run_late(deferred_at + 1, released, skip_identifiers)
+
+    def finish(self) -> Iterator[FrameData]:
+        """The frames the stages still hold at the end of the recording, stage by stage, each
+        through the stages after the one that held it."""
+        for i, stage in enumerate(self.stages):
+            start = time.perf_counter()
+            try:
+                held = stage.finish()
+            except UserError:
+                raise
+            except Exception as exc:
+                raise PipelineError(f"stage {stage.name!r} ({stage.role}) failed at the end of the recording (finish): "
+                                    f"{type(exc).__name__}: {exc}") from exc
+            self.stage_seconds[f"{i}:{stage.name}"] += time.perf_counter() - start
+            for frame in held:
+                yield from self._run_late(i + 1, [frame], self._skips_identifiers(frame))
+
+    def _skips_identifiers(self, frame: FrameData) -> bool:
+        """True for a frame of a centroid recording whose stars all carry a catalogue id and direction."""
+        stars = frame.stars
+        return (self.holds_centroids and stars is not None and stars.n > 0 and bool(stars.identified.all())
+                and bool(np.isfinite(stars.ref_icrs).all()))
+
+    def _skips(self, stage: Plugin, skip_identifiers: bool) -> bool:
+        return ((self.holds_centroids and isinstance(stage, Centroider))
+                or (skip_identifiers and isinstance(stage, Identifier)))
+
+    def _run_from(self, first: int, frame: FrameData,
+                  skip_identifiers: bool) -> tuple[FrameData, int | None, list[FrameData]]:
+        """``frame`` through ``stages[first:]``, up to the first stage that defers its output.
+
+        Returns the frame, the index of that stage (None when every stage ran) and the frames it released.
+        """
+        for i in range(first, len(self.stages)):
+            stage = self.stages[i]
+            if self._skips(stage, skip_identifiers):
+                continue
+            frame, released = self._call(i, frame)
+            if stage.defers_output:
+                return frame, i, released
+        return frame, None, []
+
+    def _run_late(self, first: int, frames: list[FrameData], skip_identifiers: bool) -> list[FrameData]:
+        """Frames released by a deferring stage, through ``stages[first:]`` one after the other (a
+        later deferring stage's releases go on before the next frame), ready to write."""
+        done = []
+        pending = [(first, frame) for frame in reversed(frames)]  # a stack: the next frame is last
+        while pending:
+            first, frame = pending.pop()
+            frame, deferred_at, released = self._run_from(first, frame, skip_identifiers)
+            if deferred_at is None:
+                done.append(finish_frame(frame))
+            else:
+                pending.extend((deferred_at + 1, f) for f in reversed(released))
+        return done
+
+    def _call(self, i: int, frame: FrameData) -> tuple[FrameData, list[FrameData]]:
+        """Stage ``i`` on ``frame``, timed: the processed frame and what the stage released."""
+        stage = self.stages[i]
+        try:
+            start = time.perf_counter()
+            frame = stage.process(frame)
+            released = stage.release() if stage.defers_output else []
+            self.stage_seconds[f"{i}:{stage.name}"] += time.perf_counter() - start
+        except UserError:
+            raise
+        except Exception as exc:  # a plugin that raises: name it and the frame, keep what was written
+            raise PipelineError(f"stage {stage.name!r} ({stage.role}) failed on frame {frame.index} "
+                                f"(t0 = {frame.t0_ns} ns): {type(exc).__name__}: {exc}") from exc
+        return frame, released
+
+
+def finish_frame(frame: FrameData) -> FrameData:
+    """Frame flags that need every stage's output.
+
+    - ``too_few_stars``: fewer than 2 identified stars and no valid attitude;
+    - ``saturated_stars:N``: N detections (identified or not) reached the saturation level;
+    - ``attitude_degraded:all_stars_saturated``: a valid attitude made from saturated stars only
+      (it is kept: the centroider's ``sigma_px`` of clipped spots, and so the covariance, is inflated
+      for them, but the user should know the frame is not a normal one).
+    """
+    if frame.stars is not None and frame.stars.identified.sum() < 2 and not any(a.valid for a in frame.attitudes):
+        frame = frame.flagged("too_few_stars")
+    if frame.stars is not None:
+        n_sat = int(frame.stars.saturated.sum()) + (int(frame.unmatched.saturated.sum()) if frame.unmatched is not None else 0)
+        if n_sat:
+            frame = frame.flagged(f"saturated_stars:{n_sat}")
+        used = frame.stars.identified
+        if used.any() and frame.stars.saturated[used].all() and any(a.valid for a in frame.attitudes):
+            frame = frame.flagged("attitude_degraded:all_stars_saturated")
+    return frame
