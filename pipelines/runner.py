@@ -49,7 +49,7 @@ from rollingstar.pipelines.source import TRUTH_TOPICS, FrameSource, Recording, o
 from rollingstar.pipelines.stages import StagePipeline, setup_stages, zero_stage_seconds
 from rollingstar.progress import progress_bar
 
-# The estimate topics are defined with the sink; importers of the runner find them here too.
+# The estimate topics (defined in rollingstar.logs.topics, written by the sink); importers of the runner find them here too.
 __all__ = ["TOPIC_EST_ATTITUDE", "TOPIC_EST_FRAME", "TOPIC_EST_POSE", "TOPIC_EST_RATE", "TOPIC_EST_SPOTS",
            "TOPIC_EST_STARS", "TRUTH_TOPICS", "RunSummary", "build_stages", "run_pipeline"]
 

@@ -17,17 +17,18 @@ from rollingstar.logs.reader import Message
 from rollingstar.logs.records import AttitudeEstimate as AttitudeRecord
 from rollingstar.logs.records import FrameStatus, arrays_to_stars
 from rollingstar.logs.records import RateEstimate as RateRecord
+from rollingstar.logs.topics import (
+    TOPIC_EST_ATTITUDE,
+    TOPIC_EST_FRAME,
+    TOPIC_EST_POSE,
+    TOPIC_EST_RATE,
+    TOPIC_EST_SPOTS,
+    TOPIC_EST_STARS,
+)
 from rollingstar.logs.writer import LogWriter
 from rollingstar.pipelines.checkpoint import add_index
 from rollingstar.pipelines.resume import Partial
 from rollingstar.sensors.conventions import quat_to_fields
-
-TOPIC_EST_STARS = "/estimate/stars"
-TOPIC_EST_SPOTS = "/estimate/spots"
-TOPIC_EST_ATTITUDE = "/estimate/attitude"
-TOPIC_EST_POSE = "/estimate/pose"
-TOPIC_EST_RATE = "/estimate/rate"
-TOPIC_EST_FRAME = "/estimate/frame"
 
 
 def new_counts() -> dict[str, int]:

@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 
-from rollingstar.errors import UserError
 from rollingstar.estimators.data import (
     FrameData,
     GyroSamples,
@@ -26,20 +25,17 @@ from rollingstar.estimators.data import (
 )
 from rollingstar.logs.errors import LogFormatError
 from rollingstar.logs.reader import LogReader, Message
-from rollingstar.logs.records import stars_to_arrays
+from rollingstar.logs.records import join_attitude_samples, join_gyro_samples, stars_to_arrays
 from rollingstar.logs.replay import FrameMessages, image_from_raw, iter_frames
-from rollingstar.pipelines.frame_checks import FrameChecker
-from rollingstar.pipelines.interrupt import StopFlag
-from rollingstar.pipelines.simulate import (
+from rollingstar.logs.topics import (
     TOPIC_CENTROIDS,
     TOPIC_GYRO,
     TOPIC_IMAGE,
     TOPIC_TRUTH_ATTITUDE,
-    TOPIC_TRUTH_STARS,
+    TRUTH_TOPICS,
 )
-from rollingstar.sensors.scenario import scenario_from_yaml
-
-TRUTH_TOPICS = (TOPIC_TRUTH_ATTITUDE, TOPIC_TRUTH_STARS)
+from rollingstar.pipelines.frame_checks import FrameChecker
+from rollingstar.pipelines.interrupt import StopFlag
 
 
 @dataclass(frozen=True)
@@ -63,10 +59,7 @@ def open_recording(path: str | Path) -> Recording:
     """Open ``path``; a :class:`UserError` when it declares no sensor model (or holds no frames)."""
     reader = LogReader(path)
     meta = reader.metadata()
-    if "scenario" not in meta or "yaml" not in meta["scenario"]:
-        raise UserError(f"{path}: the recording declares no sensor model (metadata record 'scenario' with key 'yaml'); "
-                        "import real data with `rollingstar import` so that it does")
-    scenario = scenario_from_yaml(meta["scenario"]["yaml"], f"{path} (metadata 'scenario')")
+    scenario = reader.scenario("import real data with `rollingstar import` so that it does")
     context = SensorContext.from_scenario(scenario)
     info = reader.summary_info()
     topics = set(info.topics) if hasattr(info, "topics") else set(info)
@@ -179,16 +172,13 @@ def gyro_from_messages(messages) -> GyroSamples:
     """The gyro samples of ``/gyro`` messages, in message order."""
     if not messages:
         return GyroSamples.empty()
-    t = np.concatenate([np.asarray(m.data["t_ns"], dtype=np.int64) for m in messages])
-    w = np.concatenate([np.column_stack([m.data["x"], m.data["y"], m.data["z"]]) for m in messages]).astype(float)
-    return GyroSamples(t, w)
+    samples = join_gyro_samples(m.record for m in messages)
+    return GyroSamples(samples["t_ns"], samples["omega_rad_s"])
 
 
 def truth_from_messages(messages) -> TruthSamples | None:
     """The truth attitude samples of ``/truth/attitude`` messages; None without any."""
     if not messages:
         return None
-    t = np.concatenate([np.asarray(m.data["t_ns"], dtype=np.int64) for m in messages])
-    q = np.concatenate([np.column_stack([m.data[k] for k in ("qx", "qy", "qz", "qw")]) for m in messages]).astype(float)
-    w = np.concatenate([np.column_stack([m.data[k] for k in ("wx", "wy", "wz")]) for m in messages]).astype(float)
-    return TruthSamples(t, q, w)
+    samples = join_attitude_samples(m.record for m in messages)
+    return TruthSamples(samples["t_ns"], samples["q_xyzw"], samples["omega_rad_s"])
