@@ -16,7 +16,7 @@ from rollingstar.estimators.filters.base import StarMotionFilter
 from rollingstar.estimators.filters.kf_cv import KfCvFilter
 from rollingstar.estimators.identifiers.tracking import TrackingIdentifier
 from rollingstar.estimators.plugin import Plugin
-from rollingstar.estimators.rates.ls_rate import LsRateEstimator
+from rollingstar.estimators.rates.base import RateEstimator
 
 
 class DifferenceFilter(StarMotionFilter):
@@ -101,7 +101,7 @@ class RelabelOnlyCorrection(TimeDomainCorrection):
         return out.evolve(stars=out.stars.with_columns(x=frame.stars.x, y=frame.stars.y))
 
 
-class SilentRate(LsRateEstimator):
+class SilentRate(RateEstimator):
     """Never sets frame.rate."""
 
     name = "silent"
