@@ -142,6 +142,33 @@ def run(quick: bool, plots_dir: Path | None, seed: int) -> list[Row]:
     n = 30 if quick else 500
     sig0 = float(cfg.noise.centroid_sigma_px)
     workers = 1 if quick else 2
+    line_delays = LINE_DELAYS_US_QUICK if quick else LINE_DELAYS_US
+    conds = _conditions(n, sig0, seed, line_delays)
+    keys = list(conds)
+    results = dict(zip(keys, _run_all([conds[k] for k in keys], workers)))
+    elapsed = time.perf_counter() - start
+
+    row = _row_maker(pv, seed, n)
+    rows = _fig9_10_rows(row, results, params, sig0) + _fig11_12_14_rows(row, results, sig0, n)
+    # Line-delay sweep: which line delay would the paper's bounds need?
+    sweep = line_delay_sweep(results, line_delays)
+    rows += _sweep_rows(row, sweep, line_delays, pv, n, seed)
+    # Figs 6-7
+    gx, gy, vx, vy = velocity_field(ctx, (0, 0, 1), step=8)
+    rows.append(row("fig7_max_velocity_wz1", "wz = 1 deg/s, Table 1 detector", np.hypot(vx, vy).max(), unit="px/s",
+                    trials=None, note="exact field of our camera model; = r_max * wz for a rotation about the boresight"))
+    redraws = sum(r["redraws"] for r in results.values())
+    total = sum(c[3] for c in conds.values())
+    rows.append(Row("run_time", f"{total} trials in {len(conds)} conditions, {workers} process(es); "
+                    f"{redraws} pointings with < 3 stars redrawn", None, elapsed, "s", "", total, seed))
+    if plots_dir is not None:
+        _plots(Path(plots_dir), ctx, results, RATES, FIELD_RATES, SIGMAS)
+        _plot_sweep(Path(plots_dir), sweep, line_delays, pv)
+    return rows
+
+
+def _conditions(n: int, sig0: float, seed: int, line_delays) -> dict[str, tuple]:
+    """Every Monte Carlo condition of the run by key: the arguments of :func:`run_condition`."""
     conds: dict[str, tuple] = {}
 
     def add(key, omega, sigma, overrides=None, trials=n, line_delay_us=None):
@@ -162,73 +189,84 @@ def run(quick: bool, plots_dir: Path | None, seed: int) -> list[Row]:
             if kind in ("x", "y") and f"fig11_{kind}_{r}" in conds:
                 continue  # same condition as Fig 11: reuse those trials
             add(f"fig14_{kind}_{r}", om, sig0)
-    line_delays = LINE_DELAYS_US_QUICK if quick else LINE_DELAYS_US
     for ld in line_delays:
         for key, om, sg, _, _ in SWEEP:
             add(f"ld_{ld}_{key}", om, sg, line_delay_us=ld)
-    keys = list(conds)
-    results = dict(zip(keys, _run_all([conds[k] for k in keys], workers)))
-    elapsed = time.perf_counter() - start
+    return conds
 
-    def res(key):
-        return results[key]
 
-    def fig14(kind, r):
-        return res(f"fig11_{kind}_{r}") if kind in ("x", "y") else res(f"fig14_{kind}_{r}")
+def _fig14(results: dict, kind: str, r) -> dict:
+    """The trials of a Fig 14 condition (about x or y alone: those of Fig 11)."""
+    return results[f"fig11_{kind}_{r}"] if kind in ("x", "y") else results[f"fig14_{kind}_{r}"]
 
-    rows: list[Row] = []
-    base = f"pso-rate {params}; line delay 20 us (assumed); Mv <= 5.2"
 
+def _row_maker(pv: dict, seed: int, n: int):
+    """``row(qid, condition, ours, ...)``: a :class:`Row` of paper quantity ``qid`` (value and source
+    from the paper's data file)."""
     def row(qid, condition, ours, unit="deg/s", trials=n, note=""):
         p = pv[qid]
-        rows.append(Row(quantity=qid, condition=condition, paper=p["value"], ours=None if ours is None else float(ours),
-                        unit=unit, source=p["source"], trials=trials, seed=seed, note=note))
+        return Row(quantity=qid, condition=condition, paper=p["value"], ours=None if ours is None else float(ours),
+                   unit=unit, source=p["source"], trials=trials, seed=seed, note=note)
 
-    # Fig 9 / Fig 10
-    e = _norm(res("fig9_clean"))
-    row("fig9_rate_error_max", "wx = wy = 1 deg/s, sigma 0", e.max(),
-        note=f"median {np.median(e):.2g}, 95th pct {np.percentile(e, 95):.2g} deg/s; {base}")
-    row("fig9_rate_error_p95", "wx = wy = 1 deg/s, sigma 0", np.percentile(e, 95))
-    e = _norm(res("fig9_noisy"))
-    row("fig9_rate_error_median_noisy", f"wx = wy = 1 deg/s, sigma {sig0} px", np.median(e),
-        note=f"95th pct {np.percentile(e, 95):.2g}, max {e.max():.2g} deg/s")
-    e = _norm(res("fig9_paper_linear"))
-    row("fig9_rate_error_median_linear", "wx = wy = 1 deg/s, sigma 0, eqs 11-14 as printed (linear, t_ref = t0)",
-        np.median(e), note="the uniform-velocity pixel shift of eq 8 over T/2 + row delay biases the angles")
-    it = res("fig9_clean")["iters"]
-    row("fig10_iterations_fraction_below_10", "wx = wy = 1 deg/s, sigma 0", np.mean(it < 10), unit="fraction",
-        note=f"median {np.median(it):.0f}; convergence = last generation moving the global best > "
-        f"{params.get('tolerance_deg_s', 1e-3)} deg/s")
-    row("fig10_iterations_max", "wx = wy = 1 deg/s, sigma 0", it.max(), unit="generations")
-    # Fig 11
+    return row
+
+
+def _fig9_10_rows(row, results: dict, params: dict, sig0: float) -> list[Row]:
+    """Figs 9-10: rate error at wx = wy = 1 deg/s (clean, noisy, eqs as printed) and PSO generations."""
+    base = f"pso-rate {params}; line delay 20 us (assumed); Mv <= 5.2"
+    e = _norm(results["fig9_clean"])
+    rows = [row("fig9_rate_error_max", "wx = wy = 1 deg/s, sigma 0", e.max(),
+                note=f"median {np.median(e):.2g}, 95th pct {np.percentile(e, 95):.2g} deg/s; {base}"),
+            row("fig9_rate_error_p95", "wx = wy = 1 deg/s, sigma 0", np.percentile(e, 95))]
+    e = _norm(results["fig9_noisy"])
+    rows.append(row("fig9_rate_error_median_noisy", f"wx = wy = 1 deg/s, sigma {sig0} px", np.median(e),
+                    note=f"95th pct {np.percentile(e, 95):.2g}, max {e.max():.2g} deg/s"))
+    e = _norm(results["fig9_paper_linear"])
+    rows.append(row("fig9_rate_error_median_linear", "wx = wy = 1 deg/s, sigma 0, eqs 11-14 as printed (linear, t_ref = t0)",
+                    np.median(e), note="the uniform-velocity pixel shift of eq 8 over T/2 + row delay biases the angles"))
+    it = results["fig9_clean"]["iters"]
+    rows.append(row("fig10_iterations_fraction_below_10", "wx = wy = 1 deg/s, sigma 0", np.mean(it < 10), unit="fraction",
+                    note=f"median {np.median(it):.0f}; convergence = last generation moving the global best > "
+                    f"{params.get('tolerance_deg_s', 1e-3)} deg/s"))
+    rows.append(row("fig10_iterations_max", "wx = wy = 1 deg/s, sigma 0", it.max(), unit="generations"))
+    return rows
+
+
+def _fig11_12_14_rows(row, results: dict, sig0: float, n: int) -> list[Row]:
+    """Figs 11, 12 and 14: rate error against the rate, the centroid noise and the motion (field test)."""
+    rows = []
     for axis in ("x", "y"):
-        errs = {r: _norm(res(f"fig11_{axis}_{r}")) for r in RATES}
-        row(f"fig11_max_error_{axis}", f"about {axis}, 0.5-5 deg/s, sigma {sig0} px", max(v.max() for v in errs.values()),
-            trials=n * len(RATES), note="per-rate max: " + ", ".join(f"{r}: {v.max():.2g}" for r, v in errs.items()))
-        row(f"fig11_q3_error_{axis}", f"about {axis}, 0.5-5 deg/s, sigma {sig0} px, worst rate",
-            max(np.percentile(v, 75) for v in errs.values()), trials=n * len(RATES),
-            note="per-rate Q3: " + ", ".join(f"{r}: {np.percentile(v, 75):.2g}" for r, v in errs.items()))
-    # Fig 12
+        errs = {r: _norm(results[f"fig11_{axis}_{r}"]) for r in RATES}
+        rows.append(row(f"fig11_max_error_{axis}", f"about {axis}, 0.5-5 deg/s, sigma {sig0} px",
+                        max(v.max() for v in errs.values()), trials=n * len(RATES),
+                        note="per-rate max: " + ", ".join(f"{r}: {v.max():.2g}" for r, v in errs.items())))
+        rows.append(row(f"fig11_q3_error_{axis}", f"about {axis}, 0.5-5 deg/s, sigma {sig0} px, worst rate",
+                        max(np.percentile(v, 75) for v in errs.values()), trials=n * len(RATES),
+                        note="per-rate Q3: " + ", ".join(f"{r}: {np.percentile(v, 75):.2g}" for r, v in errs.items())))
     for s in SIGMAS:
-        e = _norm(res(f"fig12_{s}"))
-        row("fig12_q3_error", f"wx = 3 deg/s, sigma {s} px", np.percentile(e, 75),
-            note=f"median {np.median(e):.2g}, max {e.max():.2g}")
+        e = _norm(results[f"fig12_{s}"])
+        rows.append(row("fig12_q3_error", f"wx = 3 deg/s, sigma {s} px", np.percentile(e, 75),
+                        note=f"median {np.median(e):.2g}, max {e.max():.2g}"))
     for variant, label in (("spread", "selection=spread"), ("all", "n_stars=all")):
-        e = _norm(res(f"fig12_{variant}"))
-        row("fig12_q3_error", f"wx = 3 deg/s, sigma 0.05 px, {label}", np.percentile(e, 75),
-            note=f"median {np.median(e):.2g}, max {e.max():.2g}")
+        e = _norm(results[f"fig12_{variant}"])
+        rows.append(row("fig12_q3_error", f"wx = 3 deg/s, sigma 0.05 px, {label}", np.percentile(e, 75),
+                        note=f"median {np.median(e):.2g}, max {e.max():.2g}"))
     # Fig 14 (field test, reproduced in simulation)
     for kind in ("x", "y", "xy"):
-        rm = {r: float(np.sqrt(np.mean(fig14(kind, r)["err"] ** 2, axis=0)).max()) for r in FIELD_RATES}
-        row(f"fig14_rmse_{kind}", f"{kind} motion, 0.5-5 deg/s, sigma {sig0} px, worst axis and rate (eq 19)",
-            max(rm.values()), trials=n * len(FIELD_RATES),
-            note="per-rate RMSE: " + ", ".join(f"{r}: {v:.2g}" for r, v in rm.items()))
-    # Line-delay sweep: which line delay would the paper's bounds need?
-    sweep = line_delay_sweep(results, line_delays)
+        rm = {r: float(np.sqrt(np.mean(_fig14(results, kind, r)["err"] ** 2, axis=0)).max()) for r in FIELD_RATES}
+        rows.append(row(f"fig14_rmse_{kind}", f"{kind} motion, 0.5-5 deg/s, sigma {sig0} px, worst axis and rate (eq 19)",
+                        max(rm.values()), trials=n * len(FIELD_RATES),
+                        note="per-rate RMSE: " + ", ".join(f"{r}: {v:.2g}" for r, v in rm.items())))
+    return rows
+
+
+def _sweep_rows(row, sweep: dict, line_delays, pv: dict, n: int, seed: int) -> list[Row]:
+    """Per sweep quantity: ours at every line delay, then the line delay at which ours meets the paper."""
+    rows = []
     for key, om, sg, qid, stat in SWEEP:
         cond = f"{_sweep_condition(om, sg)}, {stat} error"
         for ld in line_delays:
-            row(qid, f"{cond}, line delay {ld:g} us (readout {ld * 1280e-3:.1f} ms)", sweep[key][ld], trials=n)
+            rows.append(row(qid, f"{cond}, line delay {ld:g} us (readout {ld * 1280e-3:.1f} ms)", sweep[key][ld], trials=n))
         implied = implied_line_delay_us(line_delays, [sweep[key][ld] for ld in line_delays], pv[qid]["value"])
         rows.append(Row("implied_line_delay", f"{cond}: line delay at which ours meets the paper's {pv[qid]['value']} deg/s",
                         None, implied, "us", "ours (log-log interpolation of the sweep; nan: not reached within "
@@ -236,17 +274,6 @@ def run(quick: bool, plots_dir: Path | None, seed: int) -> list[Row]:
                         f"readout {implied * 1280e-3:.0f} ms for the 1280 rows" if np.isfinite(implied) else
                         f"1 / line delay extrapolation from {line_delays[-1]:g} us: "
                         f"{line_delays[-1] * sweep[key][line_delays[-1]] / pv[qid]['value']:.0f} us"))
-    # Figs 6-7
-    gx, gy, vx, vy = velocity_field(ctx, (0, 0, 1), step=8)
-    row("fig7_max_velocity_wz1", "wz = 1 deg/s, Table 1 detector", np.hypot(vx, vy).max(), unit="px/s", trials=None,
-        note="exact field of our camera model; = r_max * wz for a rotation about the boresight")
-    redraws = sum(r["redraws"] for r in results.values())
-    total = sum(c[3] for c in conds.values())
-    rows.append(Row("run_time", f"{total} trials in {len(conds)} conditions, {workers} process(es); "
-                    f"{redraws} pointings with < 3 stars redrawn", None, elapsed, "s", "", total, seed))
-    if plots_dir is not None:
-        _plots(Path(plots_dir), ctx, results, RATES, FIELD_RATES, SIGMAS, fig14)
-        _plot_sweep(Path(plots_dir), sweep, line_delays, pv)
     return rows
 
 
@@ -285,11 +312,7 @@ def implied_line_delay_us(line_delays, errors, bound) -> float:
 
 
 def _plot_sweep(out: Path, sweep: dict, line_delays, pv) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for k, (key, om, sg, qid, stat) in enumerate(SWEEP):
         c = f"C{k}"
@@ -311,13 +334,25 @@ def _plot_sweep(out: Path, sweep: dict, line_delays, pv) -> None:
     plt.close(fig)
 
 
-def _plots(out: Path, ctx, results, rates, field_rates, sigmas, fig14) -> None:
+def _pyplot():
+    """matplotlib's pyplot on the Agg backend, imported only when plots are asked for."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def _plots(out: Path, ctx, results, rates, field_rates, sigmas) -> None:
     out.mkdir(parents=True, exist_ok=True)
+    _plot_velocity(out, ctx)
+    _plot_errors(out, results, rates, field_rates, sigmas)
+
+
+def _plot_velocity(out: Path, ctx) -> None:
+    """Figs 6-7: image velocity fields of the Table 1 detector."""
+    plt = _pyplot()
     # Fig 6: velocity fields for wx in (1, 5, 10), wz in (0, 0.05, 0.1) deg/s
     fig, axes = plt.subplots(3, 3, figsize=(12, 8), sharex=True, sharey=True)
     for i, wz in enumerate((0.0, 0.05, 0.1)):
@@ -343,6 +378,11 @@ def _plots(out: Path, ctx, results, rates, field_rates, sigmas, fig14) -> None:
     b.set_title("magnitude, wz = 1 deg/s")
     fig.savefig(out / "fu2022_fig7.png", dpi=80)
     plt.close(fig)
+
+
+def _plot_errors(out: Path, results, rates, field_rates, sigmas) -> None:
+    """Figs 9-12 and 14: the rate errors of the Monte Carlo conditions."""
+    plt = _pyplot()
     # Fig 9 / 10
     r = results["fig9_clean"]
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
@@ -384,7 +424,7 @@ def _plots(out: Path, ctx, results, rates, field_rates, sigmas, fig14) -> None:
     fig, axes = plt.subplots(2, 2, figsize=(10, 7))
     panels = (("x", 0, "wx, wy = 0"), ("y", 1, "wy, wx = 0"), ("xy", 0, "wx, wx = wy"), ("xy", 1, "wy, wx = wy"))
     for ax, (kind, comp, title) in zip(axes.ravel(), panels):
-        rmse = [np.sqrt(np.mean(fig14(kind, r)["err"][:, comp] ** 2)) for r in field_rates]
+        rmse = [np.sqrt(np.mean(_fig14(results, kind, r)["err"][:, comp] ** 2)) for r in field_rates]
         ax.plot(field_rates, rmse, "o-")
         ax.axhline(0.02, color="r", ls="--")
         ax.set_yscale("log")

@@ -43,6 +43,8 @@ Experiments (each trial = one simulator seed ``seed * 1000 + offset + trial``; n
 """
 from __future__ import annotations
 
+import json
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -223,7 +225,6 @@ def simulate_run(level: str, rate_xyz, r: float, seed: int, frames: int, mode: s
     kf = next(s for s in stages if s.role == "filter")
     td = next(s for s in stages if s.role == "correction")
     quest = next(s for s in stages if s.role == "attitude")
-    cam, timing = sim.camera, sim.timing
     rec = RunRecord()
     ages: dict[int, int] = {}
     for k in range(frames):
@@ -249,46 +250,56 @@ def simulate_run(level: str, rate_xyz, r: float, seed: int, frames: int, mode: s
         ages = {int(c): ages.get(int(c), -1) + 1 for c in ids}
         age = np.array([ages.get(int(c), -1) for c in filt.catalog_id], dtype=int)
         has_v = np.isfinite(filt.vx) & np.isfinite(filt.vy)
-        # filter accuracy (Figs 6-7)
         if has_v.any():
-            unit = filt.ref_icrs[has_v]
-            t = filt.t_ns[has_v]
-            p = _truth_xy(sim, unit, t)
-            v = (_truth_xy(sim, unit, t + VEL_H_NS) - _truth_xy(sim, unit, t - VEL_H_NS)) / (2 * VEL_H_NS * 1e-9)
-            pe = np.column_stack([filt.x[has_v], filt.y[has_v]]) - p
-            ve = np.column_stack([filt.vx[has_v], filt.vy[has_v]]) - v
-            rec.age.append(age[has_v])
-            rec.pos_err.append(pe)
-            rec.vel_err.append(ve)
-            # smear centroid (Fig 10): before = raw at its t_ns; after = eqs (12)-(16), refers to row start
-            old = (age[has_v] >= AGE_MIN) & cam.contains(p[:, 0], p[:, 1], margin_px=EDGE_PX)
-            if old.any():
-                raw_ok = raw.take(np.flatnonzero(has_v)[old])
-                pr = _truth_xy(sim, raw_ok.ref_icrs, raw_ok.t_ns)
-                rec.smear_before.append(np.hypot(raw_ok.x - pr[:, 0], raw_ok.y - pr[:, 1]))
-                f_ok = filt.take(np.flatnonzero(has_v)[old])
-                half_te = 0.5 * timing.exposure_ns * 1e-9  # eqs (12)-(16) with h_i = 1
-                xs, ys = f_ok.x - f_ok.vx * half_te, f_ok.y - f_ok.vy * half_te
-                ps = _truth_xy(sim, f_ok.ref_icrs, f_ok.t_ns - timing.exposure_ns // 2)
-                rec.smear_after.append(np.hypot(xs - ps[:, 0], ys - ps[:, 1]))
-        # star-pair distance (Fig 12)
+            _record_filter(rec, sim, raw, filt, age, has_v)
         if level == "centroid":
-            e, keys = _pairs(raw, sim, raw.catalog_id >= 0)
-            rec.pair_before.append((e, keys))
-            e, keys = _pairs(corr, sim, has_v & (age >= AGE_MIN))
-            rec.pair_after.append((e, keys))
-            # attitude (Figs 14-15): five well-spread stars with a converged track, the same stars before/after
-            cand = np.flatnonzero(has_v & (age >= AGE_MIN))
-            if cand.size >= N_ATT_STARS:
-                pick = cand[_spread_pick(filt.x[cand], filt.y[cand], N_ATT_STARS, cam.cx, cam.cy)]
-                for stars, out in ((raw.take(pick), rec.att_before), (corr.take(pick), rec.att_after)):
-                    err = _attitude_error(quest, frame, stars, sim, mode)
-                    if err is not None:
-                        out.append(err)
+            _record_pairs_and_attitude(rec, sim, quest, frame, raw, filt, corr, age >= AGE_MIN, has_v, mode)
         if mode == "sky":  # advance the tracking prior with the corrected solution (as the runner does)
             est = _quest(quest, corr_frame, corr.take(np.flatnonzero(corr.identified)))
             ident.update_prior(corr_frame.evolve(attitudes=(est,) if est is not None else ()))
     return rec
+
+
+def _record_filter(rec: RunRecord, sim, raw: StarTable, filt: StarTable, age: np.ndarray, has_v: np.ndarray) -> None:
+    """Filter accuracy (Figs 6-7) of the stars with a velocity, and the smear centroid (Fig 10):
+    before = raw at its t_ns; after = eqs (12)-(16), which refer to the row's exposure start."""
+    cam, timing = sim.camera, sim.timing
+    unit = filt.ref_icrs[has_v]
+    t = filt.t_ns[has_v]
+    p = _truth_xy(sim, unit, t)
+    v = (_truth_xy(sim, unit, t + VEL_H_NS) - _truth_xy(sim, unit, t - VEL_H_NS)) / (2 * VEL_H_NS * 1e-9)
+    pe = np.column_stack([filt.x[has_v], filt.y[has_v]]) - p
+    ve = np.column_stack([filt.vx[has_v], filt.vy[has_v]]) - v
+    rec.age.append(age[has_v])
+    rec.pos_err.append(pe)
+    rec.vel_err.append(ve)
+    old = (age[has_v] >= AGE_MIN) & cam.contains(p[:, 0], p[:, 1], margin_px=EDGE_PX)
+    if old.any():
+        raw_ok = raw.take(np.flatnonzero(has_v)[old])
+        pr = _truth_xy(sim, raw_ok.ref_icrs, raw_ok.t_ns)
+        rec.smear_before.append(np.hypot(raw_ok.x - pr[:, 0], raw_ok.y - pr[:, 1]))
+        f_ok = filt.take(np.flatnonzero(has_v)[old])
+        half_te = 0.5 * timing.exposure_ns * 1e-9  # eqs (12)-(16) with h_i = 1
+        xs, ys = f_ok.x - f_ok.vx * half_te, f_ok.y - f_ok.vy * half_te
+        ps = _truth_xy(sim, f_ok.ref_icrs, f_ok.t_ns - timing.exposure_ns // 2)
+        rec.smear_after.append(np.hypot(xs - ps[:, 0], ys - ps[:, 1]))
+
+
+def _record_pairs_and_attitude(rec: RunRecord, sim, quest, frame: FrameData, raw: StarTable, filt: StarTable,
+                               corr: StarTable, converged: np.ndarray, has_v: np.ndarray, mode: str) -> None:
+    """Star-pair distance errors (Fig 12) before and after correction, and the attitude error
+    (Figs 14-15) of five well-spread stars with a converged track, the same stars before and after."""
+    e, keys = _pairs(raw, sim, raw.catalog_id >= 0)
+    rec.pair_before.append((e, keys))
+    e, keys = _pairs(corr, sim, has_v & converged)
+    rec.pair_after.append((e, keys))
+    cand = np.flatnonzero(has_v & converged)
+    if cand.size >= N_ATT_STARS:
+        pick = cand[_spread_pick(filt.x[cand], filt.y[cand], N_ATT_STARS, sim.camera.cx, sim.camera.cy)]
+        for stars, out in ((raw.take(pick), rec.att_before), (corr.take(pick), rec.att_after)):
+            err = _attitude_error(quest, frame, stars, sim, mode)
+            if err is not None:
+                out.append(err)
 
 
 def _cat(lst, width=None):
@@ -382,114 +393,151 @@ def run(quick: bool, plots_dir: Path | None, seed: int) -> list[Row]:
     start = time.perf_counter()
     paper = paper_values("he2021a")
     cfg = _config(quick)
-    rows: list[Row] = []
     plot_data: dict = {"filter": {}, "smear": {}, "pair": {}, "att": {}, "sweep": {}}
-    q_lit = f"q={Q_PAPER:g} px^2/s^4"
     with progress_bar("he2021a runs", _n_runs(cfg)) as advance:
-        # ---- Figs 6-7: filter at 1 deg/s about x and y, R = 0.05
-        pv = paper["position_error_after_50_frames"]
-        vv = paper["velocity_deviation_after_50_frames"]
-        for mode in MODES:
-            for axis in cfg["filter_axes"]:
-                rate = [0.0, 0.0, 0.0]
-                rate[axis] = 1.0
-                n = cfg["filter_trials"]
-                recs = []
-                for t in range(n):
-                    recs.append(simulate_run("centroid", rate, 0.05, seed * 1000 + t, cfg["frames"], mode))
-                    advance()
-                age, pe, ve, conv = _filter_stats(recs)
-                name = "xy"[axis]
-                cond = f"{mode}: 1 deg/s about {name}, R=0.05 px^2, {q_lit}, track age >= {AGE_CONVERGED} frames"
-                per_trial = [_filter_stats([r]) for r in recs]
-                for ax in (0, 1):
-                    spread = [_rms(p[c, ax]) for _, p, _, c in per_trial]
-                    rows.append(Row(f"filtered position error {'xy'[ax]} (RMS)", cond, pv["value"], _rms(pe[conv, ax]), "px",
-                                    pv["source"], n, seed, f"{int(conv.sum())} star-frames; per trial {_span(spread)}"))
-                for ax in (0, 1):
-                    spread = [_rms(v[c, ax]) for _, _, v, c in per_trial]
-                    rows.append(Row(f"filtered velocity deviation v{'xy'[ax]} (RMS)", cond, vv["value"], _rms(ve[conv, ax]),
-                                    "px/s", vv["source"], n, seed, f"vs the true image velocity at the star's t_ns; per trial {_span(spread)}"))
-                plot_data["filter"][(mode, name)] = (age, pe, ve)
-
-        # ---- Fig 10: smear centroid, image level
-        sm = paper["smear_centroid_error_before"], paper["smear_centroid_error_after"]
-        for mode in MODES:
-            for w in cfg["image_rates"]:
-                recs = []
-                for t in range(cfg["image_trials"]):
-                    recs.append(simulate_run("image", [w, 0.0, 0.0], 0.05, seed * 1000 + 500 + t, cfg["image_frames"], mode))
-                    advance()
-                b = _rms(_cat([_cat(r.smear_before) for r in recs]))
-                a = _rms(_cat([_cat(r.smear_after) for r in recs]))
-                cond = f"{mode}: {w:g} deg/s about x, image level, {cfg['image_frames']} frames, track age >= {AGE_MIN}"
-                rows.append(Row("smear centroid error before (RMS radial)", cond, sm[0]["value"], b, "px", sm[0]["source"],
-                                cfg["image_trials"], seed, f"raw CoG vs truth at its claimed time; stars >= {EDGE_PX:g} px inside"))
-                rows.append(Row("smear centroid error after eqs 12-16 (RMS radial)", cond, sm[1]["value"], a, "px",
-                                sm[1]["source"], cfg["image_trials"], seed, "kf-cv + eqs 12-16 vs truth at the row's exposure start"))
-                plot_data["smear"][(mode, w)] = (b, a)
-
-        # ---- Fig 12 and Figs 14-15: pair distance and attitude, centroid level
-        pp = paper["pair_distance_error_after"]
-        pa = paper["attitude_error_after"]
-        cache: dict = {}
-        for mode in MODES:
-            for axis in (0, 1):
-                for r in cfg["r_values"]:
-                    for w in cfg["rates"]:
-                        rate = [0.0, 0.0, 0.0]
-                        rate[axis] = w
-                        n = cfg["pair_trials"]
-                        recs = []
-                        for t in range(n):
-                            key = (mode, tuple(rate), r, t)  # 0 deg/s about x and about y are the same run
-                            if key not in cache:
-                                cache[key] = simulate_run("centroid", rate, r, seed * 1000 + 100 + t, cfg["frames"], mode)
-                            recs.append(cache[key])
-                            advance()
-                        bf, bs, _ = _pair_stats(recs, "pair_before")
-                        af, as_, _ = _pair_stats(recs, "pair_after")
-                        cond = f"{mode}: {w:g} deg/s about {'xy'[axis]}, R={r:g} px^2"
-                        rows.append(Row("pair distance error before, systematic (RMS)", cond, None, bs, "px", pp["source"], n,
-                                        seed, f"RMS over pairs of each pair's mean error; per frame {_fmt(bf)}"))
-                        rows.append(Row("pair distance error after, per frame (RMS)", cond, pp["value"], af, "px", pp["source"],
-                                        n, seed, f"track age >= {AGE_MIN}"))
-                        spread = [_pair_stats([x], "pair_after")[1] for x in recs]
-                        rows.append(Row("pair distance error after, systematic (RMS)", cond, pp["value"], as_, "px",
-                                        pp["source"], n, seed, f"track age >= {AGE_MIN}; per trial {_span(spread)}"))
-                        plot_data["pair"][(mode, axis, r, w)] = (bf, bs, af, as_)
-                        if r == cfg["r_values"][0]:
-                            ab = _cat([np.asarray(rr.att_before).reshape(-1, 3) for rr in recs], 3)
-                            aa = _cat([np.asarray(rr.att_after).reshape(-1, 3) for rr in recs], 3)
-                            for ax, label in enumerate(("x", "y", "z")):
-                                rows.append(Row(f"attitude error {label} before (RMS, 5 stars)", cond, None, _rms(ab[:, ax]),
-                                                "arcsec", pa["source"], n, seed))
-                                spread = [_rms(np.asarray(rr.att_after).reshape(-1, 3)[:, ax]) for rr in recs]
-                                rows.append(Row(f"attitude error {label} after (RMS, 5 stars)", cond, pa["value"],
-                                                _rms(aa[:, ax]), "arcsec", pa["source"], n, seed,
-                                                f"frames with 5 tracks >= {AGE_MIN} frames old; mean |e| {_fmt(_mean_abs(aa[:, ax]))}; "
-                                                f"per trial {_span(spread)}"))
-                            plot_data["att"][(mode, axis, w)] = (
-                                np.sqrt(np.mean(ab**2, axis=0)) if len(ab) else np.full(3, np.nan),
-                                np.sqrt(np.mean(aa**2, axis=0)) if len(aa) else np.full(3, np.nan))
-
-        # ---- Q sweep (our addition: which reading of "Q = 1e-4" the paper's numbers need)
+        rows = _filter_rows(cfg, seed, paper, plot_data, advance)
+        rows += _smear_rows(cfg, seed, paper, plot_data, advance)
+        rows += _pair_and_attitude_rows(cfg, seed, paper, plot_data, advance)
         if cfg["sweep"]:
-            sw = q_sweep(MODES, cfg["sweep"]["q"], cfg["sweep"]["trials"], seed, cfg["frames"], advance)
-            for (mode, q), (pos, vel, pair) in sw.items():
-                cond = f"{mode}: q={q:.4g} px^2/s^4, 1 deg/s about x (filter) / 3 deg/s about x (pair), R=0.05 px^2"
-                n = cfg["sweep"]["trials"]
-                rows.append(Row("Q sweep: filtered position error (RMS over x, y)", cond, pv["value"],
-                                _rms(pos), "px", pv["source"], n, seed, "track age >= 50"))
-                rows.append(Row("Q sweep: filtered velocity deviation (RMS over x, y)", cond, vv["value"],
-                                _rms(vel), "px/s", vv["source"], n, seed, "track age >= 50"))
-                rows.append(Row("Q sweep: pair distance error after, systematic (RMS)", cond, pp["value"], pair, "px",
-                                pp["source"], n, seed, f"track age >= {AGE_MIN}"))
-            plot_data["sweep"] = sw
+            rows += _q_sweep_rows(cfg, seed, paper, plot_data, advance)
     elapsed = time.perf_counter() - start
     rows.append(Row("run time", "quick" if quick else "full", None, elapsed, "s", "", None, seed))
     if plots_dir is not None:
         _plots(Path(plots_dir), plot_data, cfg)
+    return rows
+
+
+def _filter_rows(cfg: dict, seed: int, paper: dict, plot_data: dict, advance) -> list[Row]:
+    """Figs 6-7: the filter at 1 deg/s about x and y, R = 0.05."""
+    pv = paper["position_error_after_50_frames"]
+    vv = paper["velocity_deviation_after_50_frames"]
+    rows = []
+    for mode in MODES:
+        for axis in cfg["filter_axes"]:
+            rate = [0.0, 0.0, 0.0]
+            rate[axis] = 1.0
+            n = cfg["filter_trials"]
+            recs = []
+            for t in range(n):
+                recs.append(simulate_run("centroid", rate, 0.05, seed * 1000 + t, cfg["frames"], mode))
+                advance()
+            age, pe, ve, conv = _filter_stats(recs)
+            name = "xy"[axis]
+            cond = f"{mode}: 1 deg/s about {name}, R=0.05 px^2, q={Q_PAPER:g} px^2/s^4, track age >= {AGE_CONVERGED} frames"
+            per_trial = [_filter_stats([r]) for r in recs]
+            for ax in (0, 1):
+                spread = [_rms(p[c, ax]) for _, p, _, c in per_trial]
+                rows.append(Row(f"filtered position error {'xy'[ax]} (RMS)", cond, pv["value"], _rms(pe[conv, ax]), "px",
+                                pv["source"], n, seed, f"{int(conv.sum())} star-frames; per trial {_span(spread)}"))
+            for ax in (0, 1):
+                spread = [_rms(v[c, ax]) for _, _, v, c in per_trial]
+                rows.append(Row(f"filtered velocity deviation v{'xy'[ax]} (RMS)", cond, vv["value"], _rms(ve[conv, ax]),
+                                "px/s", vv["source"], n, seed, f"vs the true image velocity at the star's t_ns; per trial {_span(spread)}"))
+            plot_data["filter"][(mode, name)] = (age, pe, ve)
+    return rows
+
+
+def _smear_rows(cfg: dict, seed: int, paper: dict, plot_data: dict, advance) -> list[Row]:
+    """Fig 10: the smear centroid, image level, before and after eqs 12-16."""
+    sm = paper["smear_centroid_error_before"], paper["smear_centroid_error_after"]
+    rows = []
+    for mode in MODES:
+        for w in cfg["image_rates"]:
+            recs = []
+            for t in range(cfg["image_trials"]):
+                recs.append(simulate_run("image", [w, 0.0, 0.0], 0.05, seed * 1000 + 500 + t, cfg["image_frames"], mode))
+                advance()
+            b = _rms(_cat([_cat(r.smear_before) for r in recs]))
+            a = _rms(_cat([_cat(r.smear_after) for r in recs]))
+            cond = f"{mode}: {w:g} deg/s about x, image level, {cfg['image_frames']} frames, track age >= {AGE_MIN}"
+            rows.append(Row("smear centroid error before (RMS radial)", cond, sm[0]["value"], b, "px", sm[0]["source"],
+                            cfg["image_trials"], seed, f"raw CoG vs truth at its claimed time; stars >= {EDGE_PX:g} px inside"))
+            rows.append(Row("smear centroid error after eqs 12-16 (RMS radial)", cond, sm[1]["value"], a, "px",
+                            sm[1]["source"], cfg["image_trials"], seed, "kf-cv + eqs 12-16 vs truth at the row's exposure start"))
+            plot_data["smear"][(mode, w)] = (b, a)
+    return rows
+
+
+def _pair_and_attitude_rows(cfg: dict, seed: int, paper: dict, plot_data: dict, advance) -> list[Row]:
+    """Fig 12 and Figs 14-15: pair distance and attitude, centroid level, per mode, axis, R and rate."""
+    pp = paper["pair_distance_error_after"]
+    pa = paper["attitude_error_after"]
+    rows = []
+    cache: dict = {}
+    for mode in MODES:
+        for axis in (0, 1):
+            for r in cfg["r_values"]:
+                for w in cfg["rates"]:
+                    rate = [0.0, 0.0, 0.0]
+                    rate[axis] = w
+                    recs = []
+                    for t in range(cfg["pair_trials"]):
+                        key = (mode, tuple(rate), r, t)  # 0 deg/s about x and about y are the same run
+                        if key not in cache:
+                            cache[key] = simulate_run("centroid", rate, r, seed * 1000 + 100 + t, cfg["frames"], mode)
+                        recs.append(cache[key])
+                        advance()
+                    cond = f"{mode}: {w:g} deg/s about {'xy'[axis]}, R={r:g} px^2"
+                    pair_rows, plot_data["pair"][(mode, axis, r, w)] = _pair_rows(recs, cond, pp, seed)
+                    rows += pair_rows
+                    if r == cfg["r_values"][0]:
+                        att_rows, plot_data["att"][(mode, axis, w)] = _attitude_rows(recs, cond, pa, seed)
+                        rows += att_rows
+    return rows
+
+
+def _pair_rows(recs: list[RunRecord], cond: str, pp: dict, seed: int) -> tuple[list[Row], tuple]:
+    """Pair distance error before (systematic) and after (per frame, systematic) correction; and
+    (before per frame, before systematic, after per frame, after systematic) for the plots."""
+    n = len(recs)
+    bf, bs, _ = _pair_stats(recs, "pair_before")
+    af, as_, _ = _pair_stats(recs, "pair_after")
+    spread = [_pair_stats([x], "pair_after")[1] for x in recs]
+    rows = [Row("pair distance error before, systematic (RMS)", cond, None, bs, "px", pp["source"], n,
+                seed, f"RMS over pairs of each pair's mean error; per frame {_fmt(bf)}"),
+            Row("pair distance error after, per frame (RMS)", cond, pp["value"], af, "px", pp["source"],
+                n, seed, f"track age >= {AGE_MIN}"),
+            Row("pair distance error after, systematic (RMS)", cond, pp["value"], as_, "px",
+                pp["source"], n, seed, f"track age >= {AGE_MIN}; per trial {_span(spread)}")]
+    return rows, (bf, bs, af, as_)
+
+
+def _attitude_rows(recs: list[RunRecord], cond: str, pa: dict, seed: int) -> tuple[list[Row], tuple]:
+    """Attitude error per body axis before and after correction; and (RMS before, RMS after) per axis for the plots."""
+    n = len(recs)
+    ab = _cat([np.asarray(rr.att_before).reshape(-1, 3) for rr in recs], 3)
+    aa = _cat([np.asarray(rr.att_after).reshape(-1, 3) for rr in recs], 3)
+    rows = []
+    for ax, label in enumerate(("x", "y", "z")):
+        rows.append(Row(f"attitude error {label} before (RMS, 5 stars)", cond, None, _rms(ab[:, ax]),
+                        "arcsec", pa["source"], n, seed))
+        spread = [_rms(np.asarray(rr.att_after).reshape(-1, 3)[:, ax]) for rr in recs]
+        rows.append(Row(f"attitude error {label} after (RMS, 5 stars)", cond, pa["value"],
+                        _rms(aa[:, ax]), "arcsec", pa["source"], n, seed,
+                        f"frames with 5 tracks >= {AGE_MIN} frames old; mean |e| {_fmt(_mean_abs(aa[:, ax]))}; "
+                        f"per trial {_span(spread)}"))
+    plot = (np.sqrt(np.mean(ab**2, axis=0)) if len(ab) else np.full(3, np.nan),
+            np.sqrt(np.mean(aa**2, axis=0)) if len(aa) else np.full(3, np.nan))
+    return rows, plot
+
+
+def _q_sweep_rows(cfg: dict, seed: int, paper: dict, plot_data: dict, advance) -> list[Row]:
+    """The Q sweep (our addition: which reading of "Q = 1e-4" the paper's numbers need)."""
+    pv = paper["position_error_after_50_frames"]
+    vv = paper["velocity_deviation_after_50_frames"]
+    pp = paper["pair_distance_error_after"]
+    sw = q_sweep(MODES, cfg["sweep"]["q"], cfg["sweep"]["trials"], seed, cfg["frames"], advance)
+    rows = []
+    for (mode, q), (pos, vel, pair) in sw.items():
+        cond = f"{mode}: q={q:.4g} px^2/s^4, 1 deg/s about x (filter) / 3 deg/s about x (pair), R=0.05 px^2"
+        n = cfg["sweep"]["trials"]
+        rows.append(Row("Q sweep: filtered position error (RMS over x, y)", cond, pv["value"],
+                        _rms(pos), "px", pv["source"], n, seed, "track age >= 50"))
+        rows.append(Row("Q sweep: filtered velocity deviation (RMS over x, y)", cond, vv["value"],
+                        _rms(vel), "px/s", vv["source"], n, seed, "track age >= 50"))
+        rows.append(Row("Q sweep: pair distance error after, systematic (RMS)", cond, pp["value"], pair, "px",
+                        pp["source"], n, seed, f"track age >= {AGE_MIN}"))
+    plot_data["sweep"] = sw
     return rows
 
 
@@ -508,13 +556,33 @@ def _mean_abs(a):
     return float(np.mean(np.abs(a))) if a.size else None
 
 
-def _plots(d: Path, data: dict, cfg: dict) -> None:
+COLORS = {"drift": "C0", "sky": "C3"}
+
+
+def _pyplot():
+    """matplotlib's pyplot on the Agg backend, imported only when plots are asked for."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    colors = {"drift": "C0", "sky": "C3"}
+    return plt
+
+
+def _plots(d: Path, data: dict, cfg: dict) -> None:
+    _plot_filter(d, data)
+    if data["smear"]:
+        _plot_smear(d, data)
+    if data["pair"]:
+        _plot_pairs(d, data, cfg)
+    _plot_attitude(d, data)
+    if data["sweep"]:
+        _plot_q_sweep(d, data)
+
+
+def _plot_filter(d: Path, data: dict) -> None:
+    """Figs 6-7: filtered position and velocity error against the track age."""
+    plt = _pyplot()
     for name, fig_no in (("x", 6), ("y", 7)):
         keys = [k for k in data["filter"] if k[1] == name]
         if not keys:
@@ -525,8 +593,8 @@ def _plots(d: Path, data: dict, cfg: dict) -> None:
             ages = np.arange(1, age.max() + 1) if age.size else np.zeros(0, int)
             pos = np.array([np.sqrt(np.mean(pe[age == a] ** 2)) if np.any(age == a) else np.nan for a in ages])
             vel = np.array([np.sqrt(np.mean(ve[age == a] ** 2)) if np.any(age == a) else np.nan for a in ages])
-            axs[0].plot(ages, pos, c=colors[mode], label=MODE_LABEL[mode])
-            axs[1].plot(ages, vel, c=colors[mode], label=MODE_LABEL[mode])
+            axs[0].plot(ages, pos, c=COLORS[mode], label=MODE_LABEL[mode])
+            axs[1].plot(ages, vel, c=COLORS[mode], label=MODE_LABEL[mode])
         axs[0].axhline(0.1, ls="--", c="k", lw=0.8, label="paper: < 0.1 after 50 frames")
         axs[1].axhline(0.02, ls="--", c="k", lw=0.8, label="paper: < 0.02 after 50 frames")
         for a in axs:
@@ -538,36 +606,49 @@ def _plots(d: Path, data: dict, cfg: dict) -> None:
         fig.tight_layout()
         fig.savefig(d / f"he2021a_fig{fig_no}_filter_{name}.png", dpi=110)
         plt.close(fig)
-    if data["smear"]:
-        fig, ax = plt.subplots(figsize=(6, 4))
+
+
+def _plot_smear(d: Path, data: dict) -> None:
+    """Fig 10: smear centroid error before and after eqs 12-16 against the rate."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for mode in MODES:
+        w = sorted(k[1] for k in data["smear"] if k[0] == mode)
+        ax.plot(w, [data["smear"][(mode, k)][0] for k in w], "o--", c=COLORS[mode], label=f"before, {mode}")
+        ax.plot(w, [data["smear"][(mode, k)][1] for k in w], "s-", c=COLORS[mode], label=f"after eqs 12-16, {mode}")
+    ax.axhline(0.06, ls="--", c="k", lw=0.8, label="paper: after < 0.06")
+    ax.axhline(0.1, ls=":", c="k", lw=0.8, label="paper: before max > 0.1")
+    ax.set(xlabel="rate about x (deg/s)", ylabel="RMS centroid error (px)", title="Fig 10: smear centroid (image level)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(d / "he2021a_fig10_smear.png", dpi=110)
+    plt.close(fig)
+
+
+def _plot_pairs(d: Path, data: dict, cfg: dict) -> None:
+    """Fig 12: star-pair distance error (systematic) against the rate, about x and y."""
+    plt = _pyplot()
+    fig, axs = plt.subplots(1, 2, figsize=(11, 4.5), sharey=True)
+    for axis in (0, 1):
         for mode in MODES:
-            w = sorted(k[1] for k in data["smear"] if k[0] == mode)
-            ax.plot(w, [data["smear"][(mode, k)][0] for k in w], "o--", c=colors[mode], label=f"before, {mode}")
-            ax.plot(w, [data["smear"][(mode, k)][1] for k in w], "s-", c=colors[mode], label=f"after eqs 12-16, {mode}")
-        ax.axhline(0.06, ls="--", c="k", lw=0.8, label="paper: after < 0.06")
-        ax.axhline(0.1, ls=":", c="k", lw=0.8, label="paper: before max > 0.1")
-        ax.set(xlabel="rate about x (deg/s)", ylabel="RMS centroid error (px)", title="Fig 10: smear centroid (image level)")
-        ax.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(d / "he2021a_fig10_smear.png", dpi=110)
-        plt.close(fig)
-    if data["pair"]:
-        fig, axs = plt.subplots(1, 2, figsize=(11, 4.5), sharey=True)
-        for axis in (0, 1):
-            for mode in MODES:
-                for r, mk in zip(cfg["r_values"], ("o", "^")):
-                    w = sorted(k[3] for k in data["pair"] if k[:3] == (mode, axis, r))
-                    vals = np.array([data["pair"][(mode, axis, r, x)] for x in w], dtype=float)
-                    if r == cfg["r_values"][0]:
-                        axs[axis].plot(w, vals[:, 1], mk + ":", c=colors[mode], alpha=0.6, label=f"before (syst.), {mode}")
-                    axs[axis].plot(w, vals[:, 3], mk + "-", c=colors[mode], label=f"after (syst.), {mode}, R={r:g}")
-            axs[axis].axhline(0.1, ls="--", c="k", lw=0.8, label="paper: after < 0.1")
-            axs[axis].set(xlabel=f"rate about {'xy'[axis]} (deg/s)", ylabel="pair distance error (px)", yscale="log",
-                          title="Fig 12: star-pair distance, q=1e-4 px^2/s^4")
-            axs[axis].legend(fontsize=6)
-        fig.tight_layout()
-        fig.savefig(d / "he2021a_fig12_pairs.png", dpi=110)
-        plt.close(fig)
+            for r, mk in zip(cfg["r_values"], ("o", "^")):
+                w = sorted(k[3] for k in data["pair"] if k[:3] == (mode, axis, r))
+                vals = np.array([data["pair"][(mode, axis, r, x)] for x in w], dtype=float)
+                if r == cfg["r_values"][0]:
+                    axs[axis].plot(w, vals[:, 1], mk + ":", c=COLORS[mode], alpha=0.6, label=f"before (syst.), {mode}")
+                axs[axis].plot(w, vals[:, 3], mk + "-", c=COLORS[mode], label=f"after (syst.), {mode}, R={r:g}")
+        axs[axis].axhline(0.1, ls="--", c="k", lw=0.8, label="paper: after < 0.1")
+        axs[axis].set(xlabel=f"rate about {'xy'[axis]} (deg/s)", ylabel="pair distance error (px)", yscale="log",
+                      title="Fig 12: star-pair distance, q=1e-4 px^2/s^4")
+        axs[axis].legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(d / "he2021a_fig12_pairs.png", dpi=110)
+    plt.close(fig)
+
+
+def _plot_attitude(d: Path, data: dict) -> None:
+    """Figs 14-15: attitude error per body axis before and after correction against the rate."""
+    plt = _pyplot()
     for axis, fig_no in ((0, 14), (1, 15)):
         fig, axs = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
         for i_m, mode in enumerate(MODES):
@@ -586,27 +667,31 @@ def _plots(d: Path, data: dict, cfg: dict) -> None:
         fig.tight_layout()
         fig.savefig(d / f"he2021a_fig{fig_no}_attitude_{'xy'[axis]}.png", dpi=110)
         plt.close(fig)
-    if data["sweep"]:
-        fig, axs = plt.subplots(1, 3, figsize=(14, 4))
-        for mode in MODES:
-            qs = sorted(q for m, q in data["sweep"] if m == mode)
-            vals = [data["sweep"][(mode, q)] for q in qs]
-            axs[0].plot(qs, [np.sqrt(np.mean(v[0] ** 2)) for v in vals], "o-", c=colors[mode], label=MODE_LABEL[mode])
-            axs[1].plot(qs, [np.sqrt(np.mean(v[1] ** 2)) for v in vals], "o-", c=colors[mode], label=MODE_LABEL[mode])
-            axs[2].plot(qs, [v[2] for v in vals], "o-", c=colors[mode], label=MODE_LABEL[mode])
-        for a, bound, lab in zip(axs, (0.1, 0.02, 0.1), ("position error after 50 frames (px)",
-                                                          "velocity deviation after 50 frames (px/s)",
-                                                          "pair error after, systematic, 3 deg/s (px)")):
-            a.axhline(bound, ls="--", c="k", lw=0.8, label=f"paper bound {bound:g}")
-            a.axvline(Q_PAPER, ls=":", c="grey", lw=0.8, label="q = 1e-4 px^2/s^4 (literal)")
-            a.axvline(q_per_frame_reading(), ls="-.", c="grey", lw=0.8, label="q = 1e-4 px^2/frame^4")
-            a.set(xscale="log", yscale="log", xlabel="q (px^2/s^4)", ylabel=lab)
-            a.legend(fontsize=6)
-        axs[0].set_title("Q sweep, 1 deg/s about x, R=0.05 px^2")
-        axs[2].set_title("Q sweep, 3 deg/s about x")
-        fig.tight_layout()
-        fig.savefig(d / "he2021a_q_sweep.png", dpi=110)
-        plt.close(fig)
+
+
+def _plot_q_sweep(d: Path, data: dict) -> None:
+    """The Q sweep: filter and pair errors against q, with the paper's bounds and both readings of Q."""
+    plt = _pyplot()
+    fig, axs = plt.subplots(1, 3, figsize=(14, 4))
+    for mode in MODES:
+        qs = sorted(q for m, q in data["sweep"] if m == mode)
+        vals = [data["sweep"][(mode, q)] for q in qs]
+        axs[0].plot(qs, [np.sqrt(np.mean(v[0] ** 2)) for v in vals], "o-", c=COLORS[mode], label=MODE_LABEL[mode])
+        axs[1].plot(qs, [np.sqrt(np.mean(v[1] ** 2)) for v in vals], "o-", c=COLORS[mode], label=MODE_LABEL[mode])
+        axs[2].plot(qs, [v[2] for v in vals], "o-", c=COLORS[mode], label=MODE_LABEL[mode])
+    for a, bound, lab in zip(axs, (0.1, 0.02, 0.1), ("position error after 50 frames (px)",
+                                                      "velocity deviation after 50 frames (px/s)",
+                                                      "pair error after, systematic, 3 deg/s (px)")):
+        a.axhline(bound, ls="--", c="k", lw=0.8, label=f"paper bound {bound:g}")
+        a.axvline(Q_PAPER, ls=":", c="grey", lw=0.8, label="q = 1e-4 px^2/s^4 (literal)")
+        a.axvline(q_per_frame_reading(), ls="-.", c="grey", lw=0.8, label="q = 1e-4 px^2/frame^4")
+        a.set(xscale="log", yscale="log", xlabel="q (px^2/s^4)", ylabel=lab)
+        a.legend(fontsize=6)
+    axs[0].set_title("Q sweep, 1 deg/s about x, R=0.05 px^2")
+    axs[2].set_title("Q sweep, 3 deg/s about x")
+    fig.tight_layout()
+    fig.savefig(d / "he2021a_q_sweep.png", dpi=110)
+    plt.close(fig)
 
 
 def markdown_table(rows) -> str:
@@ -621,11 +706,6 @@ def markdown_table(rows) -> str:
 
 
 if __name__ == "__main__":  # python -m rollingstar.studies.reproduce.he2021a RESULT.json: the doc's table from a --json run
-    import json
-    import sys
-
-    from rollingstar.studies.reproduce import Row as _Row
-
     with open(sys.argv[1]) as fh:
-        _rows = [_Row(**{k: v for k, v in r.items() if k != "ratio"}) for r in json.load(fh)["rows"]]
+        _rows = [Row(**{k: v for k, v in r.items() if k != "ratio"}) for r in json.load(fh)["rows"]]
     print(markdown_table(_rows))

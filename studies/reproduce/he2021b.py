@@ -301,35 +301,58 @@ def measure(quick: bool, seed: int) -> dict:
 
 def rows_from(res: dict) -> list[Row]:
     pv = paper_values("he2021b")
+    seed = res["seed"]
+    rows = _table3_rows(res, pv) + _update_rows(res, pv) + _global_rows(res, pv) + _rate_source_rows(res, pv)
+    rows += _star1000_rows(res, pv)
+    rows.append(Row("run time", "quick" if res["frames"] < 300 else "full", None, float(res["cpu_seconds"]), "s (CPU)",
+                    "ours", None, seed, f"wall clock {res['seconds']:.1f} s"))
+    return rows
+
+
+def _explained(res: dict) -> tuple[float, float]:
+    """(forgetting, centroid noise px) of the explained Table 3 reading."""
+    fit = res["fit"]
+    return fit["best"], fit["fits"][fit["best"]][0]
+
+
+def _table3_rows(res: dict, pv: dict) -> list[Row]:
+    """Table 3 RMSE per axis and group: literal reading, fading memory, the noise fit and the explained reading."""
     seed, T, F = res["seed"], res["trials"], res["frames"]
+    t3 = pv["table3_rmse_arcsec"]
     rows: list[Row] = []
     cond = f"0.05 deg/s, {F} frames, 0.05 px, rate truth"
     for g in GROUPS:
         r = res["table"][(g, 1.0)]
         rm, sp = r.rmse(), r.rmse_per_trial().std(axis=0)
         for k, ax in enumerate(AXES):
-            rows.append(Row(f"rmse_{ax}_per{g}", cond + ", forgetting 1 (eqs 30-31)", pv["table3_rmse_arcsec"][f"per{g}"][ax],
-                            float(rm[k]), "arcsec", pv["table3_rmse_arcsec"]["source"], T, seed,
-                            f"trial-to-trial std {sp[k]:.3g}"))
+            rows.append(Row(f"rmse_{ax}_per{g}", cond + ", forgetting 1 (eqs 30-31)", t3[f"per{g}"][ax],
+                            float(rm[k]), "arcsec", t3["source"], T, seed, f"trial-to-trial std {sp[k]:.3g}"))
     for g in GROUPS:
         rm = res["table"][(g, 0.5)].rmse()
         for k, ax in enumerate(AXES):
-            rows.append(Row(f"rmse_{ax}_per{g}", cond + ", forgetting 0.5", pv["table3_rmse_arcsec"][f"per{g}"][ax],
-                            float(rm[k]), "arcsec", pv["table3_rmse_arcsec"]["source"], T, seed, "sensitivity: fading memory"))
+            rows.append(Row(f"rmse_{ax}_per{g}", cond + ", forgetting 0.5", t3[f"per{g}"][ax],
+                            float(rm[k]), "arcsec", t3["source"], T, seed, "sensitivity: fading memory"))
     fit = res["fit"]
     for rho, (sig, spread) in fit["fits"].items():
         rows.append(Row("table3_sigma_fit", f"forgetting {rho}", None, sig, "px", "ours (fit of Table 3, see doc)", T, seed,
                         f"centroid noise that scales our 9 Table 3 RMSEs onto the paper's; log-spread of the 9 ratios "
                         f"{spread:.2f}" + (" (best: the explained reading)" if rho == fit["best"] else "")))
-    rho_b, sig_b = fit["best"], fit["fits"][fit["best"]][0]
+    rho_b, sig_b = _explained(res)
     for g in GROUPS:
         r = res["explained"][g]
         rm, sp = r.rmse(), r.rmse_per_trial().std(axis=0)
         for k, ax in enumerate(AXES):
             rows.append(Row(f"rmse_{ax}_per{g}", f"0.05 deg/s, {F} frames, {sig_b:.3g} px (fitted), rate truth, "
-                            f"forgetting {rho_b} (explained reading)", pv["table3_rmse_arcsec"][f"per{g}"][ax], float(rm[k]),
-                            "arcsec", pv["table3_rmse_arcsec"]["source"], T, seed,
+                            f"forgetting {rho_b} (explained reading)", t3[f"per{g}"][ax], float(rm[k]),
+                            "arcsec", t3["source"], T, seed,
                             f"measured at the fitted noise; trial-to-trial std {sp[k]:.3g}"))
+    return rows
+
+
+def _update_rows(res: dict, pv: dict) -> list[Row]:
+    """Updates per frame, update rate and the Figs 8-10 maximum errors per group."""
+    seed, T, F = res["seed"], res["trials"], res["frames"]
+    rows: list[Row] = []
     for g in GROUPS:
         r = res["table"][(g, 1.0)]
         rows.append(Row(f"updates_per_frame_per{g}", "15 stars per frame", pv["updates_per_frame"][f"per{g}"],
@@ -338,20 +361,36 @@ def rows_from(res: dict) -> list[Row]:
                         + (" (the first update of each run: one star does not fix the attitude)" if g == 1 else "")))
         rows.append(Row(f"update_rate_per{g}", "frame period 100.176 ms", pv["update_rate_hz"][f"per{g}"], r.rate_hz(), "Hz",
                         pv["update_rate_hz"]["source"], T, seed))
+    cond = f"0.05 deg/s, {F} frames, 0.05 px, rate truth"
     for g in GROUPS:
         mx = res["table"][(g, 1.0)].max_abs()
         for k, ax in enumerate(AXES):
             rows.append(Row(f"max_error_{ax}_per{g}", cond, pv["fig8_10_max_error_arcsec"][f"per{g}"][ax], float(mx[k]),
                             "arcsec", pv["fig8_10_max_error_arcsec"]["source"], T, seed))
+    return rows
+
+
+def _global_rows(res: dict, pv: dict) -> list[Row]:
+    """Fig 12: global shutter (QUEST per frame) against rolling, and the single-frame Cramér-Rao bound."""
+    seed, T = res["seed"], res["trials"]
     glob, per5, frame = res["table"][("global", None)].rmse(), res["table"][(5, 1.0)].rmse(), res["table"][("frame", 0.0)].rmse()
+    rows: list[Row] = []
     for k, ax in enumerate(AXES):
         rows.append(Row(f"global_rmse_{ax}", "global shutter, QUEST once per frame, 15 stars", pv["fig12_global_vs_rolling"]["statement"],
                         float(glob[k]), "arcsec", pv["fig12_global_vs_rolling"]["source"], T, seed,
                         f"ours rolling per-5 {per5[k]:.3g}; rolling once per frame (forgetting 0) {frame[k]:.3g}"))
         rows.append(Row(f"crb_{ax}", "single frame, 15 stars, 0.05 px", None, float(res["crb"][k]), "arcsec", "ours (Cramér-Rao bound)", T, seed))
+    return rows
+
+
+def _rate_source_rows(res: dict, pv: dict) -> list[Row]:
+    """Fig 11: RMSE against the rate for every rate source, and the quality of the gyro and pso-rate rates."""
+    seed = res["seed"]
+    rho_b, sig_b = _explained(res)
     r_hi = max(res["rates"])
     src = pv["fig11_at_0p2_deg_s"]["source"]
     rt = res["rate_trials"]
+    rows: list[Row] = []
     for so in ("truth", "gyro", "estimate"):
         xy = max(float(res["rate"][(r_hi, g, so)].rmse()[k]) for g in GROUPS for k in (0, 1))
         rows.append(Row("rmse_xy_max_over_groups", f"{r_hi} deg/s, {SOURCE_LABEL[so]}, forgetting 1",
@@ -377,8 +416,15 @@ def rows_from(res: dict) -> list[Row]:
         rows.append(Row("fig11_rate_error_rms", f"{rate} deg/s, pso-rate per frame (x, y)", None,
                         float(np.sqrt(np.mean(np.sum(pe**2, axis=1)))), "deg/s", "ours (rate source quality)", rt, seed,
                         f"mean error {np.mean(pe, axis=0).round(5).tolist()} deg/s"))
+    return rows
+
+
+def _star1000_rows(res: dict, pv: dict) -> list[Row]:
+    """Table 4: the Star1000 updates per frame, update rate, updates in 6 s and maximum errors per group."""
+    seed = res["seed"]
     s = pv["star1000"]
     st = res["star_trials"]
+    rows: list[Row] = []
     for g in STAR1000_GROUPS:
         r = res["star"][g]
         mx = r.max_abs()
@@ -391,8 +437,6 @@ def rows_from(res: dict) -> list[Row]:
         for k, ax in enumerate(AXES[:2]):
             rows.append(Row(f"star1000_max_error_{ax}_per{g}", "8 stars, 0.1 deg/s, 0.05 px", s["max_error_arcsec"][f"per{g}"][ax],
                             float(mx[k]), "arcsec", s["source"], st, seed, f"rmse {r.rmse()[k]:.3g}"))
-    rows.append(Row("run time", "quick" if res["frames"] < 300 else "full", None, float(res["cpu_seconds"]), "s (CPU)",
-                    "ours", None, seed, f"wall clock {res['seconds']:.1f} s"))
     return rows
 
 
@@ -405,16 +449,31 @@ def run(quick: bool, plots_dir: Path | None, seed: int) -> list[Row]:
 
 
 # ----------------------------------------------------------------------------------- plots
-def plot(res: dict, out: Path) -> None:
+def _pyplot():
+    """matplotlib's pyplot on the Agg backend, imported only when plots are asked for."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def plot(res: dict, out: Path) -> None:
     pv = paper_values("he2021b")
     out.mkdir(parents=True, exist_ok=True)
-    rho_b, sig_b = res["fit"]["best"], res["fit"]["fits"][res["fit"]["best"]][0]
-    # Table 3 bars
+    _plot_table3(res, pv, out)
+    _plot_error_series(res, out)
+    _plot_rate_sources(res, out)
+    _plot_global(res, out)
+    _plot_star1000(res, out)
+    _plot_update_counts(res, pv, out)
+
+
+def _plot_table3(res: dict, pv: dict, out: Path) -> None:
+    """Table 3 bars: paper, explained and literal readings per axis and group."""
+    plt = _pyplot()
+    rho_b, sig_b = _explained(res)
     fig, axs = plt.subplots(1, 3, figsize=(12, 3.6))
     for k, ax in enumerate(AXES):
         paper = [pv["table3_rmse_arcsec"][f"per{g}"][ax] for g in GROUPS]
@@ -432,7 +491,11 @@ def plot(res: dict, out: Path) -> None:
     fig.tight_layout()
     fig.savefig(out / "he2021b_table3.png", dpi=110)
     plt.close(fig)
-    # Figs 8-10: error series of trial 0
+
+
+def _plot_error_series(res: dict, out: Path) -> None:
+    """Figs 8-10: error series of trial 0 per group."""
+    plt = _pyplot()
     fig, axs = plt.subplots(3, 3, figsize=(12, 8), sharex=True)
     for row, g in enumerate((5, 3, 1)):
         r = res["table"][(g, 1.0)]
@@ -447,7 +510,12 @@ def plot(res: dict, out: Path) -> None:
     fig.tight_layout()
     fig.savefig(out / "he2021b_fig8_10.png", dpi=110)
     plt.close(fig)
-    # Fig 11: RMSE vs rate, by rate source
+
+
+def _plot_rate_sources(res: dict, out: Path) -> None:
+    """Fig 11: RMSE against the rate, by rate source."""
+    plt = _pyplot()
+    rho_b, sig_b = _explained(res)
     fig, axs = plt.subplots(1, 3, figsize=(13, 4))
     colours = {"truth": "C0", "gyro": "C1", "estimate": "C2", "zero": "k"}
     for k, ax in enumerate(AXES):
@@ -468,7 +536,11 @@ def plot(res: dict, out: Path) -> None:
     fig.tight_layout()
     fig.savefig(out / "he2021b_fig11.png", dpi=110)
     plt.close(fig)
-    # Fig 12: global vs rolling per 5
+
+
+def _plot_global(res: dict, out: Path) -> None:
+    """Fig 12: global exposure against rolling shutter per 5 stars (trial 0)."""
+    plt = _pyplot()
     fig, axs = plt.subplots(1, 3, figsize=(12, 3.6))
     for k, ax in enumerate(AXES):
         for key, lab in (((5, 1.0), "rolling per 5"), (("global", None), "global, QUEST per frame")):
@@ -481,7 +553,11 @@ def plot(res: dict, out: Path) -> None:
     fig.tight_layout()
     fig.savefig(out / "he2021b_fig12.png", dpi=110)
     plt.close(fig)
-    # Figs 15-17: Star1000 error series; Fig 18 update counts (and Fig 13)
+
+
+def _plot_star1000(res: dict, out: Path) -> None:
+    """Figs 15-17: Star1000 error series (trial 0) per group."""
+    plt = _pyplot()
     fig, axs = plt.subplots(3, 3, figsize=(12, 8), sharex=True)
     for row, g in enumerate(STAR1000_GROUPS):
         r = res["star"][g]
@@ -495,6 +571,11 @@ def plot(res: dict, out: Path) -> None:
     fig.tight_layout()
     fig.savefig(out / "he2021b_fig15_17.png", dpi=110)
     plt.close(fig)
+
+
+def _plot_update_counts(res: dict, pv: dict, out: Path) -> None:
+    """Fig 13 (update rate, Table 1 sensor) and Fig 18 (updates within 6 s, Star1000)."""
+    plt = _pyplot()
     fig, axs = plt.subplots(1, 2, figsize=(10, 3.6))
     lab = [f"per {g}" for g in GROUPS] + ["global"]
     ours = [res["table"][(g, 1.0)].rate_hz() for g in GROUPS] + [res["table"][("global", None)].rate_hz()]
