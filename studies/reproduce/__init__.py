@@ -16,6 +16,8 @@ from pathlib import Path
 
 import yaml
 
+from rollingstar.errors import UserError
+
 PAPERS = ("he2021a", "he2021b", "fu2022", "liu2013")
 DATA_DIR = Path(__file__).parent / "data"
 
@@ -54,9 +56,8 @@ def paper_values(paper: str) -> dict:
 
 def run_reproduction(paper: str, quick: bool = False, plots_dir: Path | None = None, seed: int = 1) -> list[Row]:
     if paper not in PAPERS:
-        from rollingstar.errors import UserError
-
         raise UserError(f"unknown paper {paper!r}; choose one of: {', '.join(PAPERS)}")
+    # imported by name: each paper's module imports Row from this package
     module = importlib.import_module(f"rollingstar.studies.reproduce.{paper}")
     if plots_dir is not None:
         Path(plots_dir).mkdir(parents=True, exist_ok=True)
