@@ -238,3 +238,18 @@ class SensorContext:
             centroid_sigma_px=cfg.noise.centroid_sigma_px if cfg.level == "centroid" else None,
             bit_depth=cfg.image.bit_depth if cfg.level == "image" else None,
         )
+
+
+#: Centroid 1-sigma (px per axis) the estimators assume when neither the stars, their parameters
+#: nor the sensor context state one.
+DEFAULT_CENTROID_SIGMA_PX = 0.05
+
+
+def default_sigma_px(sigma_px: float | None, context) -> float:
+    """The centroid sigma (px) for stars without their own: ``sigma_px`` (a plugin parameter) when
+    given, else the context's non-zero ``centroid_sigma_px``, else :data:`DEFAULT_CENTROID_SIGMA_PX`."""
+    if sigma_px is not None:
+        return float(sigma_px)
+    if getattr(context, "centroid_sigma_px", None):
+        return float(context.centroid_sigma_px)
+    return DEFAULT_CENTROID_SIGMA_PX

@@ -7,6 +7,9 @@ Third-party packages register a plugin class under the entry-point group ``rolli
 
 The entry-point name is the plugin ``kind`` used in pipeline configs; the class must subclass a
 role base class from ``estimators`` and is validated exactly like a built-in.
+
+:data:`ALIASES` keeps older kinds working: an alias names a built-in kind and the parameters that
+make it behave as the alias always did (:func:`stage_params`).
 """
 from __future__ import annotations
 
@@ -25,6 +28,7 @@ BUILTIN: dict[str, str] = {
     "tracking": "rollingstar.estimators.identifiers.tracking:TrackingIdentifier",
     "lost-in-space": "rollingstar.estimators.identifiers.lost_in_space:LostInSpaceIdentifier",
     "none": "rollingstar.estimators.corrections.none:NoCorrection",
+    "rate-correction": "rollingstar.estimators.corrections.rate:RateCorrection",
     "quest": "rollingstar.estimators.attitude.quest:QuestSolver",
     # he2021a plugins:
     "kf-cv": "rollingstar.estimators.filters.kf_cv:KfCvFilter",
@@ -33,16 +37,24 @@ BUILTIN: dict[str, str] = {
     "request": "rollingstar.estimators.attitude.request:RequestSolver",
     # fu2022 plugins:
     "pso-rate": "rollingstar.estimators.rates.pso:PsoRateEstimator",
-    "pso-correction": "rollingstar.estimators.rates.pso:PsoCorrection",
-    # issue 5: least-squares 3-axis single-frame rate (and the correction with it):
+    # least-squares 3-axis single-frame rate:
     "ls-rate": "rollingstar.estimators.rates.ls_rate:LsRateEstimator",
-    "ls-correction": "rollingstar.estimators.rates.ls_rate:LsRateCorrection",
     # liu2013 plugins:
     "windowed": "rollingstar.estimators.centroiders.windowed:WindowedCentroider",
     "gyro-kf": "rollingstar.estimators.filters.gyro_kf:GyroKalmanFilter",
-    # issue 5 attitude estimators:
+    # sequential attitude estimators:
     "mekf": "rollingstar.estimators.attitude.mekf:MekfFilter",
     "gtsam": "rollingstar.estimators.attitude.gtsam_smoother:GtsamSmoother",
+}
+
+# alias -> (the built-in kind it stands for, parameters that make that plugin behave as the alias).
+# Both aliases are rate-correction with a rate estimator of its own; they took that estimator's
+# parameters beside their own, which rate-correction takes as estimator_params.
+ALIASES: dict[str, tuple[str, dict]] = {
+    # rate-correction that runs the PSO itself on frames without a valid rate (fu2022's one-stage form)
+    "pso-correction": ("rate-correction", {"estimator": "pso-rate", "rotation_form": "rotation-vector"}),
+    # rate-correction that estimates the rate with ls-rate on every frame
+    "ls-correction": ("rate-correction", {"estimator": "ls-rate", "reuse_rate": False}),
 }
 
 
@@ -60,20 +72,41 @@ def _load(target: str) -> type[Plugin]:
 
 @lru_cache(maxsize=1)
 def _third_party() -> dict[str, str]:
-    return {ep.name: ep.value for ep in entry_points(group=ENTRY_POINT_GROUP) if ep.name not in BUILTIN}
+    return {ep.name: ep.value for ep in entry_points(group=ENTRY_POINT_GROUP)
+            if ep.name not in BUILTIN and ep.name not in ALIASES}
 
 
 def available_kinds() -> dict[str, str]:
-    """Every registered kind -> its import target (built-ins first)."""
+    """Every registered kind -> its import target (built-ins first; aliases not included)."""
     return {**BUILTIN, **_third_party()}
 
 
 def get_plugin_class(kind: str) -> type[Plugin]:
-    """The plugin class registered as ``kind``; :class:`UnknownPluginError` lists valid kinds."""
+    """The plugin class registered as ``kind`` (or that an alias stands for); :class:`UnknownPluginError`
+    lists valid kinds."""
     kinds = available_kinds()
+    kind = ALIASES[kind][0] if kind in ALIASES else kind
     if kind not in kinds:
-        raise UnknownPluginError(f"unknown plugin kind {kind!r}; valid kinds: {', '.join(sorted(kinds))}")
+        raise UnknownPluginError(f"unknown plugin kind {kind!r}; valid kinds: {', '.join(sorted([*kinds, *ALIASES]))}")
     return _load(kinds[kind])
+
+
+def stage_params(kind: str, params: dict) -> dict:
+    """The parameters to construct a stage of ``kind`` with (a pipeline config's ``params``).
+
+    For an alias: its parameters, then the stage's own; those the plugin does not take go to its
+    ``estimator_params`` (see :data:`ALIASES`).
+    """
+    if kind not in ALIASES:
+        return dict(params)
+    target, preset = ALIASES[kind]
+    fields = get_plugin_class(target).Params.model_fields
+    own = {k: v for k, v in params.items() if k in fields}
+    nested = {k: v for k, v in params.items() if k not in fields}
+    out = {**preset, **own}
+    if nested:
+        out["estimator_params"] = {**out.get("estimator_params", {}), **nested}
+    return out
 
 
 def plugins_by_role() -> dict[str, list[type[Plugin]]]:

@@ -33,7 +33,7 @@ from rollingstar.pipelines.checkpoint import (
 from rollingstar.pipelines.config import PipelineConfig
 from rollingstar.pipelines.frame_checks import FrameChecker
 from rollingstar.pipelines.interrupt import Interrupted, StopFlag, stop_on_sigint
-from rollingstar.pipelines.registry import UnknownPluginError, get_plugin_class
+from rollingstar.pipelines.registry import UnknownPluginError, get_plugin_class, stage_params
 from rollingstar.pipelines.resume import Partial, load_partial, temp_path
 from rollingstar.pipelines.sink import (
     TOPIC_EST_ATTITUDE,
@@ -74,7 +74,7 @@ def build_stages(config: PipelineConfig, source: str = "<pipeline>") -> list[Plu
         except UnknownPluginError as exc:
             raise ConfigError(f"{source}: stages[{i}].kind: {exc}") from None
         try:
-            stages.append(cls(**stage.params))
+            stages.append(cls(**stage_params(stage.kind, stage.params)))
         except ValidationError as err:
             raise ConfigError(format_validation_error(source, err, prefix=("stages", i, "params"))) from None
     return stages

@@ -18,21 +18,21 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+# Unit constants. Nanoseconds become seconds as ``t_ns / NS_PER_S`` (correctly rounded; the
+# simulator's form) or ``t_ns * S_PER_NS`` (the estimators' form): the two can differ in the last
+# bit, so a module's results depend on the form it uses.
 NS_PER_S = 1_000_000_000
+S_PER_NS = 1e-9
+S_PER_HOUR = 3600.0
+DEG_TO_RAD = np.pi / 180.0
 RAD_TO_ARCSEC = 180.0 / np.pi * 3600.0
-ARCSEC_TO_RAD = 1.0 / RAD_TO_ARCSEC
+ARCSEC_TO_RAD = 1.0 / RAD_TO_ARCSEC  # equal to DEG_TO_RAD / 3600 in every bit
 
 
 def seconds_to_ns(seconds) -> np.ndarray | int:
     """Seconds (float) to integer nanoseconds, rounded to the nearest ns."""
     out = np.rint(np.asarray(seconds, dtype=float) * NS_PER_S).astype(np.int64)
     return int(out) if out.ndim == 0 else out
-
-
-def ns_to_seconds(t_ns) -> np.ndarray | float:
-    """Integer nanoseconds to float seconds."""
-    out = np.asarray(t_ns, dtype=np.int64).astype(float) / NS_PER_S
-    return float(out) if out.ndim == 0 else out
 
 
 def radec_to_unit(ra_rad, dec_rad) -> np.ndarray:

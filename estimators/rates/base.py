@@ -1,7 +1,18 @@
 """Angular-rate estimators: identified stars (and/or gyro) -> camera angular velocity."""
 from __future__ import annotations
 
+from typing import Literal
+
 from rollingstar.estimators.plugin import Plugin
+
+#: The time a single-frame rate estimate refers to: ``frame_start`` = exposure start of row 0,
+#: ``frame_mid`` = mid-exposure of the middle row (:func:`reference_time_ns`).
+Reference = Literal["frame_start", "frame_mid"]
+
+
+def reference_time_ns(reference: Reference, t0_ns: int, timing) -> int:
+    """``t_ref`` (ns) of the frame starting at ``t0_ns`` for ``reference`` (see :data:`Reference`)."""
+    return int(t0_ns) if reference == "frame_start" else int(timing.frame_reference_ns(t0_ns))
 
 
 class RateEstimator(Plugin):

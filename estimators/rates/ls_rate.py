@@ -67,28 +67,19 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.linalg import lapack
+from scipy.optimize import least_squares
 
-from rollingstar.estimators.corrections.base import Correction
-from rollingstar.estimators.data import FrameData, RateEstimate, StarTable
-from rollingstar.estimators.rates.base import RateEstimator
+from rollingstar.estimators.data import DEFAULT_CENTROID_SIGMA_PX, FrameData, RateEstimate, StarTable
+from rollingstar.estimators.rates.base import RateEstimator, Reference, reference_time_ns
 from rollingstar.estimators.rates.ls_rate_kernel import (
     pair_setup_kernel,
     residual_jacobian_kernel,
 )
-
-DEG = np.pi / 180.0
+from rollingstar.sensors.conventions import S_PER_NS
+from rollingstar.sensors.so3 import cross, rotate_at_rate, skew
 
 
 # ------------------------------------------------------------------------------------ model
-def _skew(v: np.ndarray) -> np.ndarray:
-    """``[v]x`` for (..., 3) -> (..., 3, 3)."""
-    s = np.zeros(v.shape[:-1] + (3, 3))
-    s[..., 0, 1], s[..., 0, 2] = -v[..., 2], v[..., 1]
-    s[..., 1, 0], s[..., 1, 2] = v[..., 2], -v[..., 0]
-    s[..., 2, 0], s[..., 2, 1] = -v[..., 1], v[..., 0]
-    return s
-
-
 def _jl_coefficients(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``c1 = (1 - cos t)/t^2``, ``c2 = (t - sin t)/t^3`` of the left Jacobian, for angles ``t >= 0``.
 
@@ -108,53 +99,25 @@ def _jl_coefficients(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def left_jacobian(phi: np.ndarray) -> np.ndarray:
     """SO(3) left Jacobian ``J_l(phi) = I + (1 - cos t)/t^2 [phi]x + (t - sin t)/t^3 [phi]x^2`` (..., 3, 3)."""
     c1, c2 = _jl_coefficients(np.linalg.norm(phi, axis=-1))
-    K = _skew(phi)
+    K = skew(phi)
     return np.eye(3) + c1[..., None, None] * K + c2[..., None, None] * (K @ K)
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a x b`` over the last axis; written out because ``np.cross`` costs ~10x more on small arrays
-    (this runs in the solver's inner loop)."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
-    out[..., 0] = a1 * b2 - a2 * b1
-    out[..., 1] = a2 * b0 - a0 * b2
-    out[..., 2] = a0 * b1 - a1 * b0
-    return out
-
-
-def moved_directions(omega: np.ndarray, w: np.ndarray, dt_s: np.ndarray) -> np.ndarray:
-    """Eq (1): ``Exp(omega dt_i) w_i`` for ``omega`` (3,), ``w`` (n, 3), ``dt_s`` (n,) (Rodrigues).
-
-    With ``k = omega / |omega|`` and ``t_i = |omega| dt_i``:
-    ``w cos t + (k x w) sin t + k (k . w)(1 - cos t)``.
-    """
-    omega = np.asarray(omega, dtype=float)
-    norm = float(np.sqrt(omega @ omega))
-    if norm == 0.0:
-        return w
-    k = omega / norm
-    t = norm * dt_s
-    c, s = np.cos(t)[:, None], np.sin(t)[:, None]
-    return w * c + _cross(k[None, :], w) * s + np.outer(w @ k, k) * (1.0 - c)
 
 
 def _angles(ai: np.ndarray, aj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Angle between rows (atan2 of |cross| and dot: accurate at all angles) and the cross products."""
-    n = _cross(ai, aj)
+    n = cross(ai, aj)
     return np.arctan2(np.sqrt(np.sum(n * n, axis=-1)), np.sum(ai * aj, axis=-1)), n
 
 
 def pair_residuals(omega, w, dt_s, i, j, cat_angles) -> np.ndarray:
     """Eq (2): measured minus catalogue angle (rad) of every pair ``(i[k], j[k])``."""
-    a = moved_directions(omega, w, dt_s)
+    a = rotate_at_rate(omega, w, dt_s)
     return _angles(a[i], a[j])[0] - cat_angles
 
 
-def pair_jacobian(omega, w, dt_s, i, j, a: np.ndarray | None = None, cross: np.ndarray | None = None) -> np.ndarray:
-    """Eq (3): ``d r / d omega``, (m, 3). ``a`` = :func:`moved_directions` and ``cross`` =
-    ``a[i] x a[j]`` when already computed (the solver reuses the residual's).
+def pair_jacobian(omega, w, dt_s, i, j, a: np.ndarray | None = None, pair_cross: np.ndarray | None = None) -> np.ndarray:
+    """Eq (3): ``d r / d omega``, (m, 3). ``a`` = eq (1) (:func:`~rollingstar.sensors.so3.rotate_at_rate`) and
+    ``pair_cross`` = ``a[i] x a[j]`` when already computed.
 
     Evaluated without forming 3x3 matrices: ``n^T J_l(phi) = n + c1 (n x phi) + c2 ((n x phi) x phi)``
     (from ``n^T [phi]x v = (n x phi) . v``) with :func:`left_jacobian`'s coefficients, and
@@ -162,17 +125,17 @@ def pair_jacobian(omega, w, dt_s, i, j, a: np.ndarray | None = None, cross: np.n
     ``p = n x omega``, ``q = p x omega`` shared by both stars of a pair.
     """
     omega = np.asarray(omega, dtype=float)
-    if cross is None:
+    if pair_cross is None:
         if a is None:
-            a = moved_directions(omega, w, dt_s)
-        cross = _cross(a[i], a[j])
-    n = cross / np.sqrt(np.sum(cross * cross, axis=-1))[:, None]
+            a = rotate_at_rate(omega, w, dt_s)
+        pair_cross = cross(a[i], a[j])
+    n = pair_cross / np.sqrt(np.sum(pair_cross * pair_cross, axis=-1))[:, None]
     c1, c2 = _jl_coefficients(float(np.sqrt(omega @ omega)) * np.abs(dt_s))  # at |phi_k|
     dt2 = dt_s * dt_s
     c1 = c1 * dt2  # c1 dt^2
     c2 = c2 * dt2 * dt_s  # c2 dt^3
-    p = _cross(n, omega[None, :])
-    q = _cross(p, omega[None, :])
+    p = cross(n, omega[None, :])
+    q = cross(p, omega[None, :])
     ddt = (dt_s[j] - dt_s[i])[:, None]
     return ddt * n + (c1[j] - c1[i])[:, None] * p + (c2[j] - c2[i])[:, None] * q
 
@@ -447,8 +410,6 @@ def solve_rate_least_squares(camera, x, y, dt_s, ref_icrs, sigma_px, estimate_z:
     ``tolerances``: least_squares' ``xtol``, ``ftol``, ``gtol`` (default 1e-8 each). Same errors as
     :func:`solve_rate`. About 4x slower (benchmarks/rate_solvers.py); kept for tests and benchmarks.
     """
-    from scipy.optimize import least_squares
-
     x, y, dt_s = _checked_stars(x, y, dt_s)
     w = camera.unproject(x, y)
     i, j = np.triu_indices(x.shape[0], k=1)
@@ -484,12 +445,13 @@ class LsRateParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     estimate_z: bool = Field(default=True, description="Estimate omega_z too; False fixes it to 0 (fu2022's assumption).")
-    reference: Literal["frame_start", "frame_mid"] = Field(
+    reference: Reference = Field(
         default="frame_mid",
         description="t_ref: 'frame_start' = row 0 exposure start; 'frame_mid' = mid-exposure of the middle row.")
     max_nfev: int = Field(default=50, ge=1, description="Maximum residual evaluations of the LM solver.")
     default_sigma_px: float = Field(
-        default=0.05, gt=0, description="Centroid sigma (px per axis) when neither the stars nor the sensor give one.")
+        default=DEFAULT_CENTROID_SIGMA_PX, gt=0,
+        description="Centroid sigma (px per axis) when neither the stars nor the sensor give one.")
     min_sigma_px: float = Field(
         default=1e-3, gt=0, description="Floor on the centroid sigma used for weighting (noise-free recordings state 0).")
     max_condition: float = Field(default=1e12, gt=1, description="Normal-matrix condition number above which the rate is flagged unobservable.")
@@ -499,13 +461,29 @@ class LsRateParams(BaseModel):
         "'least_squares': scipy's MINPACK LM (solve_rate_least_squares), the reference. Same estimate.")
 
 
-class _LsCore:
-    params: LsRateParams
+class LsRateEstimator(RateEstimator):
+    """Single-frame 3-axis rate by Levenberg-Marquardt on fu2022's angular-distance invariance, with covariance.
 
-    def _reference_ns(self, frame: FrameData) -> int:
-        if self.params.reference == "frame_start":
-            return int(frame.t0_ns)
-        return int(self.context.timing.frame_reference_ns(frame.t0_ns))
+    Every identified star of ``frame.stars`` (raw ``t_ns``: mid-exposure of its own row) and all their
+    pairs, GLS-weighted (module docstring, eqs 1-3). Sets ``frame.rate`` (camera frame, rad/s, at
+    ``t_ref``) with ``covariance`` (3x3, (rad/s)^2; the z row/column is 0 when ``estimate_z`` is
+    False) and ``iterations`` = residual evaluations. Fewer than three identified stars, or a
+    geometry/timing that does not determine the rate: an invalid estimate whose reason says which,
+    and frame flag ``rate_invalid``. Stars are not modified (``rate-correction`` after this stage
+    moves them to ``t_ref`` with the rate).
+
+    Centroid sigma of a star without its own: the sensor context's ``centroid_sigma_px`` when the
+    context states one (also 0, for noise-free recordings), else ``default_sigma_px``; floored at
+    ``min_sigma_px``.
+    """
+
+    name = "ls-rate"
+    Params = LsRateParams
+
+    def process(self, frame: FrameData) -> FrameData:
+        rate = self.estimate(frame)
+        out = frame.evolve(rate=rate)
+        return out if rate.valid else out.flagged("rate_invalid")
 
     def _sigma(self, sigma_px: np.ndarray) -> np.ndarray:
         p = self.params
@@ -514,66 +492,22 @@ class _LsCore:
         s = np.where(np.isfinite(sigma_px), sigma_px, fallback)
         return np.maximum(s, p.min_sigma_px)
 
-    def estimate(self, frame: FrameData) -> tuple[RateEstimate, int]:
-        t_ref = self._reference_ns(frame)
+    def estimate(self, frame: FrameData) -> RateEstimate:
+        """The rate estimate of ``frame`` at ``t_ref`` (invalid, with the reason, when there is none)."""
+        p = self.params
+        t_ref = reference_time_ns(p.reference, frame.t0_ns, self.context.timing)
         stars = frame.stars if frame.stars is not None else StarTable.empty()
         ident = np.flatnonzero(stars.identified & np.isfinite(stars.x) & np.isfinite(stars.y)
                                & np.all(np.isfinite(stars.ref_icrs), axis=1))
-        dt = (stars.t_ns[ident] - np.int64(t_ref)).astype(float) * 1e-9
+        dt = (stars.t_ns[ident] - np.int64(t_ref)).astype(float) * S_PER_NS
         try:
-            solve = solve_rate if self.params.solver == "gauss-newton" else solve_rate_least_squares
+            solve = solve_rate if p.solver == "gauss-newton" else solve_rate_least_squares
             res = solve(self.context.camera, stars.x[ident], stars.y[ident], dt, stars.ref_icrs[ident],
-                             self._sigma(stars.sigma_px[ident]), self.params.estimate_z, self.params.max_nfev,
-                             max_condition=self.params.max_condition)
+                        self._sigma(stars.sigma_px[ident]), p.estimate_z, p.max_nfev, max_condition=p.max_condition)
         except ValueError as exc:
-            return RateEstimate(t_ns=t_ref, omega_rad_s=np.full(3, np.nan), valid=False, reason=str(exc)), t_ref
+            return RateEstimate(t_ns=t_ref, omega_rad_s=np.full(3, np.nan), valid=False, reason=str(exc))
         if not np.all(np.isfinite(res.omega)):
             return RateEstimate(t_ns=t_ref, omega_rad_s=np.full(3, np.nan), valid=False,
-                                reason=f"solver_failed: {res.message}"), t_ref
+                                reason=f"solver_failed: {res.message}")
         return RateEstimate(t_ns=t_ref, omega_rad_s=res.omega, valid=True, covariance=res.covariance,
-                            iterations=res.nfev), t_ref
-
-
-class LsRateEstimator(_LsCore, RateEstimator):
-    """Single-frame 3-axis rate by Levenberg-Marquardt on fu2022's angular-distance invariance, with covariance.
-
-    Every identified star of ``frame.stars`` (raw ``t_ns``: mid-exposure of its own row) and all their
-    pairs, GLS-weighted (module docstring, eqs 1-3). Sets ``frame.rate`` (camera frame, rad/s, at
-    ``t_ref``) with ``covariance`` (3x3, (rad/s)^2; the z row/column is 0 when ``estimate_z`` is
-    False) and ``iterations`` = residual evaluations. Fewer than three identified stars, or a
-    geometry/timing that does not determine the rate: an invalid estimate whose reason says which,
-    and frame flag ``rate_invalid``. Stars are not modified.
-    """
-
-    name = "ls-rate"
-    Params = LsRateParams
-
-    def process(self, frame: FrameData) -> FrameData:
-        rate, _ = self.estimate(frame)
-        out = frame.evolve(rate=rate)
-        return out if rate.valid else out.flagged("rate_invalid")
-
-
-class LsRateCorrection(_LsCore, Correction):
-    """Rolling-shutter correction with the ``ls-rate`` estimate: every star rotated to ``t_ref`` (eq 1).
-
-    Estimates the 3-axis rate as ``ls-rate`` does, then moves **every** star of ``frame.stars``
-    (identified or not): ``Exp(omega (t_i - t_ref)) w_i`` re-projected, and sets ``t_ns = t_ref``
-    and ``frame.rate``. When the rate cannot be estimated the stars are returned unchanged and the
-    frame is flagged ``rate_invalid``.
-    """
-
-    name = "ls-correction"
-    Params = LsRateParams
-
-    def process(self, frame: FrameData) -> FrameData:
-        rate, t_ref = self.estimate(frame)
-        stars = frame.stars
-        if not rate.valid or stars is None:
-            return frame.evolve(rate=rate).flagged("rate_invalid")
-        cam = self.context.camera
-        dt = (stars.t_ns - np.int64(t_ref)).astype(float) * 1e-9
-        u = moved_directions(rate.omega_rad_s, cam.unproject(stars.x, stars.y), dt)
-        x, y, _ = cam.project(u)
-        new = stars.with_columns(x=x, y=y, t_ns=np.full(stars.n, t_ref, dtype=np.int64))
-        return frame.evolve(stars=new, rate=rate)
+                            iterations=res.nfev)

@@ -1,7 +1,7 @@
 """Compiled per-pair loops of the ``ls-rate`` solver (numba): residuals and Jacobian, pixel sensitivity.
 
 The same equations as the numpy reference functions in :mod:`rollingstar.estimators.rates.ls_rate`
-(``moved_directions`` eq 1, ``pair_residuals`` eq 2, ``pair_jacobian`` eq 3, ``pixel_sensitivity``);
+(eq 1 by :func:`rollingstar.sensors.so3.rotate_at_rate`, ``pair_residuals`` eq 2, ``pair_jacobian`` eq 3, ``pixel_sensitivity``);
 the tests check the kernels against them. Why compiled code: a frame has 10-25 stars, 45-300 pairs,
 so a vectorised numpy evaluation is bound by the fixed cost of its ~40 array operations (~45 us
 measured), not by arithmetic; the loop below does the same work in a few microseconds, and the

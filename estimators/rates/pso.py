@@ -45,16 +45,17 @@ evaluation per generation for the whole swarm).
 """
 from __future__ import annotations
 
+from itertools import combinations
 from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from rollingstar.estimators.corrections.base import Correction
 from rollingstar.estimators.data import FrameData, RateEstimate, StarTable
-from rollingstar.estimators.rates.base import RateEstimator
+from rollingstar.estimators.rates.base import RateEstimator, Reference, reference_time_ns
+from rollingstar.sensors.conventions import DEG_TO_RAD, S_PER_NS
+from rollingstar.sensors.so3 import rotate_by_rotvec
 
-DEG = np.pi / 180.0
 W_MAX, W_MIN = 0.9, 0.4  # eq 18
 C1 = C2 = 2.0  # eq 17
 
@@ -88,17 +89,6 @@ def _unit_from_pixels(camera, x, y) -> np.ndarray:
     return camera.unproject(x, y)
 
 
-def _rodrigues(rotvec: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``Exp(rotvec) v`` for broadcastable (..., 3) arrays (Rodrigues' formula, series near 0)."""
-    th = np.linalg.norm(rotvec, axis=-1, keepdims=True)
-    small = th < 1e-8
-    safe = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th**2 / 6.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
-    kxv = np.cross(rotvec, v)
-    return v + a * kxv + b * np.cross(rotvec, kxv)
-
-
 def _pair_angles(u: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
     """Angles between ``u[..., i, :]`` and ``u[..., j, :]`` (eq 15, via atan2 for accuracy)."""
     a, b = u[..., i, :], u[..., j, :]
@@ -120,8 +110,8 @@ def corrected_directions(camera, omega_xy, x, y, dt_s, model: str = "linear", w:
 
     ``model="linear"``: eqs 11-14 then eq 2 (``omega_x, omega_y`` only: eq 8 assumes ``omega_z = 0``);
     ``model="rotation"``: ``Exp(omega dt_i) w_i`` exactly, with ``omega = (omega_x, omega_y, 0)`` for a
-    (..., 2) ``omega_xy`` or the full body rate for a (..., 3) one (e.g. a gyro rate reused by
-    :class:`PsoCorrection`). ``w``: the stars' unit directions ``unproject(x, y)`` when already
+    (..., 2) ``omega_xy`` or the full body rate for a (..., 3) one (e.g. a gyro rate applied by
+    ``rate-correction``). ``w``: the stars' unit directions ``unproject(x, y)`` when already
     computed (``model="rotation"``; the swarm's loss reuses them in every generation).
     """
     om = np.asarray(omega_xy, dtype=float)
@@ -131,7 +121,7 @@ def corrected_directions(camera, omega_xy, x, y, dt_s, model: str = "linear", w:
     w = _unit_from_pixels(camera, x, y) if w is None else w  # (n, 3)
     om3 = om if om.shape[-1] == 3 else np.concatenate([om, np.zeros(om.shape[:-1] + (1,))], axis=-1)  # (..., 3)
     rotvec = om3[..., None, :] * np.asarray(dt_s, dtype=float)[:, None]  # (..., n, 3)
-    return _rodrigues(rotvec, w)
+    return rotate_by_rotvec(rotvec, w)
 
 
 def angular_distance_loss(camera, omega_xy, x, y, dt_s, cat_angles, pairs, model: str = "linear",
@@ -175,8 +165,6 @@ def select_stars(stars: StarTable, n_stars: int | str, camera, selection: str = 
     if n_stars == "all" or ident.size <= int(n_stars):
         return ident
     if selection == "spread":
-        from itertools import combinations
-
         triples = np.array(list(combinations(range(ident.size), 3)), dtype=np.intp)
         score = triple_conditioning(stars.x[ident], stars.y[ident], np.asarray(dt_s)[ident], camera.focal_px, triples)
         return ident[triples[int(np.argmax(score))]]
@@ -269,7 +257,7 @@ class PsoParams(BaseModel):
         "'spread': the best-conditioned triple (n_stars = 3 only).")
     model: Literal["linear", "rotation"] = Field(
         default="rotation", description="'linear': fu2022 eqs 11-14 pixel shift; 'rotation': exact rotation to t_ref.")
-    reference: Literal["frame_start", "frame_mid"] = Field(
+    reference: Reference = Field(
         default="frame_mid",
         description="t_ref: 'frame_start' = row 0 exposure start (eq 11 as printed); 'frame_mid' = mid-exposure of the middle row.")
     seed: int = Field(default=0, ge=0, description="PSO random stream: default_rng([seed, frame.index]).")
@@ -288,44 +276,7 @@ class PsoParams(BaseModel):
         return self
 
 
-class _PsoCore:
-    """Shared state and estimation of the PSO rate estimator and correction."""
-
-    params: PsoParams
-
-    def _reference_ns(self, frame: FrameData) -> int:
-        timing = self.context.timing
-        return int(frame.t0_ns) if self.params.reference == "frame_start" else int(timing.frame_reference_ns(frame.t0_ns))
-
-    def estimate(self, frame: FrameData) -> tuple[RateEstimate, int]:
-        """The rate estimate of ``frame`` and the reference time (ns) the model refers to."""
-        p = self.params
-        t_ref = self._reference_ns(frame)
-        stars = frame.stars if frame.stars is not None else StarTable.empty()
-        cam = self.context.camera
-        dt_all = (stars.t_ns - np.int64(t_ref)).astype(float) * 1e-9
-        sel = select_stars(stars, p.n_stars, cam, p.selection, dt_all)
-        if sel.size < 3:
-            return RateEstimate(t_ns=t_ref, omega_rad_s=np.full(3, np.nan), valid=False,
-                                reason=f"too_few_stars: {sel.size} identified, the PSO rate needs >= 3"), t_ref
-        x, y, dt = stars.x[sel], stars.y[sel], dt_all[sel]
-        i, j = np.triu_indices(sel.size, k=1)
-        ref = stars.ref_icrs[sel]
-        cat = _pair_angles(ref, i, j)
-        w = _unit_from_pixels(cam, x, y) if p.model == "rotation" else None  # once, not in every generation
-
-        def loss(om):
-            return angular_distance_loss(cam, om, x, y, dt, cat, (i, j), p.model, w)
-
-        rng = np.random.default_rng([p.seed, int(frame.index)])
-        S = p.search_deg_s * DEG
-        res = pso_minimise(loss, [-S, -S], [S, S], p.particles, p.max_iterations, p.tolerance_deg_s * DEG, rng,
-                           p.max_step_fraction, p.patience)
-        omega = np.array([res.best[0], res.best[1], 0.0])  # omega_z = 0: the paper's installation assumption
-        return RateEstimate(t_ns=t_ref, omega_rad_s=omega, valid=True, iterations=int(res.iterations)), t_ref
-
-
-class PsoRateEstimator(_PsoCore, RateEstimator):
+class PsoRateEstimator(RateEstimator):
     """Single-frame rate from angular-distance invariance, solved by PSO (fu2022 eqs 8-18, Algorithm 1).
 
     Uses ``n_stars`` adjacent identified stars (default 3: the brightest and its two nearest
@@ -338,60 +289,41 @@ class PsoRateEstimator(_PsoCore, RateEstimator):
     (``reference``), with ``omega_z = 0`` **by assumption** (the paper's collinear reverse
     installation; the method cannot observe ``omega_z``) and ``iterations`` = the PSO convergence
     generation (see :func:`pso_minimise`). Fewer than three identified stars: an invalid estimate
-    with reason ``too_few_stars`` (and frame flag ``rate_invalid``). Stars are not modified.
+    with reason ``too_few_stars`` (and frame flag ``rate_invalid``). Stars are not modified
+    (``rate-correction`` after this stage applies eqs 11-14 with the rate).
     """
 
     name = "pso-rate"
     Params = PsoParams
 
     def process(self, frame: FrameData) -> FrameData:
-        rate, _ = self.estimate(frame)
+        rate = self.estimate(frame)
         out = frame.evolve(rate=rate)
         return out if rate.valid else out.flagged("rate_invalid")
 
-
-class PsoCorrectionParams(PsoParams):
-    reuse_rate: bool = Field(
-        default=True, description="Use the frame's valid rate (frame.rate, e.g. from a pso-rate stage earlier in the "
-        "pipeline) instead of running the PSO again; False: always estimate.")
-
-
-class PsoCorrection(_PsoCore, Correction):
-    """Rolling-shutter correction with the PSO rate (fu2022 eqs 11-14 applied with the eq 16 solution).
-
-    Rate: when ``reuse_rate`` and the frame already carries a valid, finite ``frame.rate`` (a
-    ``pso-rate`` stage earlier in the pipeline, or any rate stage), that rate is used and the PSO is
-    not run again (``model="rotation"`` then applies its full 3-vector, ``"linear"`` its x and y);
-    otherwise ``(omega_x, omega_y)`` is estimated exactly as ``pso-rate`` does. Then moves **every** star of
-    ``frame.stars`` (identified or not) to the reference time: ``model="linear"``:
-    ``x_i = x_i' - v_x (t_i - t_ref)``, ``y_i = y_i' - v_y (t_i - t_ref)`` with eq 8's ``v``;
-    ``model="rotation"``: the direction rotated exactly and re-projected. Sets ``t_ns = t_ref`` for
-    every star and ``frame.rate`` to the estimate. With fewer than three identified stars the stars
-    are returned unchanged (each keeps its own ``t_ns``) and the frame is flagged
-    ``rate_invalid``.
-    """
-
-    name = "pso-correction"
-    Params = PsoCorrectionParams
-
-    def process(self, frame: FrameData) -> FrameData:
-        prior = frame.rate
-        if (self.params.reuse_rate and prior is not None and prior.valid
-                and np.all(np.isfinite(np.asarray(prior.omega_rad_s, dtype=float)))):
-            rate, t_ref = prior, self._reference_ns(frame)
-            om = np.asarray(prior.omega_rad_s, dtype=float)
-        else:
-            rate, t_ref = self.estimate(frame)
-            om = rate.omega_rad_s[:2]
-        stars = frame.stars
-        if not rate.valid or stars is None:
-            return frame.evolve(rate=rate).flagged("rate_invalid")
-        dt = (stars.t_ns - np.int64(t_ref)).astype(float) * 1e-9
+    def estimate(self, frame: FrameData) -> RateEstimate:
+        """The rate estimate of ``frame`` at ``t_ref`` (invalid, with the reason, below three stars)."""
+        p = self.params
+        t_ref = reference_time_ns(p.reference, frame.t0_ns, self.context.timing)
+        stars = frame.stars if frame.stars is not None else StarTable.empty()
         cam = self.context.camera
-        if self.params.model == "linear":
-            x, y = corrected_positions(cam, om, stars.x, stars.y, dt)
-        else:
-            u = corrected_directions(cam, om, stars.x, stars.y, dt, "rotation")
-            x, y, _ = cam.project(u)
-        new = stars.with_columns(x=x, y=y, t_ns=np.full(stars.n, t_ref, dtype=np.int64))
-        return frame.evolve(stars=new, rate=rate)
+        dt_all = (stars.t_ns - np.int64(t_ref)).astype(float) * S_PER_NS
+        sel = select_stars(stars, p.n_stars, cam, p.selection, dt_all)
+        if sel.size < 3:
+            return RateEstimate(t_ns=t_ref, omega_rad_s=np.full(3, np.nan), valid=False,
+                                reason=f"too_few_stars: {sel.size} identified, the PSO rate needs >= 3")
+        x, y, dt = stars.x[sel], stars.y[sel], dt_all[sel]
+        i, j = np.triu_indices(sel.size, k=1)
+        ref = stars.ref_icrs[sel]
+        cat = _pair_angles(ref, i, j)
+        w = _unit_from_pixels(cam, x, y) if p.model == "rotation" else None  # once, not in every generation
+
+        def loss(om):
+            return angular_distance_loss(cam, om, x, y, dt, cat, (i, j), p.model, w)
+
+        rng = np.random.default_rng([p.seed, int(frame.index)])
+        S = p.search_deg_s * DEG_TO_RAD
+        res = pso_minimise(loss, [-S, -S], [S, S], p.particles, p.max_iterations, p.tolerance_deg_s * DEG_TO_RAD, rng,
+                           p.max_step_fraction, p.patience)
+        omega = np.array([res.best[0], res.best[1], 0.0])  # omega_z = 0: the paper's installation assumption
+        return RateEstimate(t_ns=t_ref, omega_rad_s=omega, valid=True, iterations=int(res.iterations))

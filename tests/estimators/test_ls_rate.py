@@ -1,7 +1,7 @@
-"""ls-rate / ls-correction: known answers on fu2022 frames (omega_z up to 5 deg/s), analytic Jacobian vs
-finite differences, properties (t_ref and star-order invariance), covariance vs Monte Carlo scatter and
-vs the independent Cramér-Rao bound, the hand-written solver and whitening vs the scipy least_squares /
-eigendecomposition reference, invalid input."""
+"""ls-rate / ls-correction (ls-rate + rate-correction): known answers on fu2022 frames (omega_z up to
+5 deg/s), analytic Jacobian vs finite differences, properties (t_ref and star-order invariance),
+covariance vs Monte Carlo scatter and vs the independent Cramér-Rao bound, the hand-written solver and
+whitening vs the scipy least_squares / eigendecomposition reference, invalid input."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -11,9 +11,9 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from rollingstar.estimators.data import FrameData, SensorContext, StarTable
+from rollingstar.estimators.corrections.rate import RateCorrection
+from rollingstar.estimators.data import FrameData, RateEstimate, SensorContext, StarTable
 from rollingstar.estimators.rates.ls_rate import (
-    LsRateCorrection,
     LsRateEstimator,
     _Problem,
     left_jacobian,
@@ -27,6 +27,7 @@ from rollingstar.estimators.rates.ls_rate import (
     whitening_rotation_null,
 )
 from rollingstar.estimators.rates.ls_rate_kernel import pair_setup_kernel
+from rollingstar.pipelines.registry import get_plugin_class, stage_params
 from rollingstar.pipelines.simulate import build_simulator
 from rollingstar.pipelines.truth import rate_crb_rad2
 from rollingstar.sensors.scenario import load_scenario
@@ -49,6 +50,12 @@ def truth_frame(cfg, k=0) -> tuple[FrameData, object, object]:
     stars = StarTable.build(tr.x, tr.y, tr.t_ns, tr.row_time_ns, flux=10 ** (-0.4 * tr.magnitude),
                             catalog_id=tr.catalog_id, ref_icrs=tr.unit_icrs)
     return FrameData(index=k, t0_ns=int(sim.timing.frame_start_ns(k)), stars=stars), SensorContext.from_scenario(cfg), sim
+
+
+def ls_correction(**params):
+    """An ``ls-correction`` stage (the registry alias of rate-correction estimating with ls-rate on
+    every frame), as the runner builds it from a pipeline config."""
+    return get_plugin_class("ls-correction")(**stage_params("ls-correction", params))
 
 
 def estimate(frame, ctx, **params):
@@ -169,7 +176,7 @@ def test_invalid_inputs_are_flagged_not_invented():
 def test_correction_moves_every_star_to_reference_time():
     frame, ctx, sim = truth_frame(scenario((2.0, -1.0, 5.0)), k=1)
     unident = frame.stars.with_columns(catalog_id=np.where(np.arange(frame.stars.n) % 4 == 0, -1, frame.stars.catalog_id))
-    plugin = LsRateCorrection()
+    plugin = ls_correction()
     plugin.setup(ctx)
     out = plugin.process(frame.evolve(stars=unident))
     t_ref = ctx.timing.frame_reference_ns(frame.t0_ns)
@@ -180,6 +187,41 @@ def test_correction_moves_every_star_to_reference_time():
     # the input frame is not mutated and the correction did move the stars (by up to ~17 px here)
     assert np.all(frame.stars.t_ns == sim.frame(1).truth.t_ns)
     assert np.abs(frame.stars.x - out.stars.x).max() > 1.0
+
+
+def test_rate_correction_after_ls_rate_equals_ls_correction():
+    """configs/pipelines/ls_rate.yaml: ls-rate then rate-correction gives the stars, rate and flags of
+    the one-stage ls-correction, bit for bit; without a valid rate both leave the stars and flag once."""
+    frame, ctx, _ = truth_frame(scenario((2.0, -1.0, 5.0)), k=1)
+    rate_stage, corr, alone = LsRateEstimator(), RateCorrection(), ls_correction()
+    for stage in (rate_stage, corr, alone):
+        stage.setup(ctx)
+    short = frame.evolve(stars=frame.stars.take(np.arange(2)))
+    for f in (frame, short):
+        two, one = corr.process(rate_stage.process(f)), alone.process(f)
+        for column in ("x", "y", "t_ns"):
+            np.testing.assert_array_equal(getattr(two.stars, column), getattr(one.stars, column))
+        np.testing.assert_array_equal(two.rate.omega_rad_s, one.rate.omega_rad_s)
+        assert two.flags == one.flags
+    assert alone.process(short).flags == ("rate_invalid",)
+    np.testing.assert_array_equal(alone.process(short).stars.x, short.stars.x)
+    # ls-correction ignores a rate already on the frame (reuse_rate false): it estimates its own
+    held = frame.evolve(rate=RateEstimate(t_ns=0, omega_rad_s=np.zeros(3)))
+    np.testing.assert_array_equal(alone.process(held).rate.omega_rad_s, alone.process(frame).rate.omega_rad_s)
+
+
+def test_rate_correction_params():
+    with pytest.raises(Exception, match="need an estimator"):
+        RateCorrection(estimator_params={"estimate_z": False})
+    with pytest.raises(Exception, match="estimate_z"):
+        RateCorrection(estimator="pso-rate", estimator_params={"estimate_z": False})  # not a pso-rate parameter
+    with pytest.raises(Exception, match="need an estimator"):
+        RateCorrection(reuse_rate=False)
+    with pytest.raises(Exception, match="reference"):
+        RateCorrection(estimator="ls-rate", estimator_params={"reference": "frame_start"})  # the correction's
+    corr = RateCorrection(estimator="ls-rate", estimator_params={"estimate_z": False}, reference="frame_start")
+    assert corr.params.all_estimator_params() == {"estimate_z": False, "reference": "frame_start"}
+    assert ls_correction(estimate_z=False).params.estimator_params == {"estimate_z": False}
 
 
 @pytest.mark.parametrize("rate", [(1.0, 1.0, 0.0), (3.0, -2.0, 1.0), (0.5, 0.5, 5.0), (-4.0, 2.5, -5.0)])

@@ -1,17 +1,21 @@
-"""pso-rate / pso-correction (fu2022 eqs 8-18): loss at the truth, recovery, determinism, invalid input."""
+"""pso-rate / pso-correction (fu2022 eqs 8-18): loss at the truth, recovery, determinism, invalid input.
+
+``pso-correction`` is the registry alias of ``rate-correction`` that runs the PSO itself on frames
+without a valid rate; :func:`pso_correction` builds it as a pipeline config does."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from rollingstar.estimators.corrections.rate import RateCorrection
 from rollingstar.estimators.data import FrameData, SensorContext, StarTable
 from rollingstar.estimators.rates.pso import (
-    PsoCorrection,
     PsoRateEstimator,
     _pair_angles,
     angular_distance_loss,
     image_velocity_px_s,
 )
+from rollingstar.pipelines.registry import get_plugin_class, stage_params
 from rollingstar.sensors.camera import PinholeCamera
 from rollingstar.sensors.catalog import StarCatalog
 from rollingstar.sensors.conventions import attitude_from_radec_roll
@@ -21,6 +25,11 @@ from rollingstar.sensors.timing import DetectorTiming
 
 DEG = np.pi / 180.0
 OMEGA = np.array([1.0, -0.7, 0.0]) * DEG  # rad/s
+
+
+def pso_correction(**params):
+    """A ``pso-correction`` stage with ``params``, as the runner builds it from a pipeline config."""
+    return get_plugin_class("pso-correction")(**stage_params("pso-correction", params))
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +101,7 @@ def test_too_few_stars_invalid(setup):
         est.setup(ctx)
         out = est.process(f)
         assert not out.rate.valid and "too_few_stars" in out.rate.reason and "rate_invalid" in out.flags
-        corr = PsoCorrection()
+        corr = pso_correction()
         corr.setup(ctx)
         c = corr.process(f)
         assert np.array_equal(c.stars.x, f.stars.x) and "rate_invalid" in c.flags
@@ -108,7 +117,7 @@ def test_params_validated():
 
 def test_correction_moves_stars_to_reference_time(setup):
     ctx, frame = setup
-    corr = PsoCorrection(particles=40, max_iterations=200, tolerance_deg_s=1e-4)
+    corr = pso_correction(particles=40, max_iterations=200, tolerance_deg_s=1e-4)
     corr.setup(ctx)
     out = corr.process(frame)
     t_ref = ctx.timing.frame_reference_ns(0)
@@ -121,7 +130,7 @@ def test_correction_moves_stars_to_reference_time(setup):
 
 
 def test_correction_reuses_the_pipeline_rate_and_runs_the_pso_once(setup, monkeypatch):
-    """pso-rate then pso-correction (configs/pipelines/fu2022.yaml): the correction takes frame.rate
+    """pso-rate then pso-correction: the correction takes frame.rate
     instead of re-running the swarm, and its stars equal those of a correction that estimates itself."""
     import rollingstar.estimators.rates.pso as pso
 
@@ -135,12 +144,12 @@ def test_correction_reuses_the_pipeline_rate_and_runs_the_pso_once(setup, monkey
 
     monkeypatch.setattr(pso, "pso_minimise", counting)
     kw = dict(particles=40, max_iterations=200, tolerance_deg_s=1e-4)
-    rate_stage, corr = PsoRateEstimator(**kw), PsoCorrection(**kw)
+    rate_stage, corr = PsoRateEstimator(**kw), pso_correction(**kw)
     for st in (rate_stage, corr):
         st.setup(ctx)
     out = corr.process(rate_stage.process(frame))
     assert len(calls) == 1  # the PSO ran once for the two stages
-    alone = PsoCorrection(**kw, reuse_rate=False)
+    alone = pso_correction(**kw, reuse_rate=False)
     alone.setup(ctx)
     ref = alone.process(frame)
     assert len(calls) == 2  # reuse_rate=False estimates again
@@ -161,7 +170,7 @@ def test_correction_with_an_exact_external_rate_is_exact(setup, monkeypatch):
         raise AssertionError("the PSO must not run when frame.rate is valid")
 
     monkeypatch.setattr(pso, "pso_minimise", forbidden)
-    corr = PsoCorrection()
+    corr = pso_correction()
     corr.setup(ctx)
     out = corr.process(frame.evolve(rate=RateEstimate(t_ns=0, omega_rad_s=OMEGA.copy(), valid=True)))
     t_ref = ctx.timing.frame_reference_ns(0)
@@ -171,3 +180,32 @@ def test_correction_with_an_exact_external_rate_is_exact(setup, monkeypatch):
     # an invalid frame.rate is not reused: the PSO runs (and here is forbidden)
     with pytest.raises(AssertionError, match="must not run"):
         corr.process(frame.evolve(rate=RateEstimate(t_ns=0, omega_rad_s=np.full(3, np.nan), valid=False, reason="x")))
+
+
+def test_pso_correction_params_are_the_estimators(setup):
+    """A pso-correction config gives the PSO's parameters beside the correction's (configs written for the
+    one-stage plugin): they become rate-correction's estimator_params."""
+    corr = pso_correction(particles=40, seed=3, model="linear", reuse_rate=True)
+    assert corr.params.estimator == "pso-rate" and corr.params.model == "linear"
+    assert corr.params.estimator_params == {"particles": 40, "seed": 3}
+    with pytest.raises(Exception, match="particels"):
+        pso_correction(particels=40)
+
+
+def test_rate_correction_after_pso_rate_equals_pso_correction(setup):
+    """configs/pipelines/fu2022.yaml: pso-rate then rate-correction (rotation-vector form) moves the
+    stars exactly as the one-stage pso-correction does, bit for bit."""
+    ctx, frame = setup
+    rate_stage, corr, alone = PsoRateEstimator(), RateCorrection(rotation_form="rotation-vector"), pso_correction()
+    for st in (rate_stage, corr, alone):
+        st.setup(ctx)
+    assert isinstance(alone, RateCorrection)
+    two = corr.process(rate_stage.process(frame))
+    one = alone.process(frame)
+    for column in ("x", "y", "t_ns"):
+        np.testing.assert_array_equal(getattr(two.stars, column), getattr(one.stars, column))
+    np.testing.assert_array_equal(two.rate.omega_rad_s, one.rate.omega_rad_s)
+    linear = pso_correction(model="linear")
+    linear.setup(ctx)
+    assert linear.params.all_estimator_params()["model"] == "linear"  # the PSO's loss takes the correction's model
+    assert not np.array_equal(linear.process(frame).stars.x, one.stars.x)
