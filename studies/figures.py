@@ -1,4 +1,4 @@
-"""Figures of the foundation (issue 2): measured now, written to docs/foundation.md with plots.
+"""Figures of the foundation: measured on every run, written to docs/foundation.md with plots.
 
     rollingstar figures foundation [--quick] [--json] [--out docs]
 
@@ -25,6 +25,7 @@ from rollingstar.pipelines.evaluate import evaluate_log
 from rollingstar.pipelines.runner import run_pipeline
 from rollingstar.pipelines.simulate import build_simulator, simulate_to_log
 from rollingstar.sensors.scenario import ScenarioConfig, load_scenario
+from rollingstar.studies.real_data import real_data_markdown, run_real_data, write_real_data_docs
 
 SCENARIOS = CONFIGS / "scenarios"
 BASELINE = CONFIGS / "pipelines" / "baseline.yaml"
@@ -300,12 +301,6 @@ def write_foundation_docs(result: dict, docs_dir: Path, command: str) -> Path:
 def real_data_figures(out_dir: Path | None, as_json: bool = False, repeats: int = 3) -> dict:
     """``rollingstar figures real-data [--out docs]``: the same measurement as ``benchmarks/real_data.py``
     (:func:`rollingstar.studies.real_data.run_real_data`), written to ``<out>/real-data.md``, ``.json`` and PNGs."""
-    from rollingstar.studies.real_data import (
-        real_data_markdown,
-        run_real_data,
-        write_real_data_docs,
-    )
-
     command = "rollingstar figures real-data" + (f" --out {out_dir}" if out_dir is not None else "")
     result = run_real_data(repeats=repeats, show_progress=not as_json)
     if out_dir is not None:

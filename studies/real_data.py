@@ -1,4 +1,4 @@
-"""Real-sky figures (issue 4): extract, identify lost-in-space and solve every shared real image.
+"""Real-sky figures: extract, identify lost-in-space and solve every shared real image.
 
     .venv/bin/python benchmarks/real_data.py [--out docs] [--json]
 
@@ -33,6 +33,11 @@ from rollingstar.estimators.identifiers.camera_fit import (
     fit_camera,
 )
 from rollingstar.estimators.identifiers.lost_in_space import LostInSpaceIdentifier
+from rollingstar.logs.importers.common import WarningLog
+from rollingstar.logs.importers.corr import focal_px_from_fov, read_log_json
+from rollingstar.logs.importers.images import read_image
+from rollingstar.logs.importers.sidecar import load_camera
+from rollingstar.progress import progress_bar
 from rollingstar.sensors.camera import PinholeCamera
 from rollingstar.sensors.catalog import StarCatalog
 from rollingstar.sensors.conventions import radec_roll_from_attitude, radec_to_unit
@@ -162,8 +167,6 @@ class ImageJob:
 
 
 def tetra3_jobs(base: Path) -> list[ImageJob]:
-    from rollingstar.logs.importers.sidecar import load_camera
-
     cam = load_camera(TETRA3_CAMERA)
     files = sorted((base / "tetra3").glob("*.tiff"))
     return [ImageJob("tetra3", p.stem.split("_", 1)[1], p, cam.focal_px, cam.width_px, cam.height_px, TETRA3_EPOCH)
@@ -172,9 +175,6 @@ def tetra3_jobs(base: Path) -> list[ImageJob]:
 
 def creusot_jobs(base: Path) -> list[ImageJob]:
     """Every PNG under creusot/, with its folder's log.json (the importer's tolerant reader)."""
-    from rollingstar.logs.importers.common import WarningLog
-    from rollingstar.logs.importers.corr import focal_px_from_fov, read_log_json
-
     jobs = []
     root = base / "creusot"
     for png in sorted(root.rglob("*.png")):
@@ -205,8 +205,6 @@ class Detected:
 
 def detect(job: ImageJob, repeats: int = 3) -> Detected:
     """Read the image and run ``cog`` (minimum time over ``repeats`` calls)."""
-    from rollingstar.logs.importers.images import read_image
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         image = read_image(job.path)
@@ -332,8 +330,6 @@ def run_real_data(base: Path | None = None, repeats: int = 3, show_progress: boo
     peer comparison (``process_image``): tetra3 with the nominal pinhole (``LIS_PARAMS``), creusot
     with its folder's leave-one-out calibrated model (``FINAL_PARAMS``).
     """
-    from rollingstar.progress import progress_bar
-
     base = Path(base) if base is not None else real_data_dir()
     if not (base / "tetra3").is_dir() or not (base / "creusot").is_dir():
         raise UserError(f"real data not found at {base} (expected tetra3/ and creusot/; set ROLLINGSTAR_REAL_DATA)")
@@ -497,23 +493,26 @@ def write_plots(result: dict, img_dir: Path) -> list[str]:
     return names
 
 
+def _median(vals) -> float:
+    """Median of the values that are not None (NaN when there are none)."""
+    vals = [v for v in vals if v is not None]
+    return float(np.median(vals)) if vals else float("nan")
+
+
 def real_data_markdown(result: dict, command: str, plots: list[str] = ()) -> str:
     rows = result["rows"]
     t3 = [r for r in rows if r["group"] == "tetra3"]
     cr = [r for r in rows if r["group"] == "creusot"]
-    acc_t3 = [r for r in t3 if r["accepted"]]
-    acc_cr = [r for r in cr if r["accepted"]]
+    out = [*_intro_lines(result, command), *_tetra3_lines(result, t3), *_creusot_lines(result, cr),
+           *_extraction_lines(rows, t3, cr), *_observation_lines(result)]
+    for p in plots:
+        out += [f"![{p}](img/{p})", ""]
+    return "\n".join(out)
 
-    def med(vals):
-        vals = [v for v in vals if v is not None]
-        return float(np.median(vals)) if vals else float("nan")
 
-    ratios = [r["extract_over_peer"] for r in rows if r["extract_over_peer"]]
-    ratio_t3 = med([r["extract_over_peer"] for r in t3])
-    ratio_cr = med([r["extract_over_peer"] for r in cr])
-    diff_t3 = med([r["peer"]["median_diff_px"] for r in t3])
-    diff_cr = med([r["peer"]["median_diff_px"] for r in cr])
-    out = [
+def _intro_lines(result: dict, command: str) -> list[str]:
+    """Title, how the page was made, and the tetra3 method."""
+    return [
         "# Real sky images: extraction, lost-in-space identification, attitude",
         "",
         f"Every number on this page is measured by `{command}` (data: `ROLLINGSTAR_REAL_DATA`, default "
@@ -533,15 +532,29 @@ def real_data_markdown(result: dict, command: str, plots: list[str] = ()) -> str
         "made once per catalogue and field at set-up and not counted. A rejected image says why; nothing is "
         "guessed. Refraction is not corrected (ground-based images).",
         "",
+    ]
+
+
+def _tetra3_lines(result: dict, t3: list[dict]) -> list[str]:
+    """The tetra3 section: identified count, fitted field, residual and the per-image table."""
+    acc_t3 = [r for r in t3 if r["accepted"]]
+    return [
         "## tetra3 images (1024 x 768, 16-bit, 35 mm lens)",
         "",
         f"Identified {len(acc_t3)} of {len(t3)}. The camera file (`configs/cameras/tetra3_blackfly_s.yaml`) gives "
         f"a nominal horizontal field of {t3[0]['nominal_fov_deg']:.3f} deg (35 mm / 6.9 um); the images are stated "
-        f"as about 11.4 deg. Fitted field (median): {med([r.get('fov_deg') for r in acc_t3]):.3f} deg; median "
-        f"residual {med([r.get('rms_px') for r in acc_t3]):.3f} px = {med([r.get('rms_arcsec') for r in acc_t3]):.2f} arcsec." if t3 else "",
+        f"as about 11.4 deg. Fitted field (median): {_median([r.get('fov_deg') for r in acc_t3]):.3f} deg; median "
+        f"residual {_median([r.get('rms_px') for r in acc_t3]):.3f} px = {_median([r.get('rms_arcsec') for r in acc_t3]):.2f} arcsec." if t3 else "",
         "",
         *_table(t3, creusot=False),
         "",
+    ]
+
+
+def _creusot_lines(result: dict, cr: list[dict]) -> list[str]:
+    """The creusot section: the three passes, outcomes, per-image table and per-lens calibration."""
+    acc_cr = [r for r in cr if r["accepted"]]
+    return [
         "## creusot images (808 x 608, 8-bit; every PNG under `creusot/`)",
         "",
         "Three passes (`rollingstar.studies/real_data.py: run_real_data`):",
@@ -562,7 +575,7 @@ def real_data_markdown(result: dict, command: str, plots: list[str] = ()) -> str
         "is fitted with the calibrated model fixed. The RA/Dec/roll are of the optical axis (principal point); the "
         "astrometry.net column is the angle between the direction of our image-centre pixel and the pointing centre "
         "astrometry.net found (`log.json`). Median over accepted images: "
-        f"{med([r.get('centre_offset_arcsec') for r in acc_cr]):.1f} arcsec.",
+        f"{_median([r.get('centre_offset_arcsec') for r in acc_cr]):.1f} arcsec.",
         "",
         f"Identified {len(acc_cr)} of {len(cr)}:",
         "",
@@ -579,17 +592,34 @@ def real_data_markdown(result: dict, command: str, plots: list[str] = ()) -> str
         "",
         _undistorted_note(result),
         "",
+    ]
+
+
+def _extraction_lines(rows: list[dict], t3: list[dict], cr: list[dict]) -> list[str]:
+    """Our extraction against tetra3rs' extractor: time ratios and position differences."""
+    ratios = [r["extract_over_peer"] for r in rows if r["extract_over_peer"]]
+    ratio_t3 = _median([r["extract_over_peer"] for r in t3])
+    ratio_cr = _median([r["extract_over_peer"] for r in cr])
+    diff_t3 = _median([r["peer"]["median_diff_px"] for r in t3])
+    diff_cr = _median([r["peer"]["median_diff_px"] for r in cr])
+    return [
         "## Extraction: ours against tetra3rs' extractor, same images, same run",
         "",
         "tetra3rs `CentroidExtractor.extract` with its defaults (local background, 1.5 px matched filter, "
         "sharpness and elongation cuts), one thread; ours as above. Spots paired as mutual nearest neighbours within "
-        f"{PEER_MATCH_PX} px; 'ratio' = our time / tetra3rs' time (median over all images: {med(ratios):.2f}; "
+        f"{PEER_MATCH_PX} px; 'ratio' = our time / tetra3rs' time (median over all images: {_median(ratios):.2f}; "
         f"tetra3: {ratio_t3:.2f}, creusot: {ratio_cr:.2f}). Median position difference of paired spots: tetra3 "
         f"{diff_t3:.3f} px, creusot {diff_cr:.3f} px. On the 8-bit creusot frames tetra3rs reports many more spots "
         "than we do (see the 'tetra3rs' column); we did not investigate which of them are stars.",
         "",
         *_peer_table(rows),
         "",
+    ]
+
+
+def _observation_lines(result: dict) -> list[str]:
+    """Observations drawn from the tables (pattern tolerance on the 8 mm frames, rejected frames)."""
+    return [
         "## Observations (from the tables above)",
         "",
         "- Pattern search on the 8 mm (28 deg) raw frames, same run, pass-1 settings with tetra3rs' default edge-ratio "
@@ -601,10 +631,6 @@ def real_data_markdown(result: dict, command: str, plots: list[str] = ()) -> str
         "- Frames without a star field (`Mula/black*.png`) are rejected with the reason in the table, not solved.",
         "",
     ]
-    for p in plots:
-        out += [f"![{p}](img/{p})", ""]
-    return "\n".join(out)
-
 
 def _undistorted_note(result: dict) -> str:
     cal = result.get("calibrations", {})
