@@ -4,8 +4,8 @@
 
 Layers, lowest first (a module may import its own sub-package and any lower layer, nothing else):
 
-0. ``rollingstar.errors``, ``.progress``, ``.config``, ``._version``, ``.configs``: what every layer
-   may use (error types, progress bars, reading YAML configs, the shipped configs);
+0. ``rollingstar.errors``, ``.progress``, ``.config``, ``.outputs``, ``._version``, ``.configs``: what every layer
+   may use (error types, progress bars, reading YAML configs, writing outputs safely, the shipped configs);
 1. ``rollingstar.sensors``: camera, timing, sky, motion, gyro, simulator, physics effects, scenario;
 2. ``rollingstar.logs`` (the recording format) and ``rollingstar.estimators`` (the plugin roles and
    the diagnosis algorithm), side by side: neither imports the other;
@@ -28,6 +28,7 @@ FOLDERS = {"rollingstar": "rollingstar", "sensors": "rollingstar.sensors", "esti
 BARE = {"sensors", "estimators", "logs", "pipelines", "studies"}
 LAYERS = {
     "rollingstar.errors": 0, "rollingstar.progress": 0, "rollingstar.config": 0, "rollingstar._version": 0,
+    "rollingstar.outputs": 0,
     "rollingstar.configs": 0,
     "rollingstar.sensors": 1,
     "rollingstar.logs": 2, "rollingstar.estimators": 2,
@@ -37,6 +38,7 @@ LAYERS = {
 }
 # The package's own modules (not its sub-packages) may import each other within their layer.
 OWN_MODULES = {"rollingstar", "rollingstar.errors", "rollingstar.progress", "rollingstar.config", "rollingstar._version",
+               "rollingstar.outputs",
                "rollingstar.api", "rollingstar.cli", "rollingstar.__main__"}
 MAX_FUNCTION_LINES = 80
 # Compiled kernels, kept whole on purpose: numba compiles one function, and splitting the loop

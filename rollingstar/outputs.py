@@ -1,0 +1,158 @@
+"""Writing outputs without losing what the user already has.
+
+Every command that writes a file or a report folder goes through :func:`safe_output`:
+
+- the output is refused before anything is opened when it resolves to one of the command's inputs
+  (the same path, a symbolic or hard link to it, or a path inside an input folder);
+- a lock file beside the output (``.<name>.lock``) keeps a second command from writing the same
+  output; the second one fails naming the process that holds it;
+- the command writes to a temporary path beside the target (same folder, so the final rename is
+  atomic) and the temporary path is renamed over the target only when the command completes;
+- when the command fails or is interrupted, the target is left as it was and what was written is
+  kept as ``<name>.partial`` (a file or folder whose name says it is incomplete).
+
+Replacing an existing output is announced with an :class:`OverwriteWarning` (the command line
+prints it as one line).
+"""
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import os
+import shutil
+import warnings
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+
+from rollingstar.errors import UserError
+
+PARTIAL_SUFFIX = ".partial"
+
+
+class OverwriteWarning(UserWarning):
+    """An existing output is being replaced (it stays untouched until the new one is complete)."""
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_not_an_input(output: str | Path, inputs: Iterable[str | Path]) -> None:
+    """Raise :class:`UserError` when ``output`` is, links to, or lies inside one of ``inputs``."""
+    out = Path(output)
+    resolved = out.resolve()
+    for given in inputs:
+        source = Path(given)
+        if not source.exists():
+            continue
+        src = source.resolve()
+        inside = source.is_dir() and (resolved == src or src in resolved.parents)
+        if resolved == src or _same_file(out, source) or inside:
+            what = "a path inside the input folder" if inside and resolved != src else "the input"
+            raise UserError(f"{out}: the output is {what} {source}; writing it would destroy the input. "
+                            "Choose another output path.")
+
+
+def _acquire(lock_path: Path, target: Path) -> int:
+    """An open, exclusively locked descriptor of ``lock_path``.
+
+    The holder removes the lock file when it is done, so a lock taken on a file that was removed
+    meanwhile is no lock: it is retried on the current file."""
+    while True:
+        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "another process"
+            os.close(fd)
+            if exc.errno not in (errno.EAGAIN, errno.EACCES):
+                raise
+            raise UserError(f"{target}: another rollingstar command is writing this output ({holder}); "
+                            "wait for it to finish or choose another output path") from None
+        try:
+            current = os.stat(lock_path).st_ino
+        except FileNotFoundError:
+            current = None
+        if current == os.fstat(fd).st_ino:
+            return fd
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def output_lock(target: Path) -> Iterator[None]:
+    """Hold ``.<name>.lock`` beside ``target`` for the duration; a second holder gets a UserError."""
+    lock_path = target.with_name(f".{target.name}.lock")
+    fd = _acquire(lock_path, target)
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"pid {os.getpid()}".encode(), 0)
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            lock_path.unlink()
+        os.close(fd)
+
+
+def _temporary_beside(target: Path) -> Path:
+    return target.with_name(f".{target.name}.tmp-{os.getpid()}")
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    elif path.exists() or path.is_symlink():
+        path.unlink()
+
+
+def _check_target_kind(target: Path, directory: bool) -> None:
+    if target.is_symlink() and not target.exists():
+        raise UserError(f"{target}: a broken symbolic link; remove it or choose another output path")
+    if target.exists() and target.is_dir() != directory:
+        want, found = ("a folder", "a file") if directory else ("a file", "a folder")
+        raise UserError(f"{target}: exists and is {found}, but this output is {want}; remove it or choose "
+                        "another output path")
+    if not target.parent.is_dir():
+        raise UserError(f"{target}: the folder {target.parent} does not exist")
+
+
+def _install(tmp: Path, target: Path, directory: bool) -> None:
+    """Rename the finished ``tmp`` over ``target`` (a folder is swapped: old aside, new in, old removed)."""
+    if directory and target.exists():
+        old = target.with_name(f".{target.name}.old-{os.getpid()}")
+        os.replace(target, old)
+        os.replace(tmp, target)
+        _remove(old)
+    else:
+        os.replace(tmp, target)
+
+
+@contextlib.contextmanager
+def safe_output(target: str | Path, inputs: Iterable[str | Path] = (), directory: bool = False) -> Iterator[Path]:
+    """Yield a temporary path beside ``target`` to write to; rename it into place on success.
+
+    On an exception (Ctrl-C included) the target is untouched and the temporary path becomes
+    ``<target>.partial`` (replacing an older one); the exception propagates."""
+    target = Path(target)
+    check_not_an_input(target, inputs)
+    _check_target_kind(target, directory)
+    with output_lock(target):
+        if target.exists():
+            warnings.warn(OverwriteWarning(f"{target} exists: it is replaced when this command completes "
+                                           "(and kept as it is if the command fails)"), stacklevel=3)
+        tmp = _temporary_beside(target)
+        _remove(tmp)
+        if directory:
+            tmp.mkdir()
+        try:
+            yield tmp
+        except BaseException:
+            if tmp.exists():
+                partial = target.with_name(target.name + PARTIAL_SUFFIX)
+                _remove(partial)
+                os.replace(tmp, partial)
+            raise
+        _install(tmp, target, directory)
