@@ -7,6 +7,7 @@ interpolate it at any estimate's own time.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +23,7 @@ from rollingstar.logs.topics import (
     TOPIC_TRUTH_STARS,
 )
 from rollingstar.logs.writer import LogWriter
+from rollingstar.outputs import PARTIAL_SUFFIX, safe_output
 from rollingstar.pipelines.interrupt import Interrupted, stop_on_sigint
 from rollingstar.progress import progress_bar
 from rollingstar.sensors import build
@@ -64,9 +66,14 @@ def truth_sample_times(t0_ns: int, period_ns: int, rate_hz: float) -> np.ndarray
 
 
 def simulate_to_log(cfg: ScenarioConfig, output: str | Path, frames: int | None = None, seed: int | None = None,
-                    show_progress: bool = True, compression: str = "zstd") -> SimulationSummary:
+                    show_progress: bool = True, compression: str = "zstd", inputs: Iterable[str | Path] = ()
+                    ) -> SimulationSummary:
     """Simulate ``frames`` frames of ``cfg`` into the MCAP file ``output`` (chunks compressed with
-    ``compression``: zstd, lz4 or none; the content does not depend on it)."""
+    ``compression``: zstd, lz4 or none; the content does not depend on it).
+
+    ``output`` is written through :func:`rollingstar.outputs.safe_output`: refused when it is one of
+    ``inputs`` (the scenario file), replaced only when complete, kept as ``<output>.partial`` when
+    the simulation fails or is interrupted."""
     if frames is not None or seed is not None:
         cfg = cfg.model_copy(update={k: v for k, v in (("frames", frames), ("seed", seed)) if v is not None})
     sim = build_simulator(cfg)
@@ -80,8 +87,8 @@ def simulate_to_log(cfg: ScenarioConfig, output: str | Path, frames: int | None 
         gyro = simulate_gyro(gyro_model, motion, timing.frame_start_ns(0) - period, timing.frame_start_ns(n_frames), cfg.seed)
         gyro = dataclasses.replace(gyro, omega_rad_s=sim.apply_gyro(gyro.t_ns, gyro.omega_rad_s))  # gyro effects
     star_counts = []
-    with stop_on_sigint() as stop, \
-            LogWriter(output, kind="simulation", metadata={"scenario": {"yaml": to_yaml(cfg)}},
+    with safe_output(output, inputs) as tmp, stop_on_sigint() as stop, \
+            LogWriter(tmp, kind="simulation", metadata={"scenario": {"yaml": to_yaml(cfg)}},
                       compression=compression) as writer, \
             progress_bar(f"simulate {cfg.name}", n_frames, show_progress) as advance:
         for frame in sim.frames(n_frames):
@@ -114,8 +121,9 @@ def simulate_to_log(cfg: ScenarioConfig, output: str | Path, frames: int | None 
                     flux=c.get("flux"), sigma_px=np.full(len(c["x"]), cfg.noise.centroid_sigma_px)), t0)
             star_counts.append(len(tr.x))
             advance()
-    if stop.requested:
-        raise Interrupted(f"interrupted: {output} is finalised and holds the {len(star_counts)} of {n_frames} "
-                          "frame(s) simulated before SIGINT")
+        writer.close()
+        if stop.requested:
+            raise Interrupted(f"interrupted: {output}{PARTIAL_SUFFIX} holds the {len(star_counts)} of {n_frames} "
+                              f"frame(s) simulated before SIGINT; {output} was not written")
     return SimulationSummary(str(output), n_frames, cfg.level, float(np.mean(star_counts)) if star_counts else 0.0,
                              n_frames * period * 1e-9)

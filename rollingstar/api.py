@@ -41,7 +41,9 @@ def _pipeline(pipeline: str | Path | PipelineConfig) -> tuple[PipelineConfig, st
 def simulate(scenario: str | Path | ScenarioConfig, output: str | Path, frames: int | None = None,
              seed: int | None = None, show_progress: bool = False) -> SimulationSummary:
     """Simulate a recording (``rollingstar simulate``); ``frames`` and ``seed`` override the scenario's."""
-    return simulate_to_log(_scenario(scenario), output, frames=frames, seed=seed, show_progress=show_progress)
+    inputs = [] if isinstance(scenario, ScenarioConfig) else [find_config(scenario, "scenario")]
+    return simulate_to_log(_scenario(scenario), output, frames=frames, seed=seed, show_progress=show_progress,
+                           inputs=inputs)
 
 
 def run(pipeline: str | Path | PipelineConfig, recording: str | Path, output: str | Path, resume: bool = False,

@@ -113,8 +113,9 @@ def simulate(scenario: str = typer.Argument(..., help="scenario YAML, or a shipp
     from rollingstar.pipelines.simulate import simulate_to_log
     from rollingstar.sensors.scenario import load_scenario
 
-    cfg = load_scenario(find_config(scenario, "scenario"))
-    summary = simulate_to_log(cfg, output, frames=frames, seed=seed, show_progress=not quiet)
+    path = find_config(scenario, "scenario")
+    summary = simulate_to_log(load_scenario(path), output, frames=frames, seed=seed, show_progress=not quiet,
+                              inputs=[path])
     out.print(f"wrote {summary.path}: {summary.frames} frames ({summary.level} level), "
               f"{summary.stars_per_frame_mean:.1f} stars per frame, {summary.duration_s:.2f} s")
 

@@ -50,6 +50,7 @@ from rollingstar.logs.reader import LogReader
 from rollingstar.logs.records import arrays_to_stars
 from rollingstar.logs.topics import TOPIC_CENTROIDS, TOPIC_EST_ATTITUDE
 from rollingstar.logs.writer import LogWriter
+from rollingstar.outputs import safe_output
 from rollingstar.sensors.build import build_timing
 from rollingstar.sensors.conventions import quat_from_fields, radec_roll_from_attitude, radec_to_unit
 from rollingstar.sensors.scenario import AttitudeConfig
@@ -371,7 +372,7 @@ def import_corr(folder: str | Path, out: str | Path) -> Path:
     metadata = {"scenario": {"yaml": to_yaml(scenario)},
                 "sensor": {"yaml": yaml.safe_dump(cam.model_dump(mode="json"), sort_keys=False)},
                 "import": import_metadata("corr", root, details, log)}
-    with LogWriter(out, kind="import", metadata=metadata) as writer:
+    with safe_output(out, [folder]) as tmp, LogWriter(tmp, kind="import", metadata=metadata) as writer:
         for k, f in enumerate(frames):
             t0 = k * FRAME_SPACING_NS
             writer.write_json(TOPIC_CENTROIDS, arrays_to_stars(

@@ -41,6 +41,7 @@ from rollingstar.logs.importers.sidecar import (
 from rollingstar.logs.records import AttitudeSamplesRecord, GyroSamplesRecord
 from rollingstar.logs.topics import TOPIC_GYRO, TOPIC_IMAGE, TOPIC_TRUTH_ATTITUDE
 from rollingstar.logs.writer import LogWriter
+from rollingstar.outputs import safe_output
 from rollingstar.progress import progress_bar
 
 SIDECAR_NAMES = ("recording.yaml", "recording.yml")
@@ -279,7 +280,8 @@ def import_images(folder: str | Path, out: str | Path, camera: CameraSpec | str 
     metadata = {"scenario": {"yaml": to_yaml(scenario)},
                 "sensor": {"yaml": yaml.safe_dump(cam.model_dump(mode="json"), sort_keys=False)},
                 "import": import_metadata("images", folder, details, log)}
-    with LogWriter(out, kind="import", metadata=metadata) as writer, \
+    inputs = [folder, *(p for p in (sidecar_path, camera) if isinstance(p, (str, Path)))]
+    with safe_output(out, inputs) as tmp, LogWriter(tmp, kind="import", metadata=metadata) as writer, \
             progress_bar(f"import {folder.name}", len(files), show_progress) as advance:
         if truth is not None:
             tt, q, w = truth

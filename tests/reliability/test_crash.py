@@ -64,13 +64,20 @@ def recording(tmp_path_factory):
     return rec, ref
 
 
+def _written(out: Path) -> int:
+    """Bytes on disk of ``out`` or of the temporary file it is written to (``.<name>.tmp-<pid>``)."""
+    candidates = [out, *out.parent.glob(f".{out.name}.tmp-*")]
+    return max((c.stat().st_size for c in candidates if c.exists()), default=-1)
+
+
 def _start(args, out, min_bytes):
-    """Start ``rollingstar ARGS`` and return once ``out`` has ``min_bytes`` on disk (finished chunks)."""
+    """Start ``rollingstar ARGS`` and return once ``out`` (or its temporary file) has ``min_bytes``
+    on disk (finished chunks)."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen([sys.executable, "-m", "rollingstar.cli", *map(str, args)], cwd=ROOT, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
-    while not (out.exists() and out.stat().st_size >= min_bytes):
+    while _written(out) < min_bytes:
         assert proc.poll() is None, f"finished before it could be killed: {proc.communicate()}"
         assert time.monotonic() < deadline
         time.sleep(0.01)
@@ -114,13 +121,16 @@ def test_killed_run_keeps_complete_messages_and_resumes_to_an_equivalent_output(
     assert not (tmp_path / "out.mcap.checkpoints").exists()  # removed once the run completes
 
 
-def test_interrupted_simulate_exits_130_with_a_finalised_log(tmp_path):
+def test_interrupted_simulate_exits_130_keeping_a_finalised_partial_log(tmp_path):
     out = tmp_path / "sim.mcap"
+    out.write_bytes(b"an earlier recording")
     proc = _start(["simulate", SCENARIO, "-o", out, "--frames", "3000", "-q"], out, 300_000)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
-    msgs, _, truncated = _read(out)
+    assert out.read_bytes() == b"an earlier recording"  # the previous output is untouched
+    assert "sim.mcap.partial" in err
+    msgs, _, truncated = _read(tmp_path / "sim.mcap.partial")
     assert not truncated
     frames = [json.loads(k[2])["frame"] for k in msgs if k[0] == "/camera/centroids"]
     assert 0 < len(frames) < 3000 and frames == list(range(len(frames)))
