@@ -558,3 +558,25 @@ def test_run_on_imported_images_without_prior_names_the_stage(tmp_path):
     rec = import_images(folder, tmp_path / "r.mcap", camera=small_camera())
     assert_clean_error(cli("run", BASELINE, rec, "-o", tmp_path / "o.mcap", "-q"),
                        "stages[1] ('tracking')", "prior attitude", "lost-in-space")
+
+
+def test_imports_never_write_over_their_inputs(tmp_path):
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    img = np.zeros((30, 40), np.uint16)
+    Image.fromarray(img).save(folder / "f00.png")
+    (folder / "recording.yaml").write_text(
+        "camera: {width_px: 40, height_px: 30, focal_length_mm: 10.0, pixel_size_um: 5.0}\n")
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    assert_clean_error(cli("import", "images", folder, "-o", folder / "f00.png"), "destroy the input")
+    assert_clean_error(cli("import", "images", folder, "-o", folder / "rec.mcap"), "inside the input folder")
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+    csv = tmp_path / "c.csv"
+    csv.write_text("frame,time_s,x,y,flux\n0,1.0,10.0,10.0,100\n")
+    (tmp_path / "link.mcap").symlink_to(csv)
+    camera = tmp_path / "camera.yaml"
+    camera.write_text("width_px: 1024\nheight_px: 1024\nfocal_length_mm: 50.0\npixel_size_um: 5.5\n")
+    for out in (csv, tmp_path / "link.mcap", camera):
+        assert_clean_error(cli("import", "centroids", csv, "-o", out, "--camera", camera), "destroy the input")
+    assert camera.read_text().startswith("width_px")
+    assert csv.read_text().startswith("frame,time_s")
