@@ -1,6 +1,6 @@
 """``rollingstar bench perf``: every hot path timed side by side with a peer or a floor, as a ratio.
 
-Issue 7 (speed). Each line runs its candidate and its peer (or the memory-bandwidth floor, one
+Each line runs its candidate and its peer (or the memory-bandwidth floor, one
 ``frame.sum()`` pass over the same frame) in the same process, on the same data, one after the
 other, and reports ``peer / candidate`` (a speed-up) or ``candidate / floor``. Timings are CPU
 time of single-threaded code, minimum over repeats (see :func:`_best`); slow peers run once; the
@@ -34,10 +34,10 @@ Lines (full sizes; ``--quick`` shrinks every one to a few seconds):
 """
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import platform
-import resource
 import subprocess
 import sys
 import tempfile
@@ -46,9 +46,27 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from filterpy.kalman import KalmanFilter
+from rich.table import Table
 from scipy.spatial.transform import Rotation
+from threadpoolctl import threadpool_limits
 
 from rollingstar.config import CONFIGS
+from rollingstar.errors import UserError
+from rollingstar.estimators.attitude.wahba import quest
+from rollingstar.estimators.centroiders.cog import CogCentroider
+from rollingstar.estimators.centroiders.windowed import WindowedCentroider
+from rollingstar.estimators.data import FrameData, GyroSamples, SensorContext
+from rollingstar.estimators.filters.kf_cv import H, cv_process_noise, cv_transition, kf_cv_batch, kf_cv_init
+from rollingstar.pipelines.compare import run_compare
+from rollingstar.pipelines.compare.aggregate import deterministic_view
+from rollingstar.pipelines.registry import get_plugin_class
+from rollingstar.pipelines.simulate import simulate_to_log
+from rollingstar.progress import progress_bar
+from rollingstar.sensors.camera import PinholeCamera
+from rollingstar.sensors.image_sim import ImageModel, digitise, mean_electrons, render_star_electrons
+from rollingstar.sensors.scenario import load_scenario
+from rollingstar.sensors.timing import DetectorTiming
 
 ROOT = Path(__file__).resolve().parents[2]
 ARCSEC = np.pi / (180.0 * 3600.0)
@@ -76,8 +94,6 @@ def _best(fn: Callable, repeats: int) -> tuple[float, object]:
     (threadpoolctl): on a shared, loaded machine wall time mostly measures the other jobs, while
     the CPU time of single-threaded code does not (it still pays for shared caches).
     """
-    from threadpoolctl import threadpool_limits
-
     with threadpool_limits(1):
         out = fn()
         best = np.inf
@@ -90,8 +106,6 @@ def _best(fn: Callable, repeats: int) -> tuple[float, object]:
 
 def _once(fn: Callable) -> tuple[float, object]:
     """CPU time (s) of one call (single-threaded pools, see :func:`_best`); and its result."""
-    from threadpoolctl import threadpool_limits
-
     with threadpool_limits(1):
         t = time.process_time()
         out = fn()
@@ -140,8 +154,6 @@ def _check(name: str, value: float, limit: float, unit: str = "") -> dict:
 # ----------------------------------------------------------------------------------- 1. QUEST
 def bench_quest(quick: bool) -> dict:
     """Batched QUEST vs a Python loop over scipy ``Rotation.align_vectors`` (equal weights)."""
-    from rollingstar.estimators.attitude.wahba import quest
-
     F, N = _size("quest_frames", quick), _size("quest_stars", quick)
     rng = np.random.default_rng(7)
     truth = Rotation.random(F, random_state=rng)  # camera -> ICRS
@@ -173,16 +185,6 @@ def bench_quest(quick: bool) -> dict:
 # ----------------------------------------------------------------------------------- 2. KF
 def bench_kf(quick: bool) -> dict:
     """Batched he2021a constant-velocity KF vs one filterpy KalmanFilter per star."""
-    from filterpy.kalman import KalmanFilter
-
-    from rollingstar.estimators.filters.kf_cv import (
-        H,
-        cv_process_noise,
-        cv_transition,
-        kf_cv_batch,
-        kf_cv_init,
-    )
-
     n, T = _size("kf_stars", quick), _size("kf_frames", quick)
     q, r, dt = 1e-4, 0.05, 0.08985
     rng = np.random.default_rng(11)
@@ -221,8 +223,6 @@ def bench_kf(quick: bool) -> dict:
 # ----------------------------------------------------------------------------------- 3. rates
 def _bench_script(name: str):
     """Import ``benchmarks/<name>.py`` (not an installed package) from the source tree."""
-    import importlib.util
-
     path = ROOT / "benchmarks" / f"{name}.py"
     spec = importlib.util.spec_from_file_location(f"_rollingstar_benchmarks_{name}", path)
     module = importlib.util.module_from_spec(spec)
@@ -232,12 +232,9 @@ def _bench_script(name: str):
 
 def bench_rate(quick: bool) -> dict:
     """ls-rate vs pso-rate on the fu2022 frames of benchmarks/rate_solvers.py, CPU time per frame."""
-    from rollingstar.pipelines.registry import get_plugin_class
-
     try:
         rs = _bench_script("rate_solvers")
-        get_plugin_class("ls-rate"), get_plugin_class("pso-rate")
-    except Exception as exc:  # the other helper's solver not present yet
+    except (OSError, ImportError) as exc:  # benchmarks/ is in the source tree only, not installed with the package
         return _unavailable("rate", "ls-rate vs pso-rate at equal accuracy", f"not available: {exc}", (">=", 50))
     n_frames, w = _size("rate_frames", quick), _size("rate_deg_s", quick)
     rate = (w / np.sqrt(2), w / np.sqrt(2), 0.0)
@@ -245,8 +242,6 @@ def bench_rate(quick: bool) -> dict:
     deg = np.pi / 180.0
 
     def run(kind, params):
-        from threadpoolctl import threadpool_limits
-
         plugin = get_plugin_class(kind)(**params)
         plugin.setup(ctx)
         errs, cpu = [], 0.0
@@ -278,11 +273,6 @@ def bench_rate(quick: bool) -> dict:
 # ----------------------------------------------------------------------------------- 4-5. frames
 def _scene(px: int, n_stars: int):
     """he2021a optics and timing on a px x px detector, 15 stars moving at 1 deg/s (76 px/s)."""
-    from rollingstar.estimators.data import SensorContext
-    from rollingstar.sensors.camera import PinholeCamera
-    from rollingstar.sensors.image_sim import ImageModel
-    from rollingstar.sensors.timing import DetectorTiming
-
     cam = PinholeCamera(focal_length_m=0.02409, pixel_size_m=5.5e-6, width=px, height=px)
     timing = DetectorTiming(mode="rolling", exposure_ns=44_900_000, line_delay_ns=43_900 * 1024 // px, rows=px)
     model = ImageModel(psf_sigma_px=1.0, bit_depth=16, full_well_e=60_000.0, read_noise_e=5.0)
@@ -302,8 +292,6 @@ def _scene(px: int, n_stars: int):
 
 
 def _render(px, timing, model, pos, vel, mags, t0_ns, seed, digitise_fn):
-    from rollingstar.sensors.image_sim import mean_electrons, render_star_electrons
-
     def positions(star, t_ns, rows):
         dt = (t_ns - t0_ns) * 1e-9
         return pos[star, 0] + vel[star, 0] * dt, pos[star, 1] + vel[star, 1] * dt
@@ -317,7 +305,7 @@ def _render(px, timing, model, pos, vel, mags, t0_ns, seed, digitise_fn):
 
 
 def digitise_before(mean_e, model, rng_shot, rng_read):
-    """The signal chain as it was before issue 7: ``Generator.poisson`` over every pixel, float64."""
+    """The reference signal chain ("before"): ``Generator.poisson`` over every pixel, float64."""
     e = rng_shot.poisson(mean_e).astype(float)
     np.minimum(e, model.full_well_e, out=e)
     if model.read_noise_e > 0:
@@ -328,11 +316,6 @@ def digitise_before(mean_e, model, rng_shot, rng_read):
 
 def bench_frames(quick: bool) -> list[dict]:
     """Centroiding (full frame, windowed) and rendering of one 16-bit frame with 15 stars."""
-    from rollingstar.estimators.centroiders.cog import CogCentroider
-    from rollingstar.estimators.centroiders.windowed import WindowedCentroider
-    from rollingstar.estimators.data import FrameData, GyroSamples
-    from rollingstar.sensors.image_sim import digitise
-
     px, n_stars, reps = _size("frame_px", quick), _size("frame_stars", quick), _size("repeats", quick)
     cam, timing, model, ctx, pos, vel, mags = _scene(px, n_stars)
     size = f"{px} x {px} uint16, {n_stars} stars at 1 deg/s"
@@ -378,7 +361,7 @@ def bench_frames(quick: bool) -> list[dict]:
     t_before, _ = _best(lambda: _render(px, timing, model, pos, vel, mags, 0, 1, digitise_before), reps)
     lines.append(_line("render", "image-level rolling-shutter rendering vs frame.sum()", size,
                        ("render + signal chain", t_after), ("frame.sum()", t_sum), "over_floor", None,
-                       note="no target in issue 7; the per-pixel noise is most of it"))
+                       note="no target; the per-pixel noise is most of it"))
     lines.append(_line("render_speedup", "rendering: shot noise by guide table (after) vs Generator.poisson (before)",
                        size, ("after", t_after), ("before", t_before), "speedup", None, _noise_checks(model)))
     return lines
@@ -386,8 +369,6 @@ def bench_frames(quick: bool) -> list[dict]:
 
 def _noise_checks(model) -> list[dict]:
     """Same distribution before/after: mean and variance of a flat field and of a bright one."""
-    from rollingstar.sensors.image_sim import digitise
-
     checks = []
     for level in (2.47, 800.0):
         mean = np.full((256, 256), level)
@@ -404,36 +385,8 @@ def _noise_checks(model) -> list[dict]:
 
 
 # ----------------------------------------------------------------------------------- 6. replay
-def replay_child(recording: str, pipeline: str, max_frames: int, trace: bool = False) -> dict:
-    """Run in a fresh interpreter: replay ``max_frames`` frames; frames per CPU second and peak RSS.
-
-    ``trace``: also the peak of memory allocated *during* the replay (tracemalloc, which numpy
-    reports its buffers to), the number that must not grow with the log length; traced runs are
-    slower, so their times are not used.
-    """
-    import tracemalloc
-
-    from rollingstar.pipelines.config import load_pipeline
-    from rollingstar.pipelines.runner import run_pipeline
-
-    cfg = load_pipeline(pipeline)
-    with tempfile.TemporaryDirectory() as tmp:
-        base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-        if trace:
-            tracemalloc.start()
-        t, c = time.perf_counter(), time.process_time()
-        summary = run_pipeline(recording, cfg, Path(tmp) / "out.mcap", show_progress=False, max_frames=max_frames)
-        wall, cpu = time.perf_counter() - t, time.process_time() - c
-        traced = tracemalloc.get_traced_memory()[1] / 2**20 if trace else None
-        tracemalloc.stop()
-    frames = int(summary.frames)
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
-    return {"frames": frames, "wall_s": wall, "seconds": cpu, "fps": frames / cpu, "fps_wall": frames / wall,
-            "peak_rss_mib": peak / 1024.0, "rss_before_run_mib": base_rss / 1024.0, "traced_peak_mib": traced}
-
-
 def _run_child(recording: Path, pipeline: Path, frames: int, trace: bool = False) -> dict:
-    code = ("import json, sys; from rollingstar.studies.bench.perf import replay_child; "
+    code = ("import json, sys; from rollingstar.studies.bench.replay_child import replay_child; "
             "print(json.dumps(replay_child(sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4] == '1')))")
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
     proc = subprocess.run([sys.executable, "-c", code, str(recording), str(pipeline), str(frames), "1" if trace else "0"],
@@ -445,9 +398,6 @@ def _run_child(recording: Path, pipeline: Path, frames: int, trace: bool = False
 
 def bench_replay(quick: bool) -> list[dict]:
     """Replay fps and peak memory at two log lengths, centroid and image level."""
-    from rollingstar.pipelines.simulate import simulate_to_log
-    from rollingstar.sensors.scenario import load_scenario
-
     pipeline = CONFIGS / "pipelines" / "baseline.yaml"
     lines = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -497,16 +447,10 @@ def bench_compare(quick: bool) -> dict:
     drifts over minutes: measured back to back once, the serial task CPU differed from the workers'
     by -9 % to +15 % from one run to the next."""
     title = "compare on dask (2 workers) vs serial"
-    try:
-        from rollingstar.pipelines.compare import run_compare
-    except ImportError as exc:
-        return _unavailable("compare", title, f"not available: {exc}", (">=", 1.7))
     config = CONFIGS / "compare" / "scaling.yaml"
     if quick:
         return _unavailable("compare", title, "skipped with --quick (a dask cluster's start-up dominates tiny runs)",
                             (">=", 1.7))
-    from rollingstar.pipelines.compare.aggregate import deterministic_view
-
     runs: dict[str, list] = {"serial": [], "dask": []}
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(COMPARE_ROUNDS):
@@ -562,14 +506,10 @@ def machine_info() -> dict:
 
 def run_perf(quick: bool = False, show_progress: bool = True, only: list[str] | None = None) -> dict:
     """Run every line (or those whose id starts with one of ``only``); returns the JSON document."""
-    from rollingstar.progress import progress_bar
-
     steps = [("quest", lambda: [bench_quest(quick)]), ("kf", lambda: [bench_kf(quick)]),
              ("rate", lambda: [bench_rate(quick)]), ("centroid", lambda: bench_frames(quick)),
              ("replay", lambda: bench_replay(quick)), ("compare", lambda: [bench_compare(quick)])]
     if only:
-        from rollingstar.errors import UserError
-
         names = [name for name, _ in steps]
         unknown = [o for o in only if o not in names]
         if unknown:
@@ -604,8 +544,6 @@ def _ratio_text(ln: dict) -> str:
 
 def render_table(result: dict):
     """A rich table: measured, floor/peer, ratio, target, pass/fail, equality checks."""
-    from rich.table import Table
-
     table = Table(title=f"rollingstar bench perf{' --quick' if result['quick'] else ''} "
                         f"({result['machine']['cpu_count']} cpus, load {result['machine']['load_average_1min']:.1f})")
     for col in ("line", "size", "measured", "floor / peer", "ratio", "target", "pass", "same answers"):

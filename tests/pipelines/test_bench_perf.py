@@ -88,7 +88,6 @@ def test_compare_line_takes_the_faster_of_interleaved_runs(monkeypatch):
     """The compare line runs serial and dask alternately, quotes the faster run of each, and checks
     every run's results against the first serial one (a stand-in ``run_compare`` whose wall times
     are scripted: no dask cluster, no timing assertion)."""
-    import rollingstar.pipelines.compare as compare_pkg
     import rollingstar.studies.bench.perf as perf
 
     clock = iter([0.0, 10.0, 10.0, 16.0, 16.0, 25.0, 25.0, 30.0])  # serial 10, dask 6, serial 9, dask 5
@@ -102,7 +101,7 @@ def test_compare_line_takes_the_faster_of_interleaved_runs(monkeypatch):
                    "comparison": {"name": "fake"}, "results": [{"metrics": {"x": metric}, "timing": {"cpu_s": 1.0}}]}
         return type("Outcome", (), {"results": results})()
 
-    monkeypatch.setattr(compare_pkg, "run_compare", fake_run_compare)
+    monkeypatch.setattr(perf, "run_compare", fake_run_compare)
     monkeypatch.setattr(perf.time, "perf_counter", lambda: next(clock))
     line = perf.bench_compare(quick=False)
     assert calls == ["serial", "dask", "serial", "dask"]
