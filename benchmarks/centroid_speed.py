@@ -23,7 +23,9 @@ import numpy as np
 
 from rollingstar.estimators.centroiders.cog import CogCentroider
 from rollingstar.estimators.data import FrameData, SensorContext
+from rollingstar.pipelines.simulate import build_simulator
 from rollingstar.sensors.camera import PinholeCamera
+from rollingstar.sensors.scenario import load_scenario
 from rollingstar.sensors.timing import DetectorTiming
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,9 +42,6 @@ def best_ms(fn, repeats: int) -> float:
 
 
 def simulated_frame() -> np.ndarray:
-    from rollingstar.pipelines.simulate import build_simulator
-    from rollingstar.sensors.scenario import load_scenario
-
     cfg = load_scenario(ROOT / "configs" / "scenarios" / "he2021a.yaml")
     sim = build_simulator(cfg)
     return np.asarray(sim.frame(0).image)

@@ -23,18 +23,22 @@ import tempfile
 import time
 from pathlib import Path
 
+from threadpoolctl import threadpool_limits
+
+import rollingstar.pipelines.compare.execute as ex
+from rollingstar.pipelines.compare import run_compare
+from rollingstar.pipelines.compare.config import load_compare
+from rollingstar.pipelines.compare.tasks import run_task
+from rollingstar.pipelines.config import load_pipeline
+from rollingstar.pipelines.runner import run_pipeline
+from rollingstar.pipelines.simulate import simulate_to_log
+from rollingstar.sensors.scenario import load_scenario
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
 def compression(repeats: int) -> dict:
-    from threadpoolctl import threadpool_limits
-
-    from rollingstar.pipelines.config import load_pipeline
-    from rollingstar.pipelines.runner import run_pipeline
-    from rollingstar.pipelines.simulate import simulate_to_log
-    from rollingstar.sensors.scenario import load_scenario
-
     scenario = load_scenario(ROOT / "configs" / "scenarios" / "he2021a.yaml")
     pipeline = load_pipeline(ROOT / "configs" / "pipelines" / "baseline.yaml")
     out: dict = {}
@@ -60,8 +64,6 @@ def compression(repeats: int) -> dict:
 def start(repeats: int) -> dict:
     import dask
     import distributed  # noqa: F401  (registers its config defaults before we set one of its keys)
-
-    from rollingstar.pipelines.compare import run_compare
 
     config = ROOT / "configs" / "compare" / "ci.yaml"
     out: dict = {}
@@ -89,10 +91,6 @@ def _cluster_start(config: dict) -> float:
 
 
 def housekeeping(repeats: int) -> dict:
-    import rollingstar.pipelines.compare.execute as ex
-    from rollingstar.pipelines.compare.config import load_compare
-    from rollingstar.pipelines.compare.tasks import run_task
-
     tasks = load_compare(ROOT / "configs" / "compare" / "scaling.yaml").tasks()[:16]
     settings = {"defaults": {"distributed.nanny.pre-spawn-environ": ex.WORKER_ENVIRON},
                 "LOCAL_CLUSTER_CONFIG": ex.LOCAL_CLUSTER_CONFIG}

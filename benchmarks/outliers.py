@@ -45,6 +45,7 @@ def main() -> None:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--markdown", type=Path)
     args = ap.parse_args()
+    # imported here, after the thread-count variables above are set: BLAS reads them when numpy loads
     from rollingstar.progress import progress_bar
     from rollingstar.studies.outlier_bench import SOLVERS, measure
 

@@ -10,7 +10,7 @@ OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 for a clean measurement). Every estimat
 (in estimator order) after one untimed warm-up call (lazy imports, numba's kernel cache);
 the machine's load average is recorded before and after.
 
-"Equal accuracy" (issue 7's ">= 50x" target): PSO cannot estimate omega_z, so accuracy is the RMSE
+"Equal accuracy" (the ">= 50x" target): PSO cannot estimate omega_z, so accuracy is the RMSE
 of the x, y rate error, ``sqrt((RMSE_x^2 + RMSE_y^2) / 2)``. For each rate the cheapest PSO
 configuration whose xy RMSE is within 10% of ls-rate's is "PSO at equal accuracy" (per rate, and --
 the headline, less noisy -- over the whole sweep, all rates' frames pooled) and the summary
@@ -161,7 +161,7 @@ def markdown(res: dict) -> str:
                   f"{EQUAL_ACCURACY:g}"]
     else:
         lines += ["", f"PSO at equal accuracy over the sweep: {sw['pso_at_equal_accuracy']}, "
-                  f"CPU {sw['ratio_pso_over_ls_rate']:.3g}x ls-rate's (issue 7 target >= 50x)"]
+                  f"CPU {sw['ratio_pso_over_ls_rate']:.3g}x ls-rate's (target >= 50x)"]
     lines.append(f"ls-rate vs its least_squares version: {sw['speedup_vs_least_squares']:.3g}x faster")
     load = res.get("load_average")
     if load:

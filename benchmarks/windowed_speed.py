@@ -1,5 +1,5 @@
 
-"""Windowed vs full-frame centroiding on the liu2013 frames, side by side in one run (issue 7, issue 3).
+"""Windowed vs full-frame centroiding on the liu2013 frames, side by side in one run.
 
     .venv/bin/python benchmarks/windowed_speed.py [--frames 200] [--rounds 3] [--seed 1] [--json]
 
@@ -11,7 +11,7 @@ fresh per round and fed the frames in order with their gyro samples, exactly as
 - ``cog``: the full-frame centroider (the baseline);
 - ``windowed``: the default (compiled window kernel, tracked background);
 - ``windowed kernel=numpy``: the vectorised numpy window pass with each window's own background
-  (the previous default, "before");
+  (labelled "before");
 - ``windowed batch=false``: one ``cog`` call per window (the original).
 
 Two orders, both in the same run: ``sequential`` (each centroider runs over all frames on its own,
@@ -34,20 +34,20 @@ import time
 
 import numpy as np
 
-from rollingstar.estimators.data import SensorContext
+from rollingstar.estimators.data import FrameData, GyroSamples, SensorContext
+from rollingstar.pipelines.config import load_pipeline
+from rollingstar.pipelines.runner import build_stages
+from rollingstar.sensors import build
+from rollingstar.sensors.gyro import simulate_gyro
+from rollingstar.sensors.scenario import load_scenario
+from rollingstar.sensors.simulate import StarTrackerSimulator
+from rollingstar.studies.reproduce import liu2013 as L
 
 NAMES = ("cog", "windowed", "windowed kernel=numpy", "windowed batch=false")
 
 
 def liu2013_frames(seed: int, frames: int):
     """The liu2013 reproduction's context and frames (FrameData with image and gyro samples)."""
-    from rollingstar.estimators.data import FrameData, GyroSamples
-    from rollingstar.sensors import build
-    from rollingstar.sensors.gyro import simulate_gyro
-    from rollingstar.sensors.scenario import load_scenario
-    from rollingstar.sensors.simulate import StarTrackerSimulator
-    from rollingstar.studies.reproduce import liu2013 as L
-
     cfg = load_scenario(L.SCENARIO)
     camera, timing = build.build_camera(cfg), build.build_timing(cfg)
     sim_timing = type(timing)(mode="global", exposure_ns=L.EFFECTIVE_EXPOSURE_NS, line_delay_ns=0, rows=timing.rows,
@@ -73,10 +73,6 @@ def liu2013_frames(seed: int, frames: int):
 
 
 def centroiders(ctx):
-    from rollingstar.pipelines.config import load_pipeline
-    from rollingstar.pipelines.runner import build_stages
-    from rollingstar.studies.reproduce import liu2013 as L
-
     full = build_stages(load_pipeline(L.PIPE_FULL), str(L.PIPE_FULL))[0]
     win = build_stages(load_pipeline(L.PIPE_WIN), str(L.PIPE_WIN))[0]
     params = win.params.model_dump()

@@ -1,4 +1,4 @@
-"""Per-lens joint calibration from identified real sky images (issue 4, docs/real-data.md).
+"""Per-lens joint calibration from identified real sky images (docs/real-data.md).
 
 One lens (one folder of images) has one focal length, radial distortion and principal point; each
 image has its own attitude. :func:`calibrate_lens` fits them together
