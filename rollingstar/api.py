@@ -60,11 +60,11 @@ def evaluate(output: str | Path) -> dict:
 
 
 def compare(config: str | Path, output: str | Path, workers: int = 1, baseline: str | Path | None = None,
-            show_progress: bool = False) -> CompareOutcome:
+            resume: bool = False, show_progress: bool = False) -> CompareOutcome:
     """Scenarios x rollingstar.pipelines x seeds into ``output/`` (``rollingstar compare``); with ``baseline``, the
     outcome lists every gated metric that got worse."""
     return run_compare(find_config(config, "compare"), output, workers=workers, baseline=baseline,
-                       show_progress=show_progress)
+                       show_progress=show_progress, resume=resume)
 
 
 def diagnose(recording: str | Path, sim: str | Path | None = None, pipeline: str | Path | None = None,

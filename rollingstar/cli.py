@@ -442,6 +442,8 @@ def compare(config: str = typer.Argument(..., help="comparison YAML, or a shippe
             baseline: Path = typer.Option(None, "--baseline", help="results.json of an earlier run to compare against"),
             fail_on_regression: bool = typer.Option(False, "--fail-on-regression",
                                                     help="exit 1 naming every gated metric worse than --baseline"),
+            resume: bool = typer.Option(False, "--resume", help="reuse the tasks an interrupted or failed run into "
+                                                                "the same output finished (OUTPUT.partial/tasks/)"),
             quiet: bool = typer.Option(False, "--quiet", "-q")):
     """Scenarios x pipelines x seeds: metrics, spread, CPU time, efficiency vs the bound; optional regression gate."""
     from rollingstar.pipelines.compare import run_compare
@@ -449,7 +451,10 @@ def compare(config: str = typer.Argument(..., help="comparison YAML, or a shippe
     if fail_on_regression and baseline is None:
         raise UserError("--fail-on-regression needs --baseline FILE")
     command = "rollingstar " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["compare"] else ""
-    res = run_compare(find_config(config, "compare"), output, executor, workers, scheduler, baseline, show_progress=not quiet, command=command)
+    res = run_compare(find_config(config, "compare"), output, executor, workers, scheduler, baseline,
+                      show_progress=not quiet, command=command, resume=resume)
+    if resume:
+        out.print(f"resumed: {res.resumed_tasks} of {res.results['run']['tasks']} task(s) reused from the earlier run")
     run = res.results["run"]
     out.print(f"wrote {res.output}/results.json, results.md, report.html: {run['tasks']} simulations, "
               f"{run['pipeline_runs']} pipeline runs, {run['executor']}, {run['wall_time_s']:.1f} s wall", highlight=False)

@@ -28,6 +28,8 @@ from pathlib import Path
 from rollingstar.errors import UserError
 
 PARTIAL_SUFFIX = ".partial"
+#: Written into every output folder, so that a later run knows the folder is one it may replace.
+FOLDER_MARK = ".rollingstar-output"
 
 
 class OverwriteWarning(UserWarning):
@@ -117,6 +119,17 @@ def _check_target_kind(target: Path, directory: bool) -> None:
                         "another output path")
     if not target.parent.is_dir():
         raise UserError(f"{target}: the folder {target.parent} does not exist")
+    if directory and _holds_other_files(target):
+        raise UserError(f"{target}: the folder holds files that no rollingstar command wrote; the output folder "
+                        "is replaced as a whole, so give a new or empty folder")
+
+
+def _holds_other_files(folder: Path) -> bool:
+    return folder.is_dir() and any(folder.iterdir()) and not (folder / FOLDER_MARK).is_file()
+
+
+def _has_content(target: Path) -> bool:
+    return target.is_file() or (target.is_dir() and any(target.iterdir()))
 
 
 def _install(tmp: Path, target: Path, directory: bool) -> None:
@@ -140,13 +153,14 @@ def safe_output(target: str | Path, inputs: Iterable[str | Path] = (), directory
     check_not_an_input(target, inputs)
     _check_target_kind(target, directory)
     with output_lock(target):
-        if target.exists():
+        if _has_content(target):
             warnings.warn(OverwriteWarning(f"{target} exists: it is replaced when this command completes "
                                            "(and kept as it is if the command fails)"), stacklevel=3)
         tmp = _temporary_beside(target)
         _remove(tmp)
         if directory:
             tmp.mkdir()
+            (tmp / FOLDER_MARK).write_text("written by rollingstar; a later run may replace this folder\n")
         try:
             yield tmp
         except BaseException:

@@ -49,15 +49,16 @@ LOCAL_CLUSTER_CONFIG = {
 }
 
 
-def run_serial(fn: Callable, tasks: Sequence, advance: Callable[[int], None]) -> list:
+def run_serial(fn: Callable, tasks: Sequence, on_done: Callable[[object], None]) -> list:
+    """``fn`` over ``tasks`` in order; ``on_done(result)`` as each one completes."""
     out = []
     for task in tasks:
         out.append(fn(task))
-        advance(1)
+        on_done(out[-1])
     return out
 
 
-def run_dask(fn: Callable, tasks: Sequence, advance: Callable[[int], None], workers: int = 2,
+def run_dask(fn: Callable, tasks: Sequence, on_done: Callable[[object], None], workers: int = 2,
              scheduler: str | None = None) -> list:
     try:
         import dask
@@ -83,7 +84,7 @@ def run_dask(fn: Callable, tasks: Sequence, advance: Callable[[int], None], work
             out: list = [None] * len(futures)
             for future in as_completed(futures):
                 out[position[future.key]] = future.result()
-                advance(1)
+                on_done(out[position[future.key]])
             return out
     finally:
         if cluster is not None:
@@ -108,10 +109,14 @@ def executor_profile(task_results: list[dict], wall_s: float) -> dict:
             "wall_over_task_cpu": wall_s / total if total > 0 else None}
 
 
-def execute(fn: Callable, tasks: Sequence, advance: Callable[[int], None], executor: str = "serial",
+def execute(fn: Callable, tasks: Sequence, on_done: Callable[[object], None], executor: str = "serial",
             workers: int = 1, scheduler: str | None = None) -> list:
+    """Results of ``fn`` over ``tasks``, in task order; ``on_done(result)`` is called in this process as
+    each task completes (in completion order), so finished work can be kept before the rest ends."""
+    if executor not in ("serial", "dask"):
+        raise UserError(f"--executor: unknown executor {executor!r}; expected serial or dask")
+    if not tasks:
+        return []
     if executor == "serial":
-        return run_serial(fn, tasks, advance)
-    if executor == "dask":
-        return run_dask(fn, tasks, advance, workers, scheduler)
-    raise UserError(f"--executor: unknown executor {executor!r}; expected serial or dask")
+        return run_serial(fn, tasks, on_done)
+    return run_dask(fn, tasks, on_done, workers, scheduler)

@@ -18,8 +18,9 @@ import json
 from fnmatch import fnmatch
 from pathlib import Path
 
+from rollingstar.config import excerpt
 from rollingstar.errors import UserError
-from rollingstar.pipelines.compare.config import Tolerance
+from rollingstar.pipelines.compare.config import Task, Tolerance
 
 LOWER_IS_BETTER = ("attitude_error_arcsec.?_rmse", "rate_error_deg_s.rmse", "rate_error_deg_s.?_rmse",
                    "star_pair_distance_error_px.rmse", "centroid_error_px.rmse", "invalid_attitude_estimates",
@@ -28,17 +29,35 @@ HIGHER_IS_BETTER = ("attitude_updates", "identified_stars_per_frame")
 DEFAULT_TOLERANCE = Tolerance(rel=0.02, abs=0.0)
 
 
-def load_baseline(path: str | Path) -> dict:
+def load_baseline(path: str | Path, tasks: list[Task] | None = None) -> dict:
+    """A baseline results.json, checked before any task runs: JSON of the right shape, at least one
+    result, and (given this comparison's ``tasks``) only (variant, pipeline) pairs this comparison
+    produces -- a baseline of another comparison would otherwise pass or fail for the wrong reason."""
     path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: baseline file not found (generate it with `rollingstar compare CONFIG -o DIR` "
+                        "and copy DIR/results.json)")
     try:
         data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise UserError(f"{path}: baseline file not found (generate it with `rollingstar compare CONFIG -o DIR` "
-                        "and copy DIR/results.json)") from None
-    except json.JSONDecodeError as exc:
-        raise UserError(f"{path}: baseline is not JSON: {exc}") from None
+    except (ValueError, RecursionError) as exc:
+        raise UserError(f"{path}: baseline is not JSON of a results.json: {excerpt(str(exc), 200)}") from None
     if not isinstance(data, dict) or not isinstance(data.get("results"), list):
         raise UserError(f"{path}: not a results.json of `rollingstar compare` (no 'results' list)")
+    if not data["results"]:
+        raise UserError(f"{path}: the baseline holds no results: nothing to gate against")
+    for k, row in enumerate(data["results"]):
+        if not (isinstance(row, dict) and isinstance(row.get("variant"), str) and isinstance(row.get("pipeline"), str)
+                and isinstance(row.get("metrics"), dict)
+                and all(isinstance(v, dict) for v in row["metrics"].values())):
+            raise UserError(f"{path}: results[{k}]: expected {{variant: str, pipeline: str, metrics: {{name: "
+                            f"{{mean: ...}}}}}}, got {excerpt(row, 120)}")
+    if tasks is not None:
+        produced = {(t.variant, name) for t in tasks for name, _ in t.pipelines}
+        foreign = sorted({(r["variant"], r["pipeline"]) for r in data["results"]} - produced)
+        if foreign:
+            listed = "; ".join(f"{p} on {v}" for v, p in foreign[:5]) + (" ..." if len(foreign) > 5 else "")
+            raise UserError(f"{path}: {len(foreign)} baseline result(s) that this comparison does not produce "
+                            f"({listed}): a baseline of another comparison config?")
     return data
 
 

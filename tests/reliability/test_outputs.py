@@ -8,7 +8,7 @@ import sys
 import pytest
 
 from rollingstar.errors import UserError
-from rollingstar.outputs import OverwriteWarning, check_not_an_input, output_lock, safe_output
+from rollingstar.outputs import FOLDER_MARK, OverwriteWarning, check_not_an_input, output_lock, safe_output
 
 
 @pytest.fixture
@@ -71,6 +71,7 @@ def test_folder_outputs_are_swapped_whole(tmp_path):
     target = tmp_path / "report"
     target.mkdir()
     (target / "index.html").write_text("old")
+    (target / FOLDER_MARK).write_text("")
     with pytest.warns(OverwriteWarning):
         with safe_output(target, directory=True) as tmp:
             (tmp / "index.html").write_text("new")
@@ -108,3 +109,20 @@ def test_a_second_writer_is_refused_naming_the_holder(tmp_path):
     with output_lock(target):  # free again once the holder is gone
         pass
     assert not (tmp_path / ".out.mcap.lock").exists()
+
+
+def test_a_folder_of_other_files_is_never_replaced(tmp_path):
+    home = tmp_path / "home"
+    home.mkdir()
+    (home / "thesis.tex").write_text("years of work")
+    with pytest.raises(UserError, match="holds files that no rollingstar command wrote"):
+        with safe_output(home, directory=True):
+            pass
+    assert (home / "thesis.tex").read_text() == "years of work"
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with safe_output(empty, directory=True) as tmp:  # an empty folder is fine, and not announced
+        (tmp / "results.json").write_text("{}")
+    with pytest.warns(OverwriteWarning):  # its own earlier output is replaced
+        with safe_output(empty, directory=True) as tmp:
+            (tmp / "results.json").write_text("{}")
