@@ -14,7 +14,6 @@ from pathlib import Path
 
 import rollingstar as rs
 
-
 # fu2022's star tracker turning at 1.4 deg/s: fast enough that rolling-shutter smear and the
 # motion between rows decide whether the tracker keeps lock.
 SCENARIO = "fu2022"

@@ -64,7 +64,7 @@ def recording(tmp_path_factory):
     return rec, ref
 
 
-def _written(out: Path) -> int:
+def _written(out) -> int:
     """Bytes on disk of ``out`` or of the temporary file it is written to (``.<name>.tmp-<pid>``)."""
     candidates = [out, *out.parent.glob(f".{out.name}.tmp-*")]
     return max((c.stat().st_size for c in candidates if c.exists()), default=-1)
