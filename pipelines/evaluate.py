@@ -36,7 +36,7 @@ from rollingstar.pipelines.truth import (
     true_positions,
 )
 from rollingstar.sensors import build
-from rollingstar.sensors.conventions import RAD_TO_ARCSEC, attitude_error_body_arcsec
+from rollingstar.sensors.conventions import RAD_TO_ARCSEC, S_PER_NS, attitude_error_body_arcsec
 
 PAIR_MATCH_RADIUS_PX = 3.0
 
@@ -69,7 +69,7 @@ def evaluate_log(path: str | Path) -> dict:
 
     valid = [a for a in attitudes if a.get("valid") and a.get("q") is not None]
     n_frames = len(frames)
-    duration_s = n_frames * timing.frame_period_ns * 1e-9
+    duration_s = n_frames * timing.frame_period_ns * S_PER_NS
     result: dict = {
         "frames": n_frames,
         "attitude_updates": len(valid),
@@ -254,7 +254,7 @@ def _rate_crb(est_stars, truth_stars, truth, camera, scenario, has_rate: bool) -
         if not truth.covers(t).all() or np.ptp(t) == 0:
             continue
         w = truth.attitude(t).inv().apply(tru["ref_icrs"][tj])
-        variances.append(np.diag(rate_crb_rad2(camera, w, (t - t.min()) * 1e-9, sigma)))
+        variances.append(np.diag(rate_crb_rad2(camera, w, (t - t.min()) * S_PER_NS, sigma)))
     if not variances:
         return dict.fromkeys(keys)
     rms = np.sqrt(np.mean(variances, axis=0)) * 180.0 / np.pi

@@ -4,8 +4,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.effects.chain import predict
 from rollingstar.sensors.effects.context import context_from_attitude
+from rollingstar.sensors.so3 import skew
 
 
 class TruthTrajectory:
@@ -27,7 +29,7 @@ class TruthTrajectory:
         self._slerp = Slerp(self._rel(self.t_ns), Rotation.from_quat(self.q))
 
     def _rel(self, t_ns) -> np.ndarray:
-        return (np.asarray(t_ns, dtype=np.int64) - self.t_ns[0]).astype(float) * 1e-9
+        return (np.asarray(t_ns, dtype=np.int64) - self.t_ns[0]).astype(float) * S_PER_NS
 
     def covers(self, t_ns) -> np.ndarray:
         t = np.asarray(t_ns, dtype=np.int64)
@@ -67,11 +69,7 @@ def attitude_crb_rad2(camera, w_cam: np.ndarray, sigma_px: float) -> np.ndarray:
     ``F = sum J^T J / sigma^2``; the bound is ``F^-1`` (pseudo-inverse when singular).
     """
     w = np.asarray(w_cam, dtype=float)
-    skew = np.zeros(w.shape[:-1] + (3, 3))
-    skew[..., 0, 1], skew[..., 0, 2] = -w[..., 2], w[..., 1]
-    skew[..., 1, 0], skew[..., 1, 2] = w[..., 2], -w[..., 0]
-    skew[..., 2, 0], skew[..., 2, 1] = -w[..., 1], w[..., 0]
-    jac = camera.projection_jacobian(w) @ skew
+    jac = camera.projection_jacobian(w) @ skew(w)
     fisher = np.einsum("nki,nkj->ij", jac, jac) / sigma_px**2
     return np.linalg.pinv(fisher)
 
@@ -95,12 +93,8 @@ def rate_crb_rad2(camera, w_cam: np.ndarray, dt_s: np.ndarray, sigma_px, timing_
     w = np.asarray(w_cam, dtype=float)
     dt = np.asarray(dt_s, dtype=float)
     n = w.shape[0]
-    skew = np.zeros((n, 3, 3))
-    skew[:, 0, 1], skew[:, 0, 2] = -w[:, 2], w[:, 1]
-    skew[:, 1, 0], skew[:, 1, 2] = w[:, 2], -w[:, 0]
-    skew[:, 2, 0], skew[:, 2, 1] = -w[:, 1], w[:, 0]
     P = camera.projection_jacobian(w)  # (n, 2, 3)
-    A = P @ skew  # (n, 2, 3)
+    A = P @ skew(w)  # (n, 2, 3)
     jac = np.concatenate([A, A * dt[:, None, None]], axis=-1)  # (n, 2, 6)
     sig = np.broadcast_to(np.asarray(sigma_px, dtype=float), (n,))
     S = sig[:, None, None] ** 2 * np.eye(2)

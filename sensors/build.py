@@ -12,6 +12,10 @@ from rollingstar.errors import ConfigError
 from rollingstar.sensors.camera import PinholeCamera
 from rollingstar.sensors.catalog import StarCatalog, proper_motion_vector
 from rollingstar.sensors.conventions import (
+    ARCSEC_TO_RAD,
+    DEG_TO_RAD,
+    S_PER_HOUR,
+    S_PER_NS,
     attitude_from_radec_roll,
     seconds_to_ns,
     unit_to_radec,
@@ -26,10 +30,6 @@ from rollingstar.sensors.motion import (
 )
 from rollingstar.sensors.scenario import ScenarioConfig
 from rollingstar.sensors.timing import DetectorTiming
-
-DEG = np.pi / 180.0
-ARCSEC = DEG / 3600.0
-HOUR = 3600.0
 
 
 def build_camera(cfg: ScenarioConfig) -> PinholeCamera:
@@ -64,19 +64,19 @@ def build_motion(cfg: ScenarioConfig) -> AttitudeMotion:
     m = cfg.motion
     if m.segments:
         segments = [
-            Segment(seconds_to_ns(s.duration_s), np.asarray(s.rate_deg_s) * DEG, np.asarray(s.accel_deg_s2) * DEG)
+            Segment(seconds_to_ns(s.duration_s), np.asarray(s.rate_deg_s) * DEG_TO_RAD, np.asarray(s.accel_deg_s2) * DEG_TO_RAD)
             for s in m.segments
         ]
     else:
         long_ns = seconds_to_ns(1e6)  # the last segment's law continues past its end anyway
-        segments = [Segment(long_ns, np.asarray(m.rate_deg_s) * DEG, np.asarray(m.accel_deg_s2) * DEG)]
+        segments = [Segment(long_ns, np.asarray(m.rate_deg_s) * DEG_TO_RAD, np.asarray(m.accel_deg_s2) * DEG_TO_RAD)]
     motion: AttitudeMotion = PiecewiseMotion(initial_attitude(cfg, required=True), segments)
     if m.jitter:
         motion = JitterMotion(
             motion,
-            amplitude_rad=np.array([j.amplitude_arcsec for j in m.jitter]) * ARCSEC,
+            amplitude_rad=np.array([j.amplitude_arcsec for j in m.jitter]) * ARCSEC_TO_RAD,
             frequency_hz=np.array([j.frequency_hz for j in m.jitter]),
-            phase_rad=np.array([j.phase_deg for j in m.jitter]) * DEG,
+            phase_rad=np.array([j.phase_deg for j in m.jitter]) * DEG_TO_RAD,
         )
     return motion
 
@@ -129,7 +129,7 @@ def build_zenith(cfg: ScenarioConfig) -> np.ndarray | None:
     att = initial_attitude(cfg)
     if e is None or att is None:
         return None
-    e = e * DEG
+    e = e * DEG_TO_RAD
     return att.apply([0.0, -np.cos(e), np.sin(e)])
 
 
@@ -138,8 +138,8 @@ def build_covariates(cfg: ScenarioConfig) -> dict:
     out = {}
     for name, c in cfg.environment.covariates.items():
         def f(t_ns, c=c):
-            t = np.asarray(t_ns, dtype=np.int64).astype(float) * 1e-9
-            return c.offset + c.slope_per_h * t / HOUR + c.amplitude * np.sin(2.0 * np.pi * t / c.period_s)
+            t = np.asarray(t_ns, dtype=np.int64).astype(float) * S_PER_NS
+            return c.offset + c.slope_per_h * t / S_PER_HOUR + c.amplitude * np.sin(2.0 * np.pi * t / c.period_s)
         out[name] = f
     return out
 
@@ -150,8 +150,8 @@ def build_gyro(cfg: ScenarioConfig) -> GyroModel | None:
         return None
     return GyroModel(
         rate_hz=g.rate_hz,
-        bias_rad_s=np.asarray(g.bias_deg_h) * DEG / HOUR,
-        arw_rad_sqrt_s=g.arw_deg_sqrt_h * DEG / np.sqrt(HOUR),
-        rrw_rad_s_sqrt_s=g.rrw_deg_h_sqrt_h * DEG / HOUR / np.sqrt(HOUR),
+        bias_rad_s=np.asarray(g.bias_deg_h) * DEG_TO_RAD / S_PER_HOUR,
+        arw_rad_sqrt_s=g.arw_deg_sqrt_h * DEG_TO_RAD / np.sqrt(S_PER_HOUR),
+        rrw_rad_s_sqrt_s=g.rrw_deg_h_sqrt_h * DEG_TO_RAD / S_PER_HOUR / np.sqrt(S_PER_HOUR),
         scale_factor=np.asarray(g.scale_ppm) * 1e-6,
     )

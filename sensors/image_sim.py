@@ -31,10 +31,12 @@ import numpy as np
 from scipy.special import ndtr, pdtr
 
 from rollingstar.sensors.conventions import NS_PER_S
+from rollingstar.sensors.scenario import ImageConfig
 
 FOOTPRINT_SIGMAS = 6.0  # PSF half-width rendered around the streak (mass beyond: 2e-9)
 CHUNK_ELEMENTS = 4_000_000  # (stars x rows x samples x columns) per vectorised chunk
 COARSE_SAMPLES = 9  # samples of each star's track used to size its footprint
+_DEFAULTS = ImageConfig()  # the defaults are the scenario's ``image`` section's, written there once
 
 
 @dataclass(frozen=True)
@@ -49,17 +51,17 @@ class ImageModel:
     ``hot_pixel_e_per_s``.
     """
 
-    psf_sigma_px: float = 1.0
-    photons_per_s_mag0: float = 2.0e7
-    background_e_per_px_s: float = 50.0
-    dark_e_per_px_s: float = 5.0
-    read_noise_e: float = 5.0
-    gain_e_per_adu: float = 1.0
-    bias_adu: float = 100.0
-    bit_depth: int = 12
-    full_well_e: float = 20000.0
-    hot_pixel_fraction: float = 0.0
-    hot_pixel_e_per_s: float = 5000.0
+    psf_sigma_px: float = _DEFAULTS.psf_sigma_px
+    photons_per_s_mag0: float = _DEFAULTS.photons_per_s_mag0
+    background_e_per_px_s: float = _DEFAULTS.background_e_per_px_s
+    dark_e_per_px_s: float = _DEFAULTS.dark_e_per_px_s
+    read_noise_e: float = _DEFAULTS.read_noise_e
+    gain_e_per_adu: float = _DEFAULTS.gain_e_per_adu
+    bias_adu: float = _DEFAULTS.bias_adu
+    bit_depth: int = _DEFAULTS.bit_depth
+    full_well_e: float = _DEFAULTS.full_well_e
+    hot_pixel_fraction: float = _DEFAULTS.hot_pixel_fraction
+    hot_pixel_e_per_s: float = _DEFAULTS.hot_pixel_e_per_s
 
     def __post_init__(self):
         positive = ("psf_sigma_px", "photons_per_s_mag0", "gain_e_per_adu", "full_well_e")

@@ -32,15 +32,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from rollingstar.sensors.conventions import NS_PER_S
+from rollingstar.sensors.so3 import cross, skew
 
 _SERIES_THRESHOLD = 0.1  # |theta| below which (|t| - sin|t|)/|t|^3 uses its Taylor series
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices ``[v]x`` for (..., 3) -> (..., 3, 3)."""
-    z = np.zeros_like(v[..., 0])
-    x, y, w = v[..., 0], v[..., 1], v[..., 2]
-    return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2)
 
 
 def _right_jacobian_coefficients(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -69,16 +63,9 @@ def so3_right_jacobian(theta: np.ndarray) -> np.ndarray:
         raise ValueError(f"theta: expected shape (..., 3), got {th.shape}")
     x = np.linalg.norm(th, axis=-1)
     a, b = _right_jacobian_coefficients(x)
-    k = _skew(th)
+    k = skew(th)
     k2 = th[..., :, None] * th[..., None, :] - (x * x)[..., None, None] * np.eye(3)  # [theta]x^2
     return np.eye(3) - a[..., None, None] * k + b[..., None, None] * k2
-
-
-def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    return np.stack(
-        [u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1], u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2], u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]],
-        axis=-1,
-    )
 
 
 def _right_jacobian_apply(theta: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -87,7 +74,7 @@ def _right_jacobian_apply(theta: np.ndarray, v: np.ndarray) -> np.ndarray:
     x2 = theta[:, 0] ** 2 + theta[:, 1] ** 2 + theta[:, 2] ** 2
     a, b = _right_jacobian_coefficients(np.sqrt(x2))
     dot = theta[:, 0] * v[:, 0] + theta[:, 1] * v[:, 1] + theta[:, 2] * v[:, 2]
-    return v - a[:, None] * _cross(theta, v) + b[:, None] * (theta * dot[:, None] - x2[:, None] * v)
+    return v - a[:, None] * cross(theta, v) + b[:, None] * (theta * dot[:, None] - x2[:, None] * v)
 
 
 def _matvec(m: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -111,7 +111,8 @@ class NoiseConfig(Strict):
 
 
 class ImageConfig(Strict):
-    """Image-level rendering and detector noise (see rollingstar.sensors.simulate.ImageModel)."""
+    """Image-level rendering and detector noise (see rollingstar.sensors.image_sim.ImageModel, whose
+    defaults are these)."""
 
     psf_sigma_px: PositiveFloat = 1.0
     photons_per_s_mag0: PositiveFloat = 2.0e7

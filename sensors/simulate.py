@@ -31,6 +31,7 @@ from rollingstar.sensors.centroid_sim import (
     image_positions,
     solve_star_rows,
 )
+from rollingstar.sensors.conventions import NS_PER_S
 from rollingstar.sensors.effects.base import Effect
 from rollingstar.sensors.effects.chain import apply_gyro, ordered
 from rollingstar.sensors.image_sim import (
@@ -207,7 +208,7 @@ class StarTrackerSimulator:
         t_end = timing.frame_end_ns(t0)
         boresight = self.motion.attitude(np.array([t_ref], dtype=np.int64))[0].apply([0.0, 0.0, 1.0])
         rates = self.motion.angular_velocity(np.array([t0, t_ref, t_end], dtype=np.int64))
-        sweep = float(np.max(np.linalg.norm(rates, axis=1))) * (t_end - t0) / 1e9
+        sweep = float(np.max(np.linalg.norm(rates, axis=1))) * (t_end - t0) / NS_PER_S
         half = self.camera.half_diagonal_rad
         radius = half + sweep + CONE_MARGIN_RAD + CONE_MARGIN_FRACTION * half
         idx = self.catalog.cone(boresight, min(radius, np.pi))

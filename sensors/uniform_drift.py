@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.image_sim import (
     ImageModel,
     digitise,
@@ -50,7 +51,7 @@ def image_velocity_px_s(camera, motion, t_ns: int = 0, h_ns: int = 500_000) -> n
     t = np.array([t_ns - h_ns, t_ns + h_ns], dtype=np.int64)
     u = motion.attitude(np.array([t_ns], dtype=np.int64))[0].apply([0.0, 0.0, 1.0])
     x, y, _ = camera.project(motion.attitude(t).inv().apply(np.stack([u, u])))
-    return np.array([x[1] - x[0], y[1] - y[0]]) / (2 * h_ns * 1e-9)
+    return np.array([x[1] - x[0], y[1] - y[0]]) / (2 * h_ns * S_PER_NS)
 
 
 class UniformDriftSimulator:
@@ -68,7 +69,7 @@ class UniformDriftSimulator:
         v = np.asarray(velocity_px_s, dtype=float).reshape(2)
         if not np.all(np.isfinite(v)):
             raise ValueError(f"velocity_px_s must be finite, got {velocity_px_s!r}")
-        if abs(v[1]) * timing.effective_line_delay_ns * 1e-9 >= 1.0:
+        if abs(v[1]) * timing.effective_line_delay_ns * S_PER_NS >= 1.0:
             raise ValueError(f"|vy| * line delay must be < 1 row (got vy = {v[1]} px/s)")
         if level not in ("centroid", "image"):
             raise ValueError(f"level must be 'centroid' or 'image', got {level!r}")
@@ -91,12 +92,12 @@ class UniformDriftSimulator:
         """True image positions (m, 2) of directions ``unit_icrs`` (m, 3) at int ns times ``t_ns`` (m,)."""
         u = np.asarray(unit_icrs, dtype=float).reshape(-1, 3)
         x, y, _ = self.camera.project(self.attitude.inv().apply(u))
-        dt = (np.asarray(t_ns, dtype=np.int64).reshape(-1) - self.epoch_ns) * 1e-9
+        dt = (np.asarray(t_ns, dtype=np.int64).reshape(-1) - self.epoch_ns) * S_PER_NS
         return np.column_stack([x + self.velocity_px_s[0] * dt, y + self.velocity_px_s[1] * dt])
 
     def _candidates(self, t0: int) -> np.ndarray:
         cam = self.camera
-        t_end_s = max(self.timing.frame_end_ns(t0) - self.epoch_ns, 0) * 1e-9
+        t_end_s = max(self.timing.frame_end_ns(t0) - self.epoch_ns, 0) * S_PER_NS
         reach_px = np.hypot(cam.width, cam.height) / 2 + float(np.hypot(*self.velocity_px_s)) * t_end_s
         radius = float(np.arctan(reach_px / cam.focal_px)) + np.radians(0.5)
         return self.catalog.cone(self.attitude.apply([0.0, 0.0, 1.0]), min(radius, np.radians(80.0)))
@@ -110,8 +111,8 @@ class UniformDriftSimulator:
         cand = self._candidates(t0)
         xp, yp, _ = self.camera.project(self.attitude.inv().apply(self.catalog.unit_icrs[cand]))
         vx, vy = self.velocity_px_s
-        ld = self.timing.effective_line_delay_ns * 1e-9
-        base = (t0 - self.epoch_ns + self.timing.exposure_ns / 2.0) * 1e-9
+        ld = self.timing.effective_line_delay_ns * S_PER_NS
+        base = (t0 - self.epoch_ns + self.timing.exposure_ns / 2.0) * S_PER_NS
         y = (yp + vy * base) / (1.0 - vy * ld)
         x = xp + vx * (base + y * ld)
         near = self.camera.contains(x, y, margin_px=-DETECTOR_MARGIN_PX)

@@ -40,7 +40,7 @@ from rollingstar.logs.importers.sidecar import load_camera
 from rollingstar.progress import progress_bar
 from rollingstar.sensors.camera import PinholeCamera
 from rollingstar.sensors.catalog import StarCatalog
-from rollingstar.sensors.conventions import radec_roll_from_attitude, radec_to_unit
+from rollingstar.sensors.conventions import RAD_TO_ARCSEC, radec_roll_from_attitude, radec_to_unit
 from rollingstar.sensors.timing import DetectorTiming
 from rollingstar.studies.real_calibration import (
     ImageMatches,
@@ -51,7 +51,6 @@ from rollingstar.studies.real_calibration import (
 )
 
 ROOT = Path(__file__).resolve().parents[1]
-RAD_TO_ARCSEC = 180.0 / np.pi * 3600.0
 TETRA3_CAMERA = CONFIGS / "cameras" / "tetra3_blackfly_s.yaml"
 TETRA3_EPOCH = 2019.58  # 2019-07-29
 CREUSOT_EPOCH = 2023.69  # 2023-09-07 (log.json dates are d/mm/yyyy: "7/09/2023")

@@ -74,17 +74,15 @@ from rollingstar.estimators.attitude.motion_model import (
 )
 from rollingstar.estimators.attitude.observations import (
     StarObservations,
-    default_sigma_px,
     star_observations,
 )
 from rollingstar.estimators.attitude.robust import apply_robust
 from rollingstar.estimators.attitude.wahba import quest, quest_covariance
-from rollingstar.estimators.data import AttitudeEstimate, FrameData, RateEstimate
-from rollingstar.estimators.filters.gyro_kf import GyroIntegrator
+from rollingstar.estimators.data import AttitudeEstimate, FrameData, RateEstimate, default_sigma_px
+from rollingstar.sensors.conventions import S_PER_NS
+from rollingstar.sensors.gyro import GyroIntegrator
 
 __all__ = ["GtsamSmoother", "GtsamParams"]
-
-NS = 1e-9
 
 
 class GtsamParams(MotionModelParams):
@@ -131,7 +129,7 @@ class GtsamSmoother(AttitudeSolver):
     def setup(self, context) -> None:
         super().setup(context)
         p = self.params
-        self._sigma_px = default_sigma_px(p, context)
+        self._sigma_px = default_sigma_px(p.sigma_px, context)
         self._merge_ns = int(round(p.merge_us * 1e3))
         self._gyro = GyroIntegrator(keep_s=1e9)  # keep every sample (batch needs the whole log)
         self._mode: str | None = None
@@ -223,7 +221,7 @@ class GtsamSmoother(AttitudeSolver):
 
     # ------------------------------------------------------------------ fixed-lag
     def _new_smoother(self):
-        lag = self.params.lag_s + 3.0 * self.context.timing.frame_period_ns * NS  # margin: read before marginalising
+        lag = self.params.lag_s + 3.0 * self.context.timing.frame_period_ns * S_PER_NS  # margin: read before marginalising
         if self.params.fixed_lag_backend == "isam2":
             isam = gtsam.ISAM2Params()
             # GTSAM's default relinearisation threshold (0.1 rad) never relinearises arcsecond-level
@@ -252,7 +250,7 @@ class GtsamSmoother(AttitudeSolver):
         if self._smoother is None:
             self._smoother = self._new_smoother()
         graph, values, stamps = gtsam.NonlinearFactorGraph(), gtsam.Values(), {}
-        newest_sample = None if self._gyro.empty else self._gyro.origin_ns + round(self._gyro.tau[-1] / NS)
+        newest_sample = None if self._gyro.empty else self._gyro.origin_ns + round(self._gyro.tau[-1] / S_PER_NS)
         ready = []
         while self._pending:
             b = self._pending[0]
@@ -264,7 +262,7 @@ class GtsamSmoother(AttitudeSolver):
         if newest is not None:
             # A long gap would marginalise a frame inside this update before it is released:
             # release such frames first, with the estimate so far.
-            horizon = newest - int(self._smoother.smootherLag() / NS)
+            horizon = newest - int(self._smoother.smootherLag() / S_PER_NS)
             while self._in_graph and (not self._in_graph[0].m or int(self._in_graph[0].obs.state_t_ns[0]) < horizon):
                 self._released.append(self._output_fixed_lag(self._in_graph.popleft()))
         for b in ready:
@@ -276,7 +274,7 @@ class GtsamSmoother(AttitudeSolver):
             except RuntimeError as exc:
                 self._failed = f"attitude unobservable from the stars and motion model ({type(exc).__name__}: {exc})"
         t_now = self._last[1] if self._last is not None else None
-        lag_ns = int(self.params.lag_s / NS)
+        lag_ns = int(self.params.lag_s / S_PER_NS)
         while self._in_graph:
             b = self._in_graph[0]
             done = final or not b.m or (t_now is not None and int(b.obs.state_t_ns[-1]) <= t_now - lag_ns)
@@ -327,7 +325,7 @@ class GtsamSmoother(AttitudeSolver):
         if self._last is None:
             graph.add(bias_prior_factor(kb, n.beta_sigma))
         else:
-            graph.add(bias_walk_factor(bias_key(self._last[2]), kb, (t_seg - self._last[3]) * NS, n.sigma_u))
+            graph.add(bias_walk_factor(bias_key(self._last[2]), kb, (t_seg - self._last[3]) * S_PER_NS, n.sigma_u))
         params = rotation_params(n.sigma_v)
         slices = obs.state_slices()
         for j in range(b.m):
@@ -343,18 +341,18 @@ class GtsamSmoother(AttitudeSolver):
             else:
                 prev = None
             if prev is not None:
-                dt = (t_j - t_prev) * NS
+                dt = (t_j - t_prev) * S_PER_NS
                 graph.add(ahrs_factor(rot_key(prev), key, bias_key(seg), self._mean_rate(t_prev, t_j), dt, params))
             if stamps is not None:
-                stamps[key] = (t_j - self._t_origin) * NS
+                stamps[key] = (t_j - self._t_origin) * S_PER_NS
         if stamps is not None:
-            stamps[kb] = (int(obs.state_t_ns[-1]) - self._t_origin) * NS
+            stamps[kb] = (int(obs.state_t_ns[-1]) - self._t_origin) * S_PER_NS
         self._last = (b.first + b.m - 1, int(obs.state_t_ns[-1]), b.segment, t_seg)
 
     def _mean_rate(self, t_a: int, t_b: int) -> np.ndarray:
         if self._mode != "gyro":
             return np.zeros(3)
-        return self._gyro.increment(np.int64(t_a), np.int64(t_b)) / ((t_b - t_a) * NS)
+        return self._gyro.increment(np.int64(t_a), np.int64(t_b)) / ((t_b - t_a) * S_PER_NS)
 
     def _initial_rotations(self, obs: StarObservations) -> list[Rotation]:
         """Initial values: the frame's QUEST attitude at its weighted-mean time moved to each state
@@ -368,7 +366,7 @@ class GtsamSmoother(AttitudeSolver):
             R_q = Rotation.from_quat(res.q_xyzw[0])
             if self._mode != "gyro" and self._prev_quest is not None and t_q > self._prev_quest[1]:
                 R0, t0 = self._prev_quest
-                self._guess_rate = (R0.inv() * R_q).as_rotvec() / ((t_q - t0) * NS)
+                self._guess_rate = (R0.inv() * R_q).as_rotvec() / ((t_q - t0) * S_PER_NS)
             self._prev_quest = (R_q, t_q)
             anchor = (R_q, t_q)
         elif self._guess_last is not None:
@@ -382,7 +380,7 @@ class GtsamSmoother(AttitudeSolver):
     def _guess_increment(self, t_a: int, t_b: int) -> np.ndarray:
         if self._mode == "gyro":
             return self._gyro.increment(np.int64(t_a), np.int64(t_b))
-        return self._guess_rate * ((t_b - t_a) * NS)
+        return self._guess_rate * ((t_b - t_a) * S_PER_NS)
 
     # ------------------------------------------------------------------ outputs
     def _provisional(self, frame: FrameData, obs: StarObservations, reason: str) -> FrameData:

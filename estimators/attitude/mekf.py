@@ -23,32 +23,21 @@ from rollingstar.estimators.attitude.motion_model import (
     resolve_mode,
 )
 from rollingstar.estimators.attitude.observations import (
-    default_sigma_px,
     star_observations,
     tangent_basis,
 )
 from rollingstar.estimators.attitude.robust import apply_robust
 from rollingstar.estimators.attitude.wahba import quest, quest_covariance
-from rollingstar.estimators.data import AttitudeEstimate, FrameData, RateEstimate
-from rollingstar.estimators.filters.gyro_kf import GyroIntegrator
+from rollingstar.estimators.data import AttitudeEstimate, FrameData, RateEstimate, default_sigma_px
+from rollingstar.sensors.conventions import S_PER_NS
+from rollingstar.sensors.gyro import GyroIntegrator
+from rollingstar.sensors.so3 import skew
 
-__all__ = ["MekfFilter", "MekfParams", "skew", "propagation_matrices", "star_update"]
-
-NS = 1e-9
+__all__ = ["MekfFilter", "MekfParams", "propagation_matrices", "star_update"]
 
 
 class MekfParams(MotionModelParams):
     pass
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices ``[v x]`` (..., 3, 3)."""
-    v = np.asarray(v, dtype=float)
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
 
 
 def propagation_matrices(theta: np.ndarray, dt: float, sigma_v: float, sigma_u: float) -> tuple[np.ndarray, np.ndarray]:
@@ -139,7 +128,7 @@ class MekfFilter(AttitudeSolver):
 
     def setup(self, context) -> None:
         super().setup(context)
-        self._sigma_px = default_sigma_px(self.params, context)
+        self._sigma_px = default_sigma_px(self.params.sigma_px, context)
         self._merge_ns = int(round(self.params.merge_us * 1e3))
         self._gyro = GyroIntegrator(keep_s=10.0)
         self._mode: str | None = None
@@ -158,7 +147,7 @@ class MekfFilter(AttitudeSolver):
         return float(np.median(np.diff(tau))) if tau.size > 1 else self._gyro.default_period_s
 
     def _propagate(self, t_ns: int) -> None:
-        dt = (t_ns - self._t) * NS
+        dt = (t_ns - self._t) * S_PER_NS
         if dt == 0.0:
             return
         n = self._noise
@@ -172,7 +161,7 @@ class MekfFilter(AttitudeSolver):
             # whole held span h, variance (N^2 / T_s) h^2; add the increase of that variance.
             h_old = self._held_ns if self._t > self._t_last_sample else 0
             h_new = h_old + max(0, t_ns - max(self._t_last_sample, self._t))
-            extra = n.sigma_v**2 / self._sample_period_s() * ((h_new * NS) ** 2 - (h_old * NS) ** 2)
+            extra = n.sigma_v**2 / self._sample_period_s() * ((h_new * S_PER_NS) ** 2 - (h_old * S_PER_NS) ** 2)
             Q[:3, :3] += max(extra, 0.0) * np.eye(3)
             self._held_ns = h_new
         self._R = self._R * Rotation.from_rotvec(theta)
@@ -214,7 +203,7 @@ class MekfFilter(AttitudeSolver):
     def process(self, frame: FrameData) -> FrameData:
         if frame.gyro.t_ns.size:
             self._gyro.add(frame.gyro)
-            self._t_last_sample = int(self._gyro.origin_ns + round(self._gyro.tau[-1] / NS))
+            self._t_last_sample = int(self._gyro.origin_ns + round(self._gyro.tau[-1] / S_PER_NS))
             self._held_ns = 0
         frame = apply_robust(frame, self.context.camera, self.params, self._sigma_px, self.params.use_star_sigma)
         obs, dropped = star_observations(frame.stars, self.context.camera, self._sigma_px,

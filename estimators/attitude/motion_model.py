@@ -19,13 +19,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-import numpy as np
 from pydantic import Field
 
 from rollingstar.estimators.attitude.observations import ObservationParams
-
-DEG = np.pi / 180.0
-ARCSEC = DEG / 3600.0
+from rollingstar.sensors.conventions import ARCSEC_TO_RAD, DEG_TO_RAD, S_PER_HOUR
 
 
 class MotionModelParams(ObservationParams):
@@ -58,11 +55,12 @@ class MotionNoise:
 def motion_noise(p: MotionModelParams, mode: str) -> MotionNoise:
     """Convert the parameters of ``mode`` ('gyro' or 'constant_rate') to SI."""
     if mode == "gyro":
-        return MotionNoise(mode, p.gyro_arw_deg_sqrt_h * DEG / 60.0, p.gyro_rrw_deg_h_sqrt_h * DEG / 3600.0 / 60.0,
-                           p.gyro_bias_sigma_deg_h * DEG / 3600.0)
+        return MotionNoise(mode, p.gyro_arw_deg_sqrt_h * DEG_TO_RAD / 60.0,
+                           p.gyro_rrw_deg_h_sqrt_h * DEG_TO_RAD / S_PER_HOUR / 60.0,
+                           p.gyro_bias_sigma_deg_h * DEG_TO_RAD / S_PER_HOUR)
     if mode == "constant_rate":
-        return MotionNoise(mode, p.attitude_noise_arcsec_sqrt_s * ARCSEC, p.angular_accel_noise_deg_s_sqrt_s * DEG,
-                           p.rate_sigma_deg_s * DEG)
+        return MotionNoise(mode, p.attitude_noise_arcsec_sqrt_s * ARCSEC_TO_RAD,
+                           p.angular_accel_noise_deg_s_sqrt_s * DEG_TO_RAD, p.rate_sigma_deg_s * DEG_TO_RAD)
     raise ValueError(f"unknown motion model {mode!r}")
 
 

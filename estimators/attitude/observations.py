@@ -23,7 +23,7 @@ from pydantic import ConfigDict, Field
 from rollingstar.estimators.attitude.robust import RobustParams
 from rollingstar.estimators.data import StarTable
 
-__all__ = ["StarObservations", "star_observations", "ObservationParams", "default_sigma_px", "tangent_basis"]
+__all__ = ["StarObservations", "star_observations", "ObservationParams", "tangent_basis"]
 
 
 class ObservationParams(RobustParams):
@@ -38,15 +38,6 @@ class ObservationParams(RobustParams):
     merge_us: float = Field(
         default=0.0, ge=0.0, description="Stars whose times differ by at most this (microseconds) share one attitude "
         "state; 0: one state per distinct star time (per star on a rolling-shutter frame).")
-
-
-def default_sigma_px(params: ObservationParams, context) -> float:
-    """The centroid sigma (px) for stars without their own: params, else the context's, else 0.05."""
-    if params.sigma_px is not None:
-        return float(params.sigma_px)
-    if getattr(context, "centroid_sigma_px", None):
-        return float(context.centroid_sigma_px)
-    return 0.05
 
 
 @dataclass(frozen=True)

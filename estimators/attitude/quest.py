@@ -7,7 +7,7 @@ from pydantic import ConfigDict, Field
 from rollingstar.estimators.attitude.base import AttitudeSolver
 from rollingstar.estimators.attitude.robust import RobustParams, apply_robust
 from rollingstar.estimators.attitude.wahba import quest, quest_covariance
-from rollingstar.estimators.data import AttitudeEstimate, FrameData
+from rollingstar.estimators.data import AttitudeEstimate, FrameData, default_sigma_px
 
 
 class QuestParams(RobustParams):
@@ -50,12 +50,7 @@ class QuestSolver(AttitudeSolver):
 
     def setup(self, context) -> None:
         super().setup(context)
-        if self.params.sigma_px is not None:
-            self._sigma_px = float(self.params.sigma_px)
-        elif getattr(context, "centroid_sigma_px", None):
-            self._sigma_px = float(context.centroid_sigma_px)
-        else:
-            self._sigma_px = 0.05
+        self._sigma_px = default_sigma_px(self.params.sigma_px, context)
         self._focal_px = float(context.camera.focal_px)
 
     def process(self, frame: FrameData) -> FrameData:

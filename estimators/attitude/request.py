@@ -20,7 +20,9 @@ from scipy.spatial.transform import Rotation
 
 from rollingstar.estimators.attitude.base import AttitudeSolver
 from rollingstar.estimators.attitude.robust import RobustParams, apply_robust
-from rollingstar.estimators.data import AttitudeEstimate, FrameData
+from rollingstar.estimators.data import AttitudeEstimate, FrameData, default_sigma_px
+from rollingstar.sensors.conventions import S_PER_NS
+from rollingstar.sensors.so3 import skew
 
 __all__ = ["RequestSolver", "RequestParams", "davenport_k", "transition_matrix", "propagate_k", "dominant_quaternion"]
 
@@ -55,15 +57,6 @@ class RequestParams(RobustParams):  # robust: the shared outlier gate (robust.py
 
 
 # ----------------------------------------------------------------------------------- the maths
-def _skew(v: np.ndarray) -> np.ndarray:
-    v = np.asarray(v, dtype=float)
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
 def davenport_k(obs_cam, ref_icrs, weights) -> tuple[np.ndarray, np.ndarray]:
     """Unnormalised ``(Delta K, Delta b)`` of star groups, eqs (24)-(29), batched over groups.
 
@@ -101,7 +94,7 @@ def transition_matrix(theta) -> np.ndarray:
         scale = np.where(ang > 1e-12, np.sin(ang / 2) / np.where(ang > 0, ang, 1.0), 0.5)
     psi = scale[..., None] * th
     Phi = np.cos(ang / 2)[..., None, None] * np.eye(4)
-    Phi[..., :3, :3] -= _skew(psi)
+    Phi[..., :3, :3] -= skew(psi)
     Phi[..., :3, 3] += psi
     Phi[..., 3, :3] -= psi
     return Phi
@@ -167,12 +160,7 @@ class RequestSolver(AttitudeSolver):
     def setup(self, context) -> None:
         super().setup(context)
         p = self.params
-        if p.sigma_px is not None:
-            self._sigma_px = float(p.sigma_px)
-        elif getattr(context, "centroid_sigma_px", None):
-            self._sigma_px = float(context.centroid_sigma_px)
-        else:
-            self._sigma_px = 0.05
+        self._sigma_px = default_sigma_px(p.sigma_px, context)
         self._focal_px = float(context.camera.focal_px)
         self._K = np.zeros((4, 4))
         self._J = np.zeros((3, 3))
@@ -221,7 +209,7 @@ class RequestSolver(AttitudeSolver):
         """Body rotation vectors ``theta`` with ``R(t_b) = R(t_a) Exp(theta)`` (n, 3); NaN if unknown."""
         t_a = np.asarray(t_a, dtype=np.int64)
         t_b = np.asarray(t_b, dtype=np.int64)
-        dt = (t_b - t_a).astype(float) * 1e-9
+        dt = (t_b - t_a).astype(float) * S_PER_NS
         src = self.params.rate_source
         if src == "fixed":
             return dt[:, None] * self._fixed
@@ -230,7 +218,7 @@ class RequestSolver(AttitudeSolver):
         if src == "gyro":
             base = self._gyro_t[0]
             mid = ((t_a - base) + (t_b - base)).astype(float) * 0.5e-9
-            ref = (self._gyro_t - base).astype(float) * 1e-9
+            ref = (self._gyro_t - base).astype(float) * S_PER_NS
             w = np.stack([np.interp(mid, ref, self._gyro_w[:, k]) for k in range(3)], axis=-1)
             return dt[:, None] * w
         # truth: exact relative rotation from the slerped truth attitudes
@@ -299,7 +287,7 @@ class RequestSolver(AttitudeSolver):
         p = self.params
         cam = self.context.camera
         t_i = sel.t_ns.astype(np.int64)
-        dt = (t_i - t_k).astype(float) * 1e-9  # t_i - t_ref <= 0
+        dt = (t_i - t_k).astype(float) * S_PER_NS  # t_i - t_ref <= 0
         w_raw = cam.unproject(sel.x, sel.y)
         theta_i = self._increments(t_i, t_k)  # R(t_k) = R(t_i) Exp(theta_i)
         span = -dt  # t_ref - t_i >= 0, the interval theta_i covers

@@ -34,6 +34,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from rollingstar.estimators.attitude.wahba import quest
 from rollingstar.estimators.data import FrameData, StarTable
+from rollingstar.sensors.conventions import S_PER_NS
 
 __all__ = ["RobustParams", "robust_gate", "apply_robust", "star_residuals_rad"]
 
@@ -135,7 +136,7 @@ def robust_gate(stars: StarTable, camera, params: RobustParams, default_sigma_px
     vx, vy = sel.vx, sel.vy
     moving = np.isfinite(vx) & np.isfinite(vy)
     if moving.any():  # to the mean star time, first order in the image velocity
-        dt = (sel.t_ns - int(np.mean(sel.t_ns))).astype(float) * 1e-9
+        dt = (sel.t_ns - int(np.mean(sel.t_ns))).astype(float) * S_PER_NS
         x = np.where(moving, x - vx * dt, x)
         y = np.where(moving, y - vy * dt, y)
     body = camera.unproject(x, y).reshape(-1, 3)

@@ -1,6 +1,6 @@
 """Gyro history for the ``windowed`` centroider's prediction, compiled (liu2013 eqs 8-10 inputs).
 
-:class:`FastGyroIntegrator` is :class:`rollingstar.estimators.filters.gyro_kf.GyroIntegrator` (same model, same
+:class:`FastGyroIntegrator` is :class:`rollingstar.sensors.gyro.GyroIntegrator` (same model, same
 knot arrays ``tau``, ``rate``, ``theta``, ``psi``, same answers: tested to 1e-12) with its per-frame
 :meth:`~FastGyroIntegrator.add` and :meth:`~FastGyroIntegrator.trim` compiled over preallocated
 buffers, and :func:`gyro_increment` its ``increment`` compiled. Why: the numpy versions cost ~26 us
@@ -14,7 +14,8 @@ import numpy as np
 from numba import njit
 
 from rollingstar.estimators.data import GyroSamples
-from rollingstar.estimators.filters.gyro_kf import NS, GyroIntegrator
+from rollingstar.sensors.conventions import S_PER_NS
+from rollingstar.sensors.gyro import GyroIntegrator
 
 
 @njit(cache=True, nogil=True)
@@ -49,7 +50,7 @@ def _append(tau, rate, theta, psi, m, ts, w):  # pragma: no cover - compiled
 
 
 class FastGyroIntegrator(GyroIntegrator):
-    """:class:`~rollingstar.estimators.filters.gyro_kf.GyroIntegrator` with a compiled ``add`` and ``trim``
+    """:class:`~rollingstar.sensors.gyro.GyroIntegrator` with a compiled ``add`` and ``trim``
     (module docstring). ``tau``, ``rate``, ``theta``, ``psi`` are views of growing buffers."""
 
     def __init__(self, *args, **kwargs):
@@ -87,14 +88,14 @@ class FastGyroIntegrator(GyroIntegrator):
             rate[:self._m] = self._rate[:self._m]
             self._rate = rate
         w = np.asarray(samples.omega_rad_s, dtype=float).reshape(-1, 3) - self.bias
-        self._m = _append(self._tau, self._rate, self._theta, self._psi, self._m, (t - self.origin_ns) * NS, w)
+        self._m = _append(self._tau, self._rate, self._theta, self._psi, self._m, (t - self.origin_ns) * S_PER_NS, w)
         self._views()
 
     def trim(self, before_ns: int) -> None:
         """As :meth:`GyroIntegrator.trim`, compacting the buffers."""
         if self._m < 2:
             return
-        cut = (before_ns - self.origin_ns - self.keep_ns) * NS
+        cut = (before_ns - self.origin_ns - self.keep_ns) * S_PER_NS
         j = min(max(int(np.searchsorted(self.tau, cut)) - 1, 0), self._m - 1)
         if j > 0:
             m = self._m
@@ -108,7 +109,7 @@ class FastGyroIntegrator(GyroIntegrator):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def gyro_increment(tau, psi, theta, rate, origin_ns, t_from, t_to, exposure_ns, exposure_mean):  # pragma: no cover
-    """:meth:`rollingstar.estimators.filters.gyro_kf.GyroIntegrator.increment` compiled, (n, 3) rad, from the
+    """:meth:`rollingstar.sensors.gyro.GyroIntegrator.increment` compiled, (n, 3) rad, from the
     integrator's knot arrays (``tau``, ``psi``, ``theta``, ``rate``, ``origin_ns``): with
     ``exposure_mean`` the increment between the means of the body angle over the exposure windows
     (``exposure_ns`` long) starting at ``t_from`` and at ``t_to``,
@@ -121,7 +122,7 @@ def gyro_increment(tau, psi, theta, rate, origin_ns, t_from, t_to, exposure_ns, 
     out = np.zeros((n, 3))
     if m == 0:
         return out
-    e = exposure_ns * 1e-9
+    e = exposure_ns * S_PER_NS
     P = np.empty((4, 3))
     for k in range(n):
         if exposure_mean:
@@ -131,7 +132,7 @@ def gyro_increment(tau, psi, theta, rate, origin_ns, t_from, t_to, exposure_ns, 
             times = (t_to[k], t_from[k], t_to[k], t_from[k])
             nq = 2
         for q in range(nq):
-            ts = (times[q] - origin_ns) * 1e-9
+            ts = (times[q] - origin_ns) * S_PER_NS
             j = min(max(np.searchsorted(tau, ts), 1), m) - 1
             h = ts - tau[j]
             for a in range(3):

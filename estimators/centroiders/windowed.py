@@ -28,8 +28,7 @@ from rollingstar.estimators.centroiders.window_kernel import (
     workspace,
 )
 from rollingstar.estimators.data import FrameData, SensorContext, StarTable
-
-NS = 1e-9
+from rollingstar.sensors.conventions import S_PER_NS
 
 
 class WindowedParams(BaseModel):
@@ -74,7 +73,7 @@ class WindowedCentroider(Centroider):
     1. prediction, eq (10): ``(x, y)_k = (x, y)_{k-1} + J (x, y)_{k-1} dtheta`` with ``J`` liu2013
        eq (8) derived for our camera convention (:func:`~rollingstar.estimators.filters.gyro_kf.star_motion_jacobian`)
        and ``dtheta`` the gyro angle increment from the previous centroid's time to this frame's
-       (:class:`~rollingstar.estimators.filters.gyro_kf.GyroIntegrator`; with ``exposure_mean`` the increment of
+       (:class:`~rollingstar.sensors.gyro.GyroIntegrator`; with ``exposure_mean`` the increment of
        the exposure-window means, see there). For a rolling shutter the new row time uses the
        predicted row. Compiled, with steps 3-4, in one call per frame
        (:func:`~rollingstar.estimators.centroiders.window_kernel.track_windows`; the gyro history is
@@ -138,7 +137,7 @@ class WindowedCentroider(Centroider):
         self._win.setup(SensorContext(camera=wcam, timing=context.timing, catalog=None, bit_depth=bit_depth))
         self._saturation = (float(p.cog.saturation_adu) if p.cog.saturation_adu is not None
                             else float(2 ** int(bit_depth) - 1) if bit_depth else None)  # None: the image dtype's max
-        self._gyro = FastGyroIntegrator(p.gyro_bias_rad_s, default_period_s=float(context.timing.frame_period_ns) * NS)
+        self._gyro = FastGyroIntegrator(p.gyro_bias_rad_s, default_period_s=float(context.timing.frame_period_ns) * S_PER_NS)
         self._tracks: StarTable | None = None
         self._bg: np.ndarray | None = None  # tracked background / noise per guide star (ADU)
         self._noise: np.ndarray | None = None
@@ -176,7 +175,7 @@ class WindowedCentroider(Centroider):
         t_prev = tr.row_time_ns if self.params.exposure_mean else tr.t_ns
         px, py, r0, c0, dtheta, t_new = predict_step(tr.x, tr.y, t_prev, g.tau, g.psi, g.theta, g.rate,
                                                      g.origin_ns or 0, *self._timing_args(t0_ns), *self._geometry)
-        return px, py, r0, c0, dtheta, np.abs(t_new - t_prev) * NS
+        return px, py, r0, c0, dtheta, np.abs(t_new - t_prev) * S_PER_NS
 
     def _timing_args(self, t0_ns: int) -> tuple:
         return self.params.exposure_mean, int(t0_ns), self._line_delay_ns, self._exposure_ns

@@ -39,6 +39,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from rollingstar.estimators.corrections.base import Correction
 from rollingstar.estimators.data import FrameData
+from rollingstar.sensors.conventions import NS_PER_S, S_PER_NS
 
 
 def reference_time_ns(timing, t0_ns: int, reference_row: float | None = None) -> int:
@@ -59,16 +60,16 @@ def time_domain_correct(x, y, vx, vy, t_ns, t0_ns: int, timing, reference_row: f
     ok = np.isfinite(vx) & np.isfinite(vy)
     k_s = (timing.rows - 1) / 2.0 if reference_row is None else float(reference_row)
     t_ref = reference_time_ns(timing, t0_ns, k_s)
-    ld_s = timing.effective_line_delay_ns * 1e-9
+    ld_s = timing.effective_line_delay_ns * S_PER_NS
     if variant == "exact":
         tau_ns = t_ns - np.int64(t_ref)  # eqs (12)-(18) with h_i = 1: mid-exposure -> t_ref
-        tau = tau_ns.astype(float) * 1e-9
+        tau = tau_ns.astype(float) * S_PER_NS
         t_new = np.full(t_ns.shape, t_ref, dtype=np.int64)
     elif variant == "paper":
-        t_i = (spot_rows - 1.0) * ld_s + timing.exposure_ns * 1e-9  # eq (12)
+        t_i = (spot_rows - 1.0) * ld_s + timing.exposure_ns * S_PER_NS  # eq (12)
         y_prime = y - 0.5 * vy * t_i  # eqs (13)-(14), (16)
         tau = 0.5 * t_i + (y_prime - k_s) * ld_s  # eqs (15)-(18): total extrapolation interval
-        t_new = t_ns - np.rint(np.where(ok, tau, 0.0) * 1e9).astype(np.int64)
+        t_new = t_ns - np.rint(np.where(ok, tau, 0.0) * NS_PER_S).astype(np.int64)
     else:
         raise ValueError(f"variant must be 'exact' or 'paper', got {variant!r}")
     xc = np.where(ok, x - vx * tau, x)

@@ -35,6 +35,7 @@ from scipy.spatial.transform import Rotation
 from rollingstar.sensors.conventions import NS_PER_S
 from rollingstar.sensors.effects.base import EffectContext
 from rollingstar.sensors.effects.chain import predict as chain_predict
+from rollingstar.sensors.so3 import skew
 
 POS_STEP_PX = 1e-3
 # A frame takes a one-sided (backward/forward) rate instead of the central difference only when it
@@ -42,17 +43,6 @@ POS_STEP_PX = 1e-3
 # the rate and biases every time-like effect (measured: rolling-shutter pulls shifted by -0.5
 # sigma); a rate reversal at a frame boundary gains orders of magnitude more.
 RATE_SWITCH_CHI2 = 25.0
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices ``[v]_x`` of vectors (..., 3) -> (..., 3, 3)."""
-    v = np.asarray(v, dtype=float)
-    z = np.zeros(v.shape[:-1])
-    return np.stack([
-        np.stack([z, -v[..., 2], v[..., 1]], axis=-1),
-        np.stack([v[..., 2], z, -v[..., 0]], axis=-1),
-        np.stack([-v[..., 1], v[..., 0], z], axis=-1),
-    ], axis=-2)
 
 
 @dataclass(frozen=True, eq=False)

@@ -17,6 +17,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
+from rollingstar.sensors.conventions import S_PER_NS
+
 N_BINS = 8
 GRID = 3
 STRUCTURE_Z = 4.0  # 36 covariate x channel tests: the largest null z rarely exceeds 3.5
@@ -53,7 +55,7 @@ def covariates(obs, pred, camera) -> dict[str, np.ndarray]:
         "magnitude": obs.magnitude,
         "pixel_phase_x": obs.x - np.round(obs.x),
         "pixel_phase_y": obs.y - np.round(obs.y),
-        "time": (obs.t_ns - obs.t_ns.min()).astype(float) * 1e-9 if obs.n else np.zeros(0),
+        "time": (obs.t_ns - obs.t_ns.min()).astype(float) * S_PER_NS if obs.n else np.zeros(0),
     }
 
 

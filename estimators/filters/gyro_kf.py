@@ -1,10 +1,8 @@
 """Gyro-driven Kalman filter of star-spot positions (liu2013 eqs 8-17), batched over stars.
 
-Shared helpers (also used by the ``windowed`` centroider):
-
-- :class:`GyroIntegrator`: the attitude-angle increment from gyro samples between two times
-  (rate-integrating samples, zero-order hold) and the increment of its exposure-window mean.
-- :func:`star_motion_jacobian`: liu2013 eq (8) derived for *our* camera convention.
+The gyro history is :class:`rollingstar.sensors.gyro.GyroIntegrator` (the attitude-angle increment
+between two times, and between two exposure-window means); :func:`star_motion_jacobian` is liu2013
+eq (8) derived for *our* camera convention (the ``windowed`` centroider applies the same equation).
 
 Derivation of eq (8) for our convention (``docs/conventions.md``): with ``u = x - cx``,
 ``v = y - cy`` (px) and ``F`` the focal length in px, the camera-frame direction of a pixel is
@@ -28,10 +26,10 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from rollingstar.estimators.data import FrameData, GyroSamples
+from rollingstar.estimators.data import FrameData
 from rollingstar.estimators.filters.base import StarMotionFilter
-
-NS = 1e-9
+from rollingstar.sensors.conventions import S_PER_NS
+from rollingstar.sensors.gyro import GyroIntegrator
 
 
 def star_motion_jacobian(x, y, camera) -> np.ndarray:
@@ -46,120 +44,6 @@ def star_motion_jacobian(x, y, camera) -> np.ndarray:
     row_x = np.stack([-uv, f + u * u / f, v], axis=-1)
     row_y = np.stack([-(f + v * v / f), uv, -u], axis=-1)
     return np.stack([row_x, row_y], axis=-2)
-
-
-class GyroIntegrator:
-    """Body-angle history from gyro samples, for increments between arbitrary times.
-
-    Sample ``i`` at ``t_i`` holds the mean rate over ``(t_{i-1}, t_i]`` (a rate-integrating gyro,
-    see :mod:`rollingstar.sensors.gyro`); the first sample's interval length is taken from the next spacing
-    (or ``default_period_s``). Minus the known bias, the rates are held constant over their
-    intervals (zero-order hold) and also extrapolated beyond the first/last sample, so the angle
-    ``Theta(t) = int omega`` is piecewise linear and its integral ``Psi(t)`` piecewise quadratic;
-    both are exact for the held rates. Angles are summed as rotation vectors (small-angle: the
-    rotation over one frame is arcseconds here; the Jacobian is first order anyway).
-    """
-
-    def __init__(self, bias_rad_s=(0.0, 0.0, 0.0), default_period_s: float = 0.01, keep_s: float = 2.0):
-        self.bias = np.asarray(bias_rad_s, dtype=float).reshape(3)
-        self.default_period_s = float(default_period_s)
-        self.keep_ns = int(keep_s / NS)
-        self.origin_ns: int | None = None
-        self.tau = np.zeros(0)  # knot times (s from origin), m + 1 of them
-        self.rate = np.zeros((0, 3))  # m held rates, rate[j] on (tau[j], tau[j + 1]]
-        self.theta = np.zeros((0, 3))  # Theta at the knots
-        self.psi = np.zeros((0, 3))  # Psi at the knots
-
-    def add(self, samples: GyroSamples) -> None:
-        """Append samples (times must increase past the last one; older ones are ignored)."""
-        t = np.asarray(samples.t_ns, dtype=np.int64)
-        if t.size == 0:
-            return
-        w = np.asarray(samples.omega_rad_s, dtype=float).reshape(-1, 3) - self.bias
-        if self.origin_ns is None:
-            self.origin_ns = int(t[0])
-        ts = (t - self.origin_ns) * NS
-        if self.tau.size:
-            keep = ts > self.tau[-1]
-            ts, w = ts[keep], w[keep]
-            if ts.size == 0:
-                return
-            knots = np.concatenate([[self.tau[-1]], ts])
-        else:
-            first = ts[1] - ts[0] if ts.size > 1 else self.default_period_s
-            knots = np.concatenate([[ts[0] - first], ts])
-            self.tau = knots[:1]
-            self.theta = np.zeros((1, 3))
-            self.psi = np.zeros((1, 3))
-        dt = np.diff(knots)[:, None]
-        d_theta = np.cumsum(w * dt, axis=0)
-        theta = self.theta[-1] + np.vstack([np.zeros((1, 3)), d_theta])
-        # Psi(t_j) - Psi(t_{j-1}) = Theta(t_{j-1}) dt + omega dt^2 / 2
-        d_psi = np.cumsum(theta[:-1] * dt + 0.5 * w * dt * dt, axis=0)
-        self.tau = np.concatenate([self.tau, knots[1:]])
-        self.rate = np.vstack([self.rate, w])
-        self.theta = np.vstack([self.theta, theta[1:]])
-        self.psi = np.vstack([self.psi, self.psi[-1] + d_psi])
-
-    def trim(self, before_ns: int) -> None:
-        """Forget intervals ending before ``before_ns - keep_s`` (Theta/Psi stay consistent)."""
-        if self.origin_ns is None or self.rate.shape[0] < 2:
-            return
-        cut = (before_ns - self.origin_ns - self.keep_ns) * NS
-        j = int(np.searchsorted(self.tau, cut)) - 1
-        j = min(max(j, 0), self.rate.shape[0] - 1)
-        if j > 0:
-            self.tau, self.theta, self.psi, self.rate = self.tau[j:], self.theta[j:], self.psi[j:], self.rate[j:]
-
-    @property
-    def empty(self) -> bool:
-        return self.rate.shape[0] == 0
-
-    def _locate(self, t_ns):
-        ts = (np.asarray(t_ns, dtype=np.int64) - (self.origin_ns or 0)) * NS
-        j = np.clip(np.searchsorted(self.tau, ts, side="left"), 1, self.rate.shape[0]) - 1
-        return j, (ts - self.tau[j])[..., None]
-
-    def angle(self, t_ns) -> np.ndarray:
-        """``Theta(t)`` (..., 3) rad; zeros when no sample was ever added."""
-        t = np.asarray(t_ns)
-        if self.empty:
-            return np.zeros(t.shape + (3,))
-        j, h = self._locate(t)
-        return self.theta[j] + self.rate[j] * h
-
-    def integral(self, t_ns) -> np.ndarray:
-        """``Psi(t) = int Theta`` (..., 3) rad s."""
-        t = np.asarray(t_ns)
-        if self.empty:
-            return np.zeros(t.shape + (3,))
-        j, h = self._locate(t)
-        return self.psi[j] + self.theta[j] * h + 0.5 * self.rate[j] * h * h
-
-    def rate_at(self, t_ns) -> np.ndarray:
-        """Held gyro rate (bias removed) at ``t`` (..., 3) rad/s."""
-        t = np.asarray(t_ns)
-        if self.empty:
-            return np.zeros(t.shape + (3,))
-        j, _ = self._locate(t)
-        return self.rate[j]
-
-    def window_mean(self, start_ns, exposure_ns: int) -> np.ndarray:
-        """Mean of ``Theta`` over ``[start, start + exposure]``: ``(Psi(b) - Psi(a)) / exposure``."""
-        start = np.asarray(start_ns, dtype=np.int64)
-        return (self.integral(start + np.int64(exposure_ns)) - self.integral(start)) / (exposure_ns * NS)
-
-    def increment(self, t_from, t_to, exposure_ns: int | None = None) -> np.ndarray:
-        """Body angle increment (..., 3) rad between two instants (``exposure_ns`` None), or between
-        the means over two exposure windows starting at ``t_from`` / ``t_to`` (the quantity that
-        moves a smeared spot's centre of gravity)."""
-        if exposure_ns is None:
-            return self.angle(t_to) - self.angle(t_from)
-        # the two window means of window_mean, from one integral() call on the four instants
-        a, b = np.broadcast_arrays(np.asarray(t_from, dtype=np.int64), np.asarray(t_to, dtype=np.int64))
-        e = np.int64(exposure_ns)
-        P = self.integral(np.stack([b + e, b, a + e, a]))
-        return ((P[0] - P[1]) - (P[2] - P[3])) / (exposure_ns * NS)
 
 
 class GyroKfParams(BaseModel):
@@ -214,7 +98,7 @@ class GyroKalmanFilter(StarMotionFilter):
     def setup(self, context) -> None:
         super().setup(context)
         timing = context.timing
-        self._period_s = float(timing.frame_period_ns) * NS
+        self._period_s = float(timing.frame_period_ns) * S_PER_NS
         self._exposure_ns = int(timing.exposure_ns)
         self._gyro = GyroIntegrator(self.params.gyro_bias_rad_s, default_period_s=self._period_s,
                                     keep_s=self.params.max_gap_s + 4 * self._period_s)
@@ -250,7 +134,7 @@ class GyroKalmanFilter(StarMotionFilter):
         pos_c = np.minimum(pos, max(self._ids.size - 1, 0))
         exists = (self._ids[pos_c] == ids) if self._ids.size else np.zeros(ids.size, dtype=bool)
         has = exists.copy()
-        has[exists] &= np.abs(t_now[exists] - self._t[pos_c[exists]]) * NS <= p.max_gap_s
+        has[exists] &= np.abs(t_now[exists] - self._t[pos_c[exists]]) * S_PER_NS <= p.max_gap_s
         k = pos_c[has]
 
         x_new = z.copy()
@@ -260,7 +144,7 @@ class GyroKalmanFilter(StarMotionFilter):
                 dtheta = self._gyro.increment(self._row[k], row_now[has], self._exposure_ns)
             else:
                 dtheta = self._gyro.increment(self._t[k], t_now[has])
-            dt = np.abs(t_now[has] - self._t[k]) * NS
+            dt = np.abs(t_now[has] - self._t[k]) * S_PER_NS
             xo = self._x[k]
             J = star_motion_jacobian(xo[:, 0], xo[:, 1], cam)  # eq (8) at the previous estimate
             x_pred = xo + np.einsum("nij,nj->ni", J, dtheta)  # eq (13)

@@ -45,6 +45,7 @@ from rollingstar.estimators.filters.kf_cv_kernel import (
     kf_cv_batch_kernel,
     kf_cv_step_kernel,
 )
+from rollingstar.sensors.conventions import S_PER_NS
 
 H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
 _EYE4 = np.eye(4)
@@ -241,7 +242,7 @@ class KfCvFilter(StarMotionFilter):
         X[:, 0], X[:, 2] = z[:, 0], z[:, 1]
         dt = np.full(sid.size, np.nan)
         k = old >= 0
-        dt[k] = (t[k] - self._t[old[k]]).astype(float) * 1e-9
+        dt[k] = (t[k] - self._t[old[k]]).astype(float) * S_PER_NS
         bad_dt = k & ~(dt > 0)
         k &= ~bad_dt
         init = k & (self._stage[np.where(k, old, 0)] == 1) if sid.size and self._stage.size else np.zeros(sid.size, bool)

@@ -25,6 +25,8 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from rollingstar.sensors.so3 import skew
+
 INTRINSICS = ("focal_px", "k1", "k2", "cx", "cy")
 
 
@@ -210,11 +212,10 @@ def _image_jacobian(cam: RadialCamera, w: np.ndarray, fit: tuple[str, ...]) -> t
     dyn = np.column_stack([np.zeros(k), -iz, w[:, 1] * iz * iz])
     dxdw = a11[:, None] * dxn + a12[:, None] * dyn
     dydw = a12[:, None] * dxn + a22[:, None] * dyn
-    # dw/d delta = [w]_x : column j is w x e_j
-    skew = np.stack([np.cross(w, e) for e in np.eye(3)], axis=-1)  # (k, 3, 3)
+    w_x = skew(w)  # dw/d delta = [w]_x (k, 3, 3)
     d_att = np.empty((2 * k, 3))
-    d_att[0::2] = -np.einsum("kj,kjl->kl", dxdw, skew)
-    d_att[1::2] = -np.einsum("kj,kjl->kl", dydw, skew)
+    d_att[0::2] = -np.einsum("kj,kjl->kl", dxdw, w_x)
+    d_att[1::2] = -np.einsum("kj,kjl->kl", dydw, w_x)
     d_int = {"focal_px": (xn * s_, yn * s_), "k1": (f * xn * r2, f * yn * r2),
              "k2": (f * xn * r2 * r2, f * yn * r2 * r2), "cx": (np.ones(k), np.zeros(k)),
              "cy": (np.zeros(k), np.ones(k))}

@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from rollingstar.estimators.data import FrameData
 from rollingstar.estimators.identifiers.base import Identifier
-from rollingstar.sensors.conventions import attitude_from_radec_roll
+from rollingstar.sensors.conventions import S_PER_NS, attitude_from_radec_roll
 
 
 class RaDecRoll(BaseModel):
@@ -112,7 +112,7 @@ class TrackingIdentifier(Identifier):
             if est.valid and np.all(np.isfinite(est.q_xyzw)):
                 new = Rotation.from_quat(est.q_xyzw)
                 if self._last_t_ns is not None and est.t_ns > self._last_t_ns:
-                    dt = (int(est.t_ns) - self._last_t_ns) * 1e-9
+                    dt = (int(est.t_ns) - self._last_t_ns) * S_PER_NS
                     self._rate_rad_s = (self._last_attitude.inv() * new).as_rotvec() / dt
                 self._last_attitude, self._last_t_ns = new, int(est.t_ns)
                 return True
@@ -122,7 +122,7 @@ class TrackingIdentifier(Identifier):
         """The prior propagated to ``t_ns`` at the last estimated body rate (no change without it)."""
         if not self.params.extrapolate or self._last_t_ns is None:
             return self._last_attitude
-        dt = (int(t_ns) - self._last_t_ns) * 1e-9
+        dt = (int(t_ns) - self._last_t_ns) * S_PER_NS
         return self._last_attitude * Rotation.from_rotvec(self._rate_rad_s * dt)
 
     def predict(self, attitude: Rotation | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -43,6 +43,7 @@ from rollingstar.logs.topics import TOPIC_GYRO, TOPIC_IMAGE, TOPIC_TRUTH_ATTITUD
 from rollingstar.logs.writer import LogWriter
 from rollingstar.outputs import safe_output
 from rollingstar.progress import progress_bar
+from rollingstar.sensors.conventions import NS_PER_S
 
 SIDECAR_NAMES = ("recording.yaml", "recording.yml")
 
@@ -155,7 +156,7 @@ def _frame_times(sidecar: RecordingSidecar, files: list[Path], base: Path, sourc
             if n > 1:
                     log(f"{source}: no frame times given (timestamps.frame_rate_hz, t0_ns or csv); assuming "
                     f"{rate:g} Hz from t = {ts.start_ns} ns, in file-name order")
-        t0 = ts.start_ns + np.rint(np.arange(n) * 1e9 / rate).astype(np.int64)
+        t0 = ts.start_ns + np.rint(np.arange(n) * NS_PER_S / rate).astype(np.int64)
         how = {"source": "frame_rate_hz", "frame_rate_hz": rate, "start_ns": ts.start_ns}
     step = np.diff(t0)
     if step.size and (step <= 0).any():

@@ -5,7 +5,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from rollingstar.sensors.conventions import NS_PER_S
+from rollingstar.sensors.conventions import DEG_TO_RAD, NS_PER_S
 from rollingstar.sensors.effects.base import (
     STAGE_SKY,
     Alias,
@@ -14,8 +14,6 @@ from rollingstar.sensors.effects.base import (
     as_positions,
 )
 from rollingstar.sensors.effects.geometry import rotate_line_of_sight
-
-DEG = np.pi / 180.0
 
 
 class AngularAcceleration(Effect):
@@ -60,7 +58,7 @@ class AngularAcceleration(Effect):
         self._require(ctx)
         t_ref = ctx.t0_ns + np.int64(ctx.timing.frame_reference_ns(0))  # reference time relative to t0
         tau = (ctx.t_ns - t_ref).astype(float) / NS_PER_S
-        return 0.5 * tau * tau * DEG  # rad per (deg/s^2), (n,)
+        return 0.5 * tau * tau * DEG_TO_RAD  # rad per (deg/s^2), (n,)
 
     def apply(self, x, y, ctx):
         x, y = as_positions(x, y)

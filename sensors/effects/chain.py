@@ -17,6 +17,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from rollingstar.sensors.conventions import NS_PER_S
 from rollingstar.sensors.effects.base import (
     STAGE_GYRO,
     STAGE_TIME,
@@ -63,7 +64,7 @@ def shifted_context(effects: Sequence[Effect], ctx: EffectContext) -> EffectCont
         return ctx
     from scipy.spatial.transform import Rotation  # local: only needed with time effects
 
-    changes = {"t_ns": ctx.t_ns + np.rint(dt * 1e9).astype(np.int64)}
+    changes = {"t_ns": ctx.t_ns + np.rint(dt * NS_PER_S).astype(np.int64)}
     if ctx.attitude is not None and ctx.omega_rad_s is not None:
         changes["attitude"] = ctx.attitude * Rotation.from_rotvec(ctx.omega_rad_s * dt[:, None])
     return ctx.evolve(**changes)

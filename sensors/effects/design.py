@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from rollingstar.sensors.conventions import NS_PER_S
 from rollingstar.sensors.effects.base import Effect, EffectContext
 from rollingstar.sensors.effects.geometry import rotation_jacobian
 
@@ -37,7 +38,7 @@ def nuisance_columns(ctx: EffectContext, nuisance: str | None) -> np.ndarray:
     if nuisance == "attitude":
         return a
     frame = _frames(ctx)
-    t = ctx.t_ns.astype(np.float64) / 1e9
+    t = ctx.t_ns.astype(np.float64) / NS_PER_S
     _, inv = np.unique(frame, return_inverse=True)
     mean_t = np.bincount(inv, weights=t) / np.bincount(inv)
     tau = t - mean_t[inv]

@@ -11,14 +11,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from rollingstar.sensors.motion import so3_right_jacobian
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices ``[v]x``, (n, 3) -> (n, 3, 3)."""
-    v = np.asarray(v, dtype=float)
-    z = np.zeros_like(v[..., 0])
-    a, b, c = v[..., 0], v[..., 1], v[..., 2]
-    return np.stack([np.stack([z, -c, b], -1), np.stack([c, z, -a], -1), np.stack([-b, a, z], -1)], -2)
+from rollingstar.sensors.so3 import skew
 
 
 def project(camera, w) -> tuple[np.ndarray, np.ndarray]:

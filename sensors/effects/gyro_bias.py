@@ -5,6 +5,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from rollingstar.sensors.conventions import DEG_TO_RAD, S_PER_HOUR
 from rollingstar.sensors.effects.base import (
     STAGE_GYRO,
     Alias,
@@ -13,7 +14,7 @@ from rollingstar.sensors.effects.base import (
     as_positions,
 )
 
-DEG_H = np.pi / 180.0 / 3600.0  # rad/s per deg/h
+DEG_H = DEG_TO_RAD / S_PER_HOUR  # rad/s per deg/h
 
 
 class GyroBias(Effect):

@@ -5,7 +5,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from rollingstar.sensors.conventions import NS_PER_S
+from rollingstar.sensors.conventions import NS_PER_S, S_PER_HOUR
 from rollingstar.sensors.effects.base import (
     STAGE_OPTICS,
     Alias,
@@ -17,7 +17,6 @@ from rollingstar.sensors.effects.base import (
 PPM = 1e-6
 COVARIATE = "temperature_c"
 REFERENCE_C = 20.0  # temperature at which the nominal focal length is defined
-HOUR_S = 3600.0
 
 
 class ThermalFocalDrift(Effect):
@@ -53,7 +52,7 @@ class ThermalFocalDrift(Effect):
         return (f"covariate:{COVARIATE}",) if self._values["ppm_per_degc"] != 0.0 else ()
 
     def _basis(self, ctx):
-        hours = (ctx.t_ns - np.int64(ctx.t_start_ns)).astype(float) / NS_PER_S / HOUR_S
+        hours = (ctx.t_ns - np.int64(ctx.t_start_ns)).astype(float) / NS_PER_S / S_PER_HOUR
         temp = ctx.covariates.get(COVARIATE)
         dtemp = np.zeros(ctx.n) if temp is None else temp - REFERENCE_C
         return np.stack([hours, dtemp], axis=-1) * PPM  # (n, 2)

@@ -46,6 +46,7 @@ from rollingstar.estimators.diagnosis.selection import canonical_correlation
 from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose
 from rollingstar.pipelines.simulate import build_simulator, simulate_to_log
 from rollingstar.progress import progress_bar
+from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.effects import EFFECTS, Effect, EffectParameter
 from rollingstar.sensors.effects.base import (
     STAGE_DETECTOR,
@@ -318,7 +319,7 @@ def design_context(cfg: ScenarioConfig, design: str = "") -> DesignContext:
                 expo[keep] = int(round(c.shutter.exposure_ms * 1e6))
         t_ref = np.array([timing.frame_reference_ns(int(t)) for t in t0], dtype=np.int64) + (expo - timing.exposure_ns) // 2
         ts = sample_times_ns(cfg.gyro.rate_hz, int(t0[0]) - int(timing.frame_period_ns),
-                             np.arange(int((cfg.frames + 2) * timing.frame_period_ns * 1e-9 * cfg.gyro.rate_hz) + 2))
+                             np.arange(int((cfg.frames + 2) * timing.frame_period_ns * S_PER_NS * cfg.gyro.rate_hz) + 2))
         w = sim.motion.angular_velocity(ts)
         gyro = gc.GyroData(ts, w, float(np.deg2rad(cfg.gyro.arw_deg_sqrt_h) / 60.0))
     return DesignContext(parts, whole, gyro, t_ref)

@@ -64,12 +64,12 @@ from rollingstar.pipelines.registry import get_plugin_class
 from rollingstar.pipelines.simulate import simulate_to_log
 from rollingstar.progress import progress_bar
 from rollingstar.sensors.camera import PinholeCamera
+from rollingstar.sensors.conventions import ARCSEC_TO_RAD, DEG_TO_RAD, S_PER_NS
 from rollingstar.sensors.image_sim import ImageModel, digitise, mean_electrons, render_star_electrons
 from rollingstar.sensors.scenario import load_scenario
 from rollingstar.sensors.timing import DetectorTiming
 
 ROOT = Path(__file__).resolve().parents[2]
-ARCSEC = np.pi / (180.0 * 3600.0)
 
 # Sizes per line: (full, quick).
 SIZES = {
@@ -163,7 +163,7 @@ def bench_quest(quick: bool) -> dict:
     obs = np.concatenate([xy, np.ones((F, N, 1))], axis=-1)
     obs /= np.linalg.norm(obs, axis=-1, keepdims=True)
     ref = np.einsum("fij,fnj->fni", truth.as_matrix(), obs)  # r = R b
-    obs = obs + rng.normal(0.0, 5.0 * ARCSEC, obs.shape)
+    obs = obs + rng.normal(0.0, 5.0 * ARCSEC_TO_RAD, obs.shape)
     obs /= np.linalg.norm(obs, axis=-1, keepdims=True)
 
     t_batch, res = _best(lambda: quest(ref, obs), _size("repeats", quick))
@@ -173,8 +173,8 @@ def bench_quest(quick: bool) -> dict:
         return Rotation.concatenate([Rotation.align_vectors(ref[f], obs[f])[0] for f in range(F)])
 
     t_loop, scipy_rot = _once(loop)
-    diff = (Rotation.from_quat(res.q_xyzw).inv() * scipy_rot).magnitude() / ARCSEC
-    err = (truth.inv() * Rotation.from_quat(res.q_xyzw)).magnitude() / ARCSEC
+    diff = (Rotation.from_quat(res.q_xyzw).inv() * scipy_rot).magnitude() / ARCSEC_TO_RAD
+    err = (truth.inv() * Rotation.from_quat(res.q_xyzw)).magnitude() / ARCSEC_TO_RAD
     checks = [_check("max |QUEST - scipy| angle", float(np.max(diff)), 1e-3, "arcsec"),
               _check("invalid QUEST frames", float(np.sum(~res.valid)), 0.0)]
     return _line("quest", "batched QUEST vs scipy align_vectors loop", f"{F} frames x {N} stars",
@@ -239,7 +239,6 @@ def bench_rate(quick: bool) -> dict:
     n_frames, w = _size("rate_frames", quick), _size("rate_deg_s", quick)
     rate = (w / np.sqrt(2), w / np.sqrt(2), 0.0)
     frames, ctx, motion = rs.frames_for(rate, n_frames)
-    deg = np.pi / 180.0
 
     def run(kind, params):
         plugin = get_plugin_class(kind)(**params)
@@ -253,7 +252,7 @@ def bench_rate(quick: bool) -> dict:
                 cpu += time.process_time() - t
                 if out.rate is not None and out.rate.valid:
                     errs.append(out.rate.omega_rad_s - motion.angular_velocity(out.rate.t_ns))
-        e = np.asarray(errs) / deg
+        e = np.asarray(errs) / DEG_TO_RAD
         # x/y only: pso-rate assumes (and is given) omega_z = 0, ls-rate estimates it
         rmse = float(np.sqrt(np.mean(np.sum(e[:, :2] ** 2, axis=1)))) if len(e) else float("nan")
         return cpu / len(frames), rmse, len(errs)
@@ -293,7 +292,7 @@ def _scene(px: int, n_stars: int):
 
 def _render(px, timing, model, pos, vel, mags, t0_ns, seed, digitise_fn):
     def positions(star, t_ns, rows):
-        dt = (t_ns - t0_ns) * 1e-9
+        dt = (t_ns - t0_ns) * S_PER_NS
         return pos[star, 0] + vel[star, 0] * dt, pos[star, 1] + vel[star, 1] * dt
 
     # the row each star's centre is exposed by, to first order (vy = 0 here, so exact)

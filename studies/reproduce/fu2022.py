@@ -25,7 +25,7 @@ import yaml
 from rollingstar.config import CONFIGS
 from rollingstar.estimators.data import FrameData, SensorContext, StarTable
 from rollingstar.estimators.rates.pso import PsoRateEstimator, image_velocity_px_s
-from rollingstar.sensors.conventions import attitude_from_radec_roll
+from rollingstar.sensors.conventions import DEG_TO_RAD, attitude_from_radec_roll
 from rollingstar.sensors.motion import constant_rate
 from rollingstar.sensors.scenario import load_scenario
 from rollingstar.sensors.simulate import StarTrackerSimulator
@@ -36,7 +36,6 @@ PIPELINE = CONFIGS / "pipelines" / "fu2022.yaml"
 RATES = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 5.0)  # section 3.2 / Fig 11
 FIELD_RATES = (0.5, 1.0, 3.0, 5.0)  # section 3.3 / Fig 14
 SIGMAS = (0.01, 0.02, 0.03, 0.04, 0.05)  # Fig 12
-DEG = np.pi / 180.0
 # Line-delay sweep (us per row; the paper does not state it). 20: our default assumption (25.6 ms
 # readout); 78.125: the 1280 rows read out over the 100 ms exposure, i.e. continuous rolling
 # operation at 10 frames/s, the longest readout for which exposure and readout overlap in one frame
@@ -68,7 +67,7 @@ def simulate_frame(ctx, omega_deg, sigma_px: float, rng: np.random.Generator, in
     while True:
         att = attitude_from_radec_roll(rng.uniform(0, 360), np.degrees(np.arcsin(rng.uniform(-1, 1))),
                                        rng.uniform(-180, 180))
-        sim = StarTrackerSimulator(ctx.camera, ctx.timing, ctx.catalog, constant_rate(att, np.asarray(omega_deg) * DEG),
+        sim = StarTrackerSimulator(ctx.camera, ctx.timing, ctx.catalog, constant_rate(att, np.asarray(omega_deg) * DEG_TO_RAD),
                                    magnitude_limit=magnitude_limit)
         tr = sim.frame(0).truth
         if len(tr) >= 3:
@@ -131,7 +130,7 @@ def velocity_field(ctx, omega_deg, step: int = 128):
     """Exact image velocity (px/s) on a grid of the detector (Figs 6-7)."""
     cam = ctx.camera
     gx, gy = np.meshgrid(np.arange(0, cam.width, step) + step / 2 - 0.5, np.arange(0, cam.height, step) + step / 2 - 0.5)
-    vx, vy = image_velocity_px_s(cam, np.asarray(omega_deg) * DEG, gx, gy)
+    vx, vy = image_velocity_px_s(cam, np.asarray(omega_deg) * DEG_TO_RAD, gx, gy)
     return gx, gy, vx, vy
 
 

@@ -62,7 +62,7 @@ from rollingstar.pipelines.simulate import build_simulator
 from rollingstar.pipelines.truth import true_positions
 from rollingstar.progress import progress_bar
 from rollingstar.sensors import build
-from rollingstar.sensors.conventions import attitude_error_body_arcsec
+from rollingstar.sensors.conventions import S_PER_NS, attitude_error_body_arcsec
 from rollingstar.sensors.scenario import load_scenario
 from rollingstar.sensors.uniform_drift import (
     UniformDriftSimulator,
@@ -279,7 +279,7 @@ def _record_filter(rec: RunRecord, sim, raw: StarTable, filt: StarTable, age: np
         pr = _truth_xy(sim, raw_ok.ref_icrs, raw_ok.t_ns)
         rec.smear_before.append(np.hypot(raw_ok.x - pr[:, 0], raw_ok.y - pr[:, 1]))
         f_ok = filt.take(np.flatnonzero(has_v)[old])
-        half_te = 0.5 * timing.exposure_ns * 1e-9  # eqs (12)-(16) with h_i = 1
+        half_te = 0.5 * timing.exposure_ns * S_PER_NS  # eqs (12)-(16) with h_i = 1
         xs, ys = f_ok.x - f_ok.vx * half_te, f_ok.y - f_ok.vy * half_te
         ps = _truth_xy(sim, f_ok.ref_icrs, f_ok.t_ns - timing.exposure_ns // 2)
         rec.smear_after.append(np.hypot(xs - ps[:, 0], ys - ps[:, 1]))

@@ -46,7 +46,7 @@ from rollingstar.estimators.rates.pso import PsoRateEstimator
 from rollingstar.pipelines.simulate import build_simulator, truth_sample_times
 from rollingstar.pipelines.truth import attitude_crb_rad2
 from rollingstar.sensors import build
-from rollingstar.sensors.conventions import RAD_TO_ARCSEC, attitude_error_body_arcsec
+from rollingstar.sensors.conventions import RAD_TO_ARCSEC, S_PER_NS, attitude_error_body_arcsec
 from rollingstar.sensors.gyro import simulate_gyro
 from rollingstar.sensors.scenario import load_scenario
 from rollingstar.studies.reproduce import Row, paper_values
@@ -151,7 +151,7 @@ def simulate(cfg):
             w = sim.motion.attitude(f.truth.t_ns).inv().apply(f.truth.unit_icrs)
             crb.append(np.diag(attitude_crb_rad2(context.camera, w, cfg.noise.centroid_sigma_px)))
     crb_arcsec = np.sqrt(np.mean(crb, axis=0)) * RAD_TO_ARCSEC if crb else np.full(3, np.nan)
-    return frames, sim.motion, context, period * 1e-9, crb_arcsec
+    return frames, sim.motion, context, period * S_PER_NS, crb_arcsec
 
 
 def run_stages(stages, frames, context):
@@ -499,7 +499,7 @@ def _plot_error_series(res: dict, out: Path) -> None:
     fig, axs = plt.subplots(3, 3, figsize=(12, 8), sharex=True)
     for row, g in enumerate((5, 3, 1)):
         r = res["table"][(g, 1.0)]
-        t = (r.t_ns[0] - r.t_ns[0][0]) * 1e-9
+        t = (r.t_ns[0] - r.t_ns[0][0]) * S_PER_NS
         for k, ax in enumerate(AXES):
             axs[row, k].plot(t, r.err[0][:, k], lw=0.5)
             axs[row, k].set_title(f"per {g} star(s), {ax.upper()}", fontsize=9)
@@ -545,7 +545,7 @@ def _plot_global(res: dict, out: Path) -> None:
     for k, ax in enumerate(AXES):
         for key, lab in (((5, 1.0), "rolling per 5"), (("global", None), "global, QUEST per frame")):
             r = res["table"][key]
-            axs[k].plot((r.t_ns[0] - r.t_ns[0][0]) * 1e-9, r.err[0][:, k], lw=0.6, label=lab)
+            axs[k].plot((r.t_ns[0] - r.t_ns[0][0]) * S_PER_NS, r.err[0][:, k], lw=0.6, label=lab)
         axs[k].set_title(f"{ax.upper()} (arcsec)")
         axs[k].set_xlabel("time (s)")
     axs[0].legend(fontsize=8)
@@ -561,7 +561,7 @@ def _plot_star1000(res: dict, out: Path) -> None:
     fig, axs = plt.subplots(3, 3, figsize=(12, 8), sharex=True)
     for row, g in enumerate(STAR1000_GROUPS):
         r = res["star"][g]
-        t = (r.t_ns[0] - r.t_ns[0][0]) * 1e-9
+        t = (r.t_ns[0] - r.t_ns[0][0]) * S_PER_NS
         for k, ax in enumerate(AXES):
             axs[row, k].plot(t, r.err[0][:, k], ".-", lw=0.5, ms=2)
             axs[row, k].set_title(f"Star1000 per {g} star(s), {ax.upper()}", fontsize=9)

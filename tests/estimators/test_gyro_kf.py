@@ -6,10 +6,10 @@ import numpy as np
 from rollingstar.estimators.conformance.scenes import make_scene
 from rollingstar.estimators.data import FrameData, GyroSamples, StarTable
 from rollingstar.estimators.filters.gyro_kf import (
-    GyroIntegrator,
     GyroKalmanFilter,
     star_motion_jacobian,
 )
+from rollingstar.sensors.gyro import GyroIntegrator
 
 
 def _frames(scene, n, rng, sigma, omega=None, jitter=0.0):

@@ -221,7 +221,7 @@ def test_compiled_prediction_and_gyro_increment_equal_the_reference_helpers():
         predict_step,
         predict_windows,
     )
-    from rollingstar.estimators.filters.gyro_kf import GyroIntegrator
+    from rollingstar.sensors.gyro import GyroIntegrator
     from rollingstar.sensors.timing import DetectorTiming
 
     scene = make_scene(seed=13)
