@@ -59,8 +59,9 @@ def format_validation_error(source: str, err: ValidationError, prefix: tuple = (
     for e in err.errors():
         path = _key_path(tuple(prefix) + tuple(e["loc"]))
         got = e.get("input")
-        hint = "" if e["type"] == "missing" else f" (got {excerpt(got)})"
-        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
+        whole = isinstance(got, dict) and e["type"] == "value_error"  # a check across keys: the message names them
+        hint = "" if e["type"] == "missing" or whole else f" (got {excerpt(got)})"
+        msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"].removeprefix("Value error, ")
         if e["type"] == "extra_forbidden" and model is not None:
             close = difflib.get_close_matches(str(e["loc"][-1]), _known_keys(model, tuple(e["loc"])), n=1, cutoff=0.6)
             if close:

@@ -107,7 +107,8 @@ class GyroConfig(Strict):
 
 
 class NoiseConfig(Strict):
-    centroid_sigma_px: NonNegativeFloat = 0.05
+    centroid_sigma_px: PositiveFloat = Field(
+        0.05, description="1-sigma centroid noise per axis (px); the estimators weight stars by 1/sigma^2, so > 0")
 
 
 class ImageConfig(Strict):
@@ -205,6 +206,20 @@ class ScenarioConfig(Strict):
     seed: int = 0
     truth_rate_hz: PositiveFloat = Field(1000.0, description="truth attitude samples per second in the log")
 
+
+    @model_validator(mode="after")
+    def _timing_is_physical(self):
+        """Every row's exposure and the readout of all rows fit in one frame period."""
+        sh, rows = self.shutter, self.sensor.height_px
+        readout_ms = (rows - 1) * sh.line_delay_us * 1e-3 if sh.mode == "rolling" else 0.0
+        if sh.frame_period_ms is not None:
+            if sh.exposure_ms > sh.frame_period_ms:
+                raise ValueError(f"shutter.exposure_ms {sh.exposure_ms:g} exceeds shutter.frame_period_ms "
+                                 f"{sh.frame_period_ms:g}: a row cannot expose longer than one frame period")
+            if readout_ms > sh.frame_period_ms:
+                raise ValueError(f"shutter.line_delay_us {sh.line_delay_us:g} x (sensor.height_px {rows} - 1) = "
+                                 f"{readout_ms:g} ms of readout exceeds shutter.frame_period_ms {sh.frame_period_ms:g}")
+        return self
 
     @model_validator(mode="after")
     def _effects_have_context(self):

@@ -91,3 +91,33 @@ def test_empty_pipeline_rejected(tmp_path):
     p.write_text("stages: []\n")
     with pytest.raises(ConfigError, match="stages"):
         load_pipeline(p)
+
+
+@pytest.mark.parametrize("shutter, needles", [
+    ("{exposure_ms: 50, frame_period_ms: 40, line_delay_us: 10}", ["exposure_ms 50", "frame_period_ms 40"]),
+    ("{exposure_ms: 20, frame_period_ms: 40, line_delay_us: 60}", ["line_delay_us 60", "height_px 1000", "59.94 ms"]),
+])
+def test_physically_impossible_timing_names_the_keys_and_numbers(tmp_path, shutter, needles):
+    from rollingstar.sensors.scenario import load_scenario
+
+    path = tmp_path / "s.yaml"
+    path.write_text("sensor: {focal_length_mm: 20, pixel_size_um: 5, width_px: 100, height_px: 1000}\n"
+                    f"shutter: {shutter}\nmotion: {{initial_attitude: {{ra_deg: 0, dec_deg: 0}}}}\n")
+    with pytest.raises(ConfigError) as info:
+        load_scenario(path)
+    for needle in needles:
+        assert needle in str(info.value)
+    path.write_text(path.read_text().replace("frame_period_ms: 40", "frame_period_ms: 100"))
+    load_scenario(path)  # the same sensor with a long enough frame period is fine
+
+
+@pytest.mark.parametrize("sigma", ["0", "-0.1"])
+def test_centroid_sigma_must_be_positive(tmp_path, sigma):
+    from rollingstar.sensors.scenario import load_scenario
+
+    path = tmp_path / "s.yaml"
+    path.write_text("sensor: {focal_length_mm: 20, pixel_size_um: 5, width_px: 100, height_px: 100}\n"
+                    "shutter: {exposure_ms: 10}\nmotion: {initial_attitude: {ra_deg: 0, dec_deg: 0}}\n"
+                    f"noise: {{centroid_sigma_px: {sigma}}}\n")
+    with pytest.raises(ConfigError, match="noise.centroid_sigma_px"):
+        load_scenario(path)
