@@ -48,8 +48,8 @@ class WindowedParams(BaseModel):
         "window (the original implementation, kept as the reference for tests and the side-by-side timing).")
     kernel: Literal["compiled", "numpy"] = Field(
         default="compiled", description="With batch: 'compiled' reads the windows in place with the numba kernel "
-        "(window_kernel); 'numpy': the vectorised numpy pass over the stacked windows (window_cog, the previous default, "
-        "kept as the 'before' of the side-by-side timing; needs background='window').")
+        "(window_kernel); 'numpy': the vectorised numpy pass over the stacked windows (window_cog: the reference the "
+        "compiled kernel is timed and checked against; needs background='window').")
     background: Literal["tracked", "window"] | None = Field(
         default=None, description="'tracked': each window's background and noise are measured once (its median and "
         "robust sigma, at the first windowed frame after an acquisition) and then followed by a running mean over "
