@@ -27,6 +27,7 @@ from rollingstar.outputs import PARTIAL_SUFFIX, safe_output
 from rollingstar.pipelines.interrupt import Interrupted, stop_on_sigint
 from rollingstar.progress import progress_bar
 from rollingstar.sensors import build
+from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.gyro import simulate_gyro
 from rollingstar.sensors.scenario import ScenarioConfig
 from rollingstar.sensors.simulate import ImageModel, StarTrackerSimulator
@@ -61,7 +62,7 @@ def build_simulator(cfg: ScenarioConfig) -> StarTrackerSimulator:
 
 def truth_sample_times(t0_ns: int, period_ns: int, rate_hz: float) -> np.ndarray:
     """Truth attitude sample times covering ``[t0, t0 + period)``, at least 16 per frame."""
-    n = max(16, int(np.ceil(period_ns * 1e-9 * rate_hz)))
+    n = max(16, int(np.ceil(period_ns * S_PER_NS * rate_hz)))
     return t0_ns + (np.arange(n, dtype=np.int64) * period_ns) // n
 
 
@@ -126,4 +127,4 @@ def simulate_to_log(cfg: ScenarioConfig, output: str | Path, frames: int | None 
             raise Interrupted(f"interrupted: {output}{PARTIAL_SUFFIX} holds the {len(star_counts)} of {n_frames} "
                               f"frame(s) simulated before SIGINT; {output} was not written")
     return SimulationSummary(str(output), n_frames, cfg.level, float(np.mean(star_counts)) if star_counts else 0.0,
-                             n_frames * period * 1e-9)
+                             n_frames * period * S_PER_NS)

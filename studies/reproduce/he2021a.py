@@ -267,7 +267,7 @@ def _record_filter(rec: RunRecord, sim, raw: StarTable, filt: StarTable, age: np
     unit = filt.ref_icrs[has_v]
     t = filt.t_ns[has_v]
     p = _truth_xy(sim, unit, t)
-    v = (_truth_xy(sim, unit, t + VEL_H_NS) - _truth_xy(sim, unit, t - VEL_H_NS)) / (2 * VEL_H_NS * 1e-9)
+    v = (_truth_xy(sim, unit, t + VEL_H_NS) - _truth_xy(sim, unit, t - VEL_H_NS)) / (2 * VEL_H_NS * S_PER_NS)
     pe = np.column_stack([filt.x[has_v], filt.y[has_v]]) - p
     ve = np.column_stack([filt.vx[has_v], filt.vy[has_v]]) - v
     rec.age.append(age[has_v])

@@ -40,6 +40,7 @@ from rollingstar.estimators.data import FrameData, GyroSamples, SensorContext
 from rollingstar.pipelines.config import load_pipeline
 from rollingstar.pipelines.runner import build_stages
 from rollingstar.sensors import build
+from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.effects.base import Effect
 from rollingstar.sensors.gyro import simulate_gyro
 from rollingstar.sensors.scenario import load_scenario
@@ -234,7 +235,7 @@ def _snr_db(cfg, model: ImageModel) -> float:
     """Peak-to-noise SNR of the static spot, 20 log10(peak / pixel noise sigma) (module docstring)."""
     s = model.psf_sigma_px
     peak = erf(0.5 / (np.sqrt(2) * s)) ** 2 * model.star_electrons(cfg.catalog.magnitude, EFFECTIVE_EXPOSURE_NS)
-    noise = np.sqrt(model.read_noise_e**2 + (model.background_e_per_px_s + model.dark_e_per_px_s) * EFFECTIVE_EXPOSURE_NS * 1e-9)
+    noise = np.sqrt(model.read_noise_e**2 + (model.background_e_per_px_s + model.dark_e_per_px_s) * EFFECTIVE_EXPOSURE_NS * S_PER_NS)
     return float(20 * np.log10(peak / noise))
 
 
