@@ -8,8 +8,8 @@ Third-party packages register a plugin class under the entry-point group ``rolli
 The entry-point name is the plugin ``kind`` used in pipeline configs; the class must subclass a
 role base class from ``estimators`` and is validated exactly like a built-in.
 
-:data:`ALIASES` keeps older kinds working: an alias names a built-in kind and the parameters that
-make it behave as the alias always did (:func:`stage_params`).
+:data:`ALIASES` are further kind names, each standing for a built-in kind with some of its
+parameters set (:func:`stage_params`); a config may use either name.
 """
 from __future__ import annotations
 
@@ -48,8 +48,8 @@ BUILTIN: dict[str, str] = {
 }
 
 # alias -> (the built-in kind it stands for, parameters that make that plugin behave as the alias).
-# Both aliases are rate-correction with a rate estimator of its own; they took that estimator's
-# parameters beside their own, which rate-correction takes as estimator_params.
+# Both aliases are rate-correction with a rate estimator of its own. A config of an alias gives that
+# estimator's parameters beside the correction's; stage_params moves them into estimator_params.
 ALIASES: dict[str, tuple[str, dict]] = {
     # rate-correction that runs the PSO itself on frames without a valid rate (fu2022's one-stage form)
     "pso-correction": ("rate-correction", {"estimator": "pso-rate", "rotation_form": "rotation-vector"}),

@@ -10,8 +10,8 @@ to the corrected pixel. ``model="linear"`` applies fu2022 eqs 11-14 instead: the
 
 The rate is the frame's ``frame.rate``, set by a rate stage earlier in the pipeline (``pso-rate``,
 ``ls-rate`` or any other). For pipelines without one the correction can run a rate estimator
-itself (``estimator``); the older kinds ``pso-correction`` and ``ls-correction`` are this plugin
-with ``estimator`` set (see :data:`rollingstar.pipelines.registry.ALIASES`).
+itself (``estimator``); the kinds ``pso-correction`` and ``ls-correction`` are aliases of this
+plugin with ``estimator`` set (see :data:`rollingstar.pipelines.registry.ALIASES`).
 """
 from __future__ import annotations
 

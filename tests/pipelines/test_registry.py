@@ -53,3 +53,25 @@ def test_third_party_plugin_is_found_and_validated_like_builtins(third_party_plu
     with pytest.raises(ConfigError, match=r"stages\[0\]\.params\.dy_px: unknown key"):
         build_stages(PipelineConfig(stages=[{"kind": "acme-shift", "params": {"dy_px": 1}}]))
     assert any(c.name == "acme-shift" for c in registry.plugins_by_role()["correction"])
+
+
+def test_aliases_build_the_plugin_they_stand_for_with_its_parameters():
+    """pso-correction and ls-correction are rate-correction with a rate estimator of its own; the
+    estimator's parameters given beside the correction's (their configs' form) become estimator_params."""
+    rate_correction = registry.get_plugin_class("rate-correction")
+    for alias in registry.ALIASES:
+        assert registry.get_plugin_class(alias) is rate_correction
+        assert alias not in registry.available_kinds()  # one entry per class in listings
+    stages = build_stages(PipelineConfig(stages=[
+        {"kind": "pso-correction", "params": {"particles": 40, "model": "linear", "reuse_rate": True}},
+        {"kind": "ls-correction", "params": {"estimate_z": False, "reference": "frame_start"}},
+    ]))
+    pso, ls = (s.params for s in stages)
+    assert (pso.estimator, pso.model, pso.reuse_rate, pso.rotation_form) == ("pso-rate", "linear", True, "rotation-vector")
+    assert pso.estimator_params == {"particles": 40}
+    assert (ls.estimator, ls.reference, ls.reuse_rate, ls.estimator_params) == ("ls-rate", "frame_start", False,
+                                                                                 {"estimate_z": False})
+    with pytest.raises(ConfigError, match="particels"):
+        build_stages(PipelineConfig(stages=[{"kind": "pso-correction", "params": {"particels": 40}}]))
+    with pytest.raises(ConfigError, match="pso-correction"):  # the error lists the aliases among the kinds
+        build_stages(PipelineConfig(stages=[{"kind": "pso-corection"}]))
