@@ -35,23 +35,10 @@ from rollingstar.pipelines.frame_checks import FrameChecker
 from rollingstar.pipelines.interrupt import Interrupted, StopFlag, stop_on_sigint
 from rollingstar.pipelines.registry import UnknownPluginError, get_plugin_class, stage_params
 from rollingstar.pipelines.resume import Partial, load_partial, temp_path
-from rollingstar.pipelines.sink import (
-    TOPIC_EST_ATTITUDE,
-    TOPIC_EST_FRAME,
-    TOPIC_EST_POSE,
-    TOPIC_EST_RATE,
-    TOPIC_EST_SPOTS,
-    TOPIC_EST_STARS,
-    EstimateSink,
-    new_counts,
-)
-from rollingstar.pipelines.source import TRUTH_TOPICS, FrameSource, Recording, open_recording
+from rollingstar.pipelines.sink import EstimateSink, new_counts
+from rollingstar.pipelines.source import FrameSource, Recording, open_recording
 from rollingstar.pipelines.stages import StagePipeline, setup_stages, zero_stage_seconds
 from rollingstar.progress import progress_bar
-
-# The estimate topics (defined in rollingstar.logs.topics, written by the sink); importers of the runner find them here too.
-__all__ = ["TOPIC_EST_ATTITUDE", "TOPIC_EST_FRAME", "TOPIC_EST_POSE", "TOPIC_EST_RATE", "TOPIC_EST_SPOTS",
-           "TOPIC_EST_STARS", "TRUTH_TOPICS", "RunSummary", "build_stages", "run_pipeline"]
 
 
 @dataclass(frozen=True)
