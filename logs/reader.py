@@ -8,6 +8,7 @@ Anything that is not a rollingstar log at all raises :class:`LogFormatError`.
 """
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import io
 import json
@@ -18,7 +19,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
+import lz4.frame
 import numpy as np
+import zstandard
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.reader import FOOTER_SIZE, SeekingReader
@@ -99,6 +102,36 @@ class _Raw:
     message: McapMessage
 
 
+MAX_CHUNK_ENV = "ROLLINGSTAR_MAX_CHUNK_MIB"
+DEFAULT_MAX_CHUNK_MIB = 1024
+
+
+def default_max_chunk_bytes() -> int:
+    """The ceiling on one chunk's uncompressed size: ``ROLLINGSTAR_MAX_CHUNK_MIB`` (MiB), default 1 GiB."""
+    text = os.environ.get(MAX_CHUNK_ENV)
+    try:
+        mib = DEFAULT_MAX_CHUNK_MIB if text is None else int(text)
+    except ValueError:
+        raise LogFormatError(f"{MAX_CHUNK_ENV} must be a whole number of MiB, got {text[:40]!r}") from None
+    return max(mib, 1) << 20
+
+
+def _decompressed(chunk: Chunk) -> Chunk:
+    """``chunk`` with its data decompressed, reading at most one byte more than it declares (the
+    compressed frames' own size headers are not trusted: a small chunk may claim to expand to GiB)."""
+    if chunk.compression not in ("zstd", "lz4"):
+        return chunk
+    limit = chunk.uncompressed_size
+    if chunk.compression == "zstd":
+        data = zstandard.ZstdDecompressor().stream_reader(io.BytesIO(chunk.data)).read(limit + 1)
+    else:
+        data = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=limit + 1)
+    if len(data) != limit:
+        raise ValueError(f"decompresses to {'more' if len(data) > limit else len(data)} bytes, "
+                         f"it declares {limit}")
+    return dataclasses.replace(chunk, compression="", data=data)
+
+
 class LogReader:
     """Read a rollingstar log.
 
@@ -106,8 +139,12 @@ class LogReader:
     at once. Set ``check_version=False`` to read a plain MCAP file without that record.
     """
 
-    def __init__(self, path: str | os.PathLike, *, check_version: bool = True) -> None:
+    def __init__(self, path: str | os.PathLike, *, check_version: bool = True, max_chunk_bytes: int | None = None
+                 ) -> None:
         self.path = Path(path)
+        self.max_chunk_bytes = max_chunk_bytes if max_chunk_bytes is not None else default_max_chunk_bytes()
+        if self.path.exists() and not self.path.is_file():
+            raise LogFormatError(f"{self.path} is not a regular file (a folder, pipe or device): expected an MCAP file")
         try:
             size = self.path.stat().st_size
             with open(self.path, "rb") as f:
@@ -201,9 +238,15 @@ class LogReader:
         return self._streamed
 
     def _open_chunk(self, chunk: Chunk, offset: int) -> list:
-        """The records of a chunk; [] with a warning when it is damaged."""
+        """The records of a chunk; [] with a warning when it is damaged. A chunk that declares more
+        uncompressed bytes than :data:`max_chunk_bytes` is an error: nothing is allocated for it."""
+        if chunk.uncompressed_size > self.max_chunk_bytes:
+            raise LogFormatError(
+                f"{self.path}: the chunk at byte offset {offset} declares {chunk.uncompressed_size} bytes "
+                f"uncompressed, more than the limit of {self.max_chunk_bytes} (a writer's chunks are a few MB; "
+                f"set {MAX_CHUNK_ENV} to a number of MiB to read larger ones)")
         try:
-            return breakup_chunk(chunk, validate_crc=True)
+            return breakup_chunk(_decompressed(chunk), validate_crc=True)
         except Exception as exc:
             warnings.warn(f"{self.path}: damaged chunk at byte offset {offset} skipped ({exc})",
                           TruncatedLogWarning, stacklevel=4)
@@ -246,6 +289,9 @@ class LogReader:
             if len(body) < length:
                 raise ValueError("chunk runs past the end of the file")
             chunk = Chunk.read(ReadDataStream(io.BytesIO(body)))
+            if chunk.uncompressed_size != ci.uncompressed_size:
+                raise ValueError(f"it declares {chunk.uncompressed_size} uncompressed bytes, its index "
+                                 f"{ci.uncompressed_size}")
         except Exception as exc:
             warnings.warn(f"{self.path}: damaged chunk at byte offset {ci.chunk_start_offset} skipped ({exc})",
                           TruncatedLogWarning, stacklevel=4)

@@ -197,6 +197,9 @@ def scenario_for(camera: CameraSpec, *, name: str, description: str, level: Lite
 def _scenario(camera, name, description, level, frames, bit_depth, centroid_sigma_px, initial_attitude,
               frame_period_ms) -> ScenarioConfig:
     sh = camera.shutter
+    if frame_period_ms is not None and "shutter" not in camera.model_fields_set and sh.exposure_ms > frame_period_ms:
+        # no shutter given: the default exposure cannot be longer than the frames' spacing
+        sh = sh.model_copy(update={"exposure_ms": frame_period_ms})
     shutter = ShutterConfig(mode=sh.mode, exposure_ms=sh.exposure_ms, line_delay_us=sh.line_delay_us,
                             frame_period_ms=frame_period_ms)
     noise = NoiseConfig() if centroid_sigma_px is None else NoiseConfig(centroid_sigma_px=centroid_sigma_px)
