@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rollingstar.config import to_yaml
+from rollingstar.config import to_yaml, validate
 from rollingstar.logs.records import AttitudeSamples, GyroSamples, arrays_to_stars
 from rollingstar.logs.topics import (
     TOPIC_CENTROIDS,
@@ -76,7 +76,8 @@ def simulate_to_log(cfg: ScenarioConfig, output: str | Path, frames: int | None 
     ``inputs`` (the scenario file), replaced only when complete, kept as ``<output>.partial`` when
     the simulation fails or is interrupted."""
     if frames is not None or seed is not None:
-        cfg = cfg.model_copy(update={k: v for k, v in (("frames", frames), ("seed", seed)) if v is not None})
+        update = {k: v for k, v in (("frames", frames), ("seed", seed)) if v is not None}
+        cfg = validate(ScenarioConfig, {**cfg.model_dump(mode="json"), **update}, f"{cfg.name} with {update}")
     sim = build_simulator(cfg)
     motion = sim.motion
     timing = sim.timing

@@ -107,7 +107,7 @@ def command(group: typer.Typer | None = None, name: str | None = None):
 def simulate(scenario: str = typer.Argument(..., help="scenario YAML, or a shipped scenario's name (he2021b)"),
              output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write"),
              frames: int = typer.Option(None, "--frames", min=1, help="override the scenario's frame count"),
-             seed: int = typer.Option(None, "--seed", help="override the scenario's seed"),
+             seed: int = typer.Option(None, "--seed", min=0, max=2**63 - 1, help="override the scenario's seed"),
              quiet: bool = typer.Option(False, "--quiet", "-q")):
     """Simulate a recording from a scenario."""
     from rollingstar.pipelines.simulate import simulate_to_log
@@ -268,7 +268,7 @@ def reproduce(paper: str = typer.Argument(..., help="he2021a | he2021b | fu2022 
               quick: bool = typer.Option(False, "--quick", help="the reduced version the test suite runs"),
               as_json: bool = typer.Option(False, "--json", help="print one JSON object {rows: [...]}"),
               plots: Path = typer.Option(None, "--plots", help="write the paper's figures redrawn from our runs here"),
-              seed: int = typer.Option(1, "--seed")):
+              seed: int = typer.Option(1, "--seed", min=0, max=2**63 - 1)):
     """Reproduce a seed paper's experiment: paper value, ours (measured now), ratio."""
     from rollingstar.studies.reproduce import run_reproduction
 
@@ -294,7 +294,7 @@ def figures(name: str = typer.Argument("foundation", help="foundation | real-dat
             quick: bool = typer.Option(False, "--quick"),
             as_json: bool = typer.Option(False, "--json"),
             out_dir: Path = typer.Option(None, "--out", help="write <out>/foundation.md (real-data.md), .json and img/*.png"),
-            seed: int = typer.Option(1, "--seed"),
+            seed: int = typer.Option(1, "--seed", min=0, max=2**63 - 1),
             repeats: int = typer.Option(3, "--repeats", min=1, help="real-data: timings are the minimum of this many calls")):
     """Measure the foundation figures (static vs Cramér–Rao bound, rolling shutter, image level) or the
     real-sky figures (real-data: identification, per-lens calibration, vs astrometry.net)."""
@@ -326,7 +326,7 @@ def diagnose(recording: Path = typer.Option(..., "--recording", help="MCAP recor
              pipeline: str = typer.Option(None, "--pipeline", help="pipeline YAML or shipped name (default: cog, tracking, quest)"),
              out_dir: Path = typer.Option(None, "-o", "--output", help="report directory (index.html, PNGs, scenario_updated.yaml)"),
              as_json: bool = typer.Option(False, "--json", help="print one JSON object"),
-             seed: int = typer.Option(0, "--seed", help="held-out split and bootstrap seed"),
+             seed: int = typer.Option(0, "--seed", min=0, max=2**63 - 1, help="held-out split and bootstrap seed"),
              quiet: bool = typer.Option(False, "--quiet", "-q")):
     """Locate a simulation/recording mismatch, name the physics left out, model it, show the fit improve."""
     from rollingstar.pipelines.diagnose import (
@@ -399,7 +399,7 @@ app.add_typer(bench_app, name="bench")
 @command(bench_app, "discrepancy")
 def bench_discrepancy(quick: bool = typer.Option(False, "--quick", help="the reduced set the test suite runs"),
                       as_json: bool = typer.Option(False, "--json", help="print one JSON object"),
-                      seed: int = typer.Option(1, "--seed"),
+                      seed: int = typer.Option(1, "--seed", min=0, max=2**63 - 1),
                       cases: int = typer.Option(None, "--cases", min=1, help="number of recordings (default 12 quick, 120 full)"),
                       out_md: Path = typer.Option(None, "--markdown", help="also write the results table here")):
     """Diagnose simulated recordings with concealed effects; score naming, nulls, parameters, held-out gain."""

@@ -6,6 +6,7 @@ simulator, the importers, the pipelines) shares one description of the sensor.
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Literal
 
@@ -23,14 +24,20 @@ from rollingstar.config import Strict, parse_yaml, read_yaml, validate
 
 Vec3 = tuple[float, float, float]
 
+#: Bounds that keep every time in int64 nanoseconds and every array a scenario asks for allocatable;
+#: the memory a scenario needs is checked against this machine's in ``ScenarioConfig``.
+MAX_TIME_MS = 3.6e6  # one hour per exposure or frame
+MAX_FRAMES = 10**8
+MAX_SIDE_PX = 65536
+
 
 class SensorConfig(Strict):
     """Pinhole optics and detector geometry."""
 
     focal_length_mm: PositiveFloat
     pixel_size_um: PositiveFloat
-    width_px: PositiveInt
-    height_px: PositiveInt
+    width_px: PositiveInt = Field(le=MAX_SIDE_PX)
+    height_px: PositiveInt = Field(le=MAX_SIDE_PX)
     principal_point_px: tuple[float, float] | None = Field(
         None, description="(cx, cy); default the detector centre ((W-1)/2, (H-1)/2)"
     )
@@ -40,9 +47,9 @@ class ShutterConfig(Strict):
     """Exposure timing; frame period defaults to exposure + rows * line delay (he2021a eq 5)."""
 
     mode: Literal["rolling", "global"] = "rolling"
-    exposure_ms: PositiveFloat
-    line_delay_us: NonNegativeFloat = 0.0
-    frame_period_ms: PositiveFloat | None = None
+    exposure_ms: PositiveFloat = Field(le=MAX_TIME_MS)
+    line_delay_us: NonNegativeFloat = Field(0.0, le=1e6)
+    frame_period_ms: PositiveFloat | None = Field(None, le=MAX_TIME_MS)
 
 
 class CatalogConfig(Strict):
@@ -107,8 +114,8 @@ class GyroConfig(Strict):
 
 
 class NoiseConfig(Strict):
-    centroid_sigma_px: PositiveFloat = Field(
-        0.05, description="1-sigma centroid noise per axis (px); the estimators weight stars by 1/sigma^2, so > 0")
+    centroid_sigma_px: NonNegativeFloat = Field(
+        0.05, description="1-sigma centroid noise per axis (px); 0 simulates noise-free centroids")
 
 
 class ImageConfig(Strict):
@@ -202,10 +209,35 @@ class ScenarioConfig(Strict):
     image: ImageConfig = ImageConfig()
     effects: list[EffectConfig] = []
     environment: EnvironmentConfig = EnvironmentConfig()
-    frames: PositiveInt = 100
-    seed: int = 0
+    frames: PositiveInt = Field(100, le=MAX_FRAMES)
+    seed: int = Field(0, ge=0, lt=2**63)
     truth_rate_hz: PositiveFloat = Field(1000.0, description="truth attitude samples per second in the log")
 
+
+    @model_validator(mode="after")
+    def _fits_in_memory(self):
+        """The largest arrays the simulator allocates at once must fit in this machine's memory."""
+        memory = _physical_memory_bytes()
+        sensor, period_s = self.sensor, self._frame_period_s()
+        if self.frames * period_s > 9e9:
+            raise ValueError(f"frames {self.frames} x frame period {period_s:g} s = {self.frames * period_s:.3g} s: "
+                             "longer than the nanosecond clock holds (about 290 years)")
+        needs = {"an image frame (level: image; sensor.width_px x sensor.height_px, ~32 bytes a pixel while "
+                 "rendering)": 32 * sensor.width_px * sensor.height_px if self.level == "image" else 0,
+                 "a frame's truth samples (truth_rate_hz x frame period)": 64 * period_s * self.truth_rate_hz,
+                 "the gyro samples (gyro.rate_hz x frames x frame period)":
+                     32 * self.frames * period_s * self.gyro.rate_hz if self.gyro.enabled else 0}
+        for what, size in needs.items():
+            if size > memory / 2:
+                raise ValueError(f"{what} needs {size / 2**30:.3g} GiB, more than half this machine's "
+                                 f"{memory / 2**30:.3g} GiB of memory")
+        return self
+
+    def _frame_period_s(self) -> float:
+        sh = self.shutter
+        if sh.frame_period_ms is not None:
+            return sh.frame_period_ms * 1e-3
+        return sh.exposure_ms * 1e-3 + self.sensor.height_px * sh.line_delay_us * 1e-6
 
     @model_validator(mode="after")
     def _timing_is_physical(self):
@@ -252,3 +284,8 @@ def scenario_from_yaml(text: str, source: str = "<recording metadata>") -> Scena
     return validate(ScenarioConfig, parse_yaml(text, source), source)
 
 
+def _physical_memory_bytes() -> float:
+    try:
+        return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):  # not reported: assume a small machine
+        return float(4 << 30)

@@ -85,6 +85,11 @@ def read_centroid_table(path: str | Path, camera: CameraSpec, log: WarningLog | 
     for name in ("sigma_px", "snr", "peak", "magnitude"):
         if name in table.columns:
             cols[name] = float_column(table, name, required=False)
+    bad_sigma = np.flatnonzero(cols["sigma_px"] <= 0) if "sigma_px" in cols else []
+    if len(bad_sigma):
+        i = int(bad_sigma[0])
+        raise ImportDataError(f"{table.where(i, 'sigma_px')}: {cols['sigma_px'][i]}; a position uncertainty is "
+                              "> 0 px (leave the cell empty when it is unknown)")
     if "npix" in table.columns:
         cols["npix"] = int_column(table, "npix", default=0)
     if "saturated" in table.columns:

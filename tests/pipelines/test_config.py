@@ -111,13 +111,20 @@ def test_physically_impossible_timing_names_the_keys_and_numbers(tmp_path, shutt
     load_scenario(path)  # the same sensor with a long enough frame period is fine
 
 
-@pytest.mark.parametrize("sigma", ["0", "-0.1"])
-def test_centroid_sigma_must_be_positive(tmp_path, sigma):
+@pytest.mark.parametrize("edit, needle", [
+    (("width_px: 1024", "width_px: 60000"), "image frame"),
+    (("frames: 100", "frames: 100000001"), "less than or equal to 100000000"),
+    (("exposure_ms: 44.9", "exposure_ms: 1e300"), "shutter.exposure_ms"),
+    (("seed: 1", "seed: -1"), "seed"),
+    (("seed: 1", "seed: 99999999999999999999999"), "seed"),
+])
+def test_sizes_a_scenario_asks_for_are_checked_before_anything_is_allocated(tmp_path, edit, needle):
     from rollingstar.sensors.scenario import load_scenario
 
+    text = (CONFIGS / "scenarios" / "he2021a.yaml").read_text()
+    assert edit[0] in text, edit
     path = tmp_path / "s.yaml"
-    path.write_text("sensor: {focal_length_mm: 20, pixel_size_um: 5, width_px: 100, height_px: 100}\n"
-                    "shutter: {exposure_ms: 10}\nmotion: {initial_attitude: {ra_deg: 0, dec_deg: 0}}\n"
-                    f"noise: {{centroid_sigma_px: {sigma}}}\n")
-    with pytest.raises(ConfigError, match="noise.centroid_sigma_px"):
+    path.write_text(text.replace(edit[0], edit[1]).replace("height_px: 1024", "height_px: 60000"
+                                                           if "60000" in edit[1] else "height_px: 1024"))
+    with pytest.raises(ConfigError, match=needle):
         load_scenario(path)
