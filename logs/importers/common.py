@@ -16,9 +16,10 @@ from typing import Iterable
 
 import numpy as np
 
+from rollingstar.config import excerpt
 from rollingstar.errors import UserError
 from rollingstar.logs.reader import LogReader
-from rollingstar.sensors.conventions import seconds_to_ns
+from rollingstar.sensors.conventions import NS_PER_S, seconds_to_ns
 
 
 class ImportDataError(UserError):
@@ -132,6 +133,9 @@ def float_column(table: CsvTable, name: str, *, required: bool = True) -> np.nda
     return out
 
 
+INT64_MAX = 2**63 - 1
+
+
 def int_column(table: CsvTable, name: str, *, default: int | None = None) -> np.ndarray:
     """An integer column (``12`` or ``12.0`` but not ``12.5``); empty cells take ``default`` or fail."""
     cells = table.columns[name]
@@ -143,7 +147,7 @@ def int_column(table: CsvTable, name: str, *, default: int | None = None) -> np.
             out[i] = default
             continue
         try:
-            out[i] = int(cell)
+            value = int(cell)
         except ValueError:
             try:
                 value = float(cell)
@@ -151,7 +155,10 @@ def int_column(table: CsvTable, name: str, *, default: int | None = None) -> np.
                 value = math.nan
             if not (math.isfinite(value) and value == int(value)):
                 raise ImportDataError(f"{table.where(i, name)}: {cell!r} is not an integer") from None
-            out[i] = int(value)
+            value = int(value)
+        if not -INT64_MAX <= value <= INT64_MAX:
+            raise ImportDataError(f"{table.where(i, name)}: {excerpt(cell, 40)} is beyond a 64-bit integer")
+        out[i] = value
     return out
 
 
@@ -173,7 +180,13 @@ def time_column(table: CsvTable) -> tuple[np.ndarray, str]:
         name, t = "t_ns", int_column(table, "t_ns")
     else:
         name = "time_s"
-        t = np.asarray(seconds_to_ns(float_column(table, "time_s")), dtype=np.int64).reshape(-1)
+        seconds = float_column(table, "time_s")
+        beyond = np.flatnonzero(np.abs(seconds) >= INT64_MAX / NS_PER_S)
+        if beyond.size:
+            i = int(beyond[0])
+            raise ImportDataError(f"{table.where(i, name)}: {seconds[i]:g} s is beyond the nanosecond clock "
+                                  "(int64 ns reach about 292 years): shift the time origin")
+        t = np.asarray(seconds_to_ns(seconds), dtype=np.int64).reshape(-1)
     bad = np.flatnonzero(t < 0)
     if bad.size:
         raise ImportDataError(f"{table.where(int(bad[0]), name)}: negative time; times must be >= 0 "

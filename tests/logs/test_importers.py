@@ -413,6 +413,8 @@ def test_centroid_csv_with_catalogue_ids_is_solved_without_identifier(tmp_path):
     ("frame,t_ns,x,y,flux\n0,0,2000,2,3\n", "line 2, column 'x': 2000.0 is outside the detector"),
     ("frame,t_ns,x,y,flux,catalog_id\n0,0,1,2,3,7\n", "catalog_id given without ra_deg, dec_deg"),
     ("", "empty CSV file"),
+    ("frame,time_s,x,y,flux\n0,9.3e9,1,2,3\n", "line 2, column 'time_s': 9.3e+09 s is beyond the nanosecond clock"),
+    ("frame,t_ns,x,y,flux\n0,99999999999999999999,1,2,3\n", "line 2, column 't_ns': '99999999999999999999' is beyond a 64-bit integer"),
     ("frame,t_ns,x,y,flux,sigma_px\n0,0,1,2,3,0\n", "line 2, column 'sigma_px': 0.0; a position uncertainty is > 0"),
     ("frame,t_ns,x,y,flux,sigma_px\n0,0,1,2,3,\n0,0,5,2,3,-0.1\n", "line 3, column 'sigma_px': -0.1"),
 ])
