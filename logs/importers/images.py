@@ -114,14 +114,19 @@ def _list_files(folder: Path, spec: str | list[str] | None, source: str) -> list
         if missing:
             raise ImportDataError(f"{source}: files: {', '.join(missing)} not found")
         return files
-    names = sorted(p.name for p in folder.iterdir() if p.is_file())
-    if spec is None:
-        chosen = [n for n in names if n.lower().endswith(IMAGE_SUFFIXES)]
-        what = f"no image files ({', '.join('*' + s for s in IMAGE_SUFFIXES)})"
-    else:
-        chosen = [n for n in names if fnmatch.fnmatch(n, spec)]
-        what = f"no files match files: {spec!r}"
+    def wanted(name: str) -> bool:
+        return name.lower().endswith(IMAGE_SUFFIXES) if spec is None else fnmatch.fnmatch(name, spec)
+
+    entries = sorted(folder.iterdir())
+    odd = [p.name for p in entries if wanted(p.name) and not p.is_file()]
+    if odd:
+        raise ImportDataError(f"{folder}: {', '.join(odd[:5])} match the image files but are not readable regular "
+                              "files (a folder, a pipe, or a symbolic link that loops or points nowhere); remove "
+                              "them or list the files in the sidecar's files:")
+    chosen = [p.name for p in entries if wanted(p.name)]
     if not chosen:
+        what = (f"no image files ({', '.join('*' + s for s in IMAGE_SUFFIXES)})" if spec is None
+                else f"no files match files: {spec!r}")
         raise ImportDataError(f"{folder}: {what}")
     return [folder / n for n in chosen]
 

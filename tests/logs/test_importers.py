@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import subprocess
 import sys
@@ -584,3 +585,21 @@ def test_imports_never_write_over_their_inputs(tmp_path):
         assert_clean_error(cli("import", "centroids", csv, "-o", out, "--camera", camera), "destroy the input")
     assert camera.read_text().startswith("width_px")
     assert csv.read_text().startswith("frame,time_s")
+
+
+@pytest.mark.parametrize("make", ["loop", "dangling", "fifo"])
+def test_image_folder_entries_that_are_not_files_are_named(tmp_path, make):
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    Image.fromarray(np.zeros((30, 40), np.uint16)).save(folder / "f00.png")
+    odd = folder / "f01.png"
+    if make == "loop":
+        odd.symlink_to(odd)
+    elif make == "dangling":
+        odd.symlink_to(folder / "gone.png")
+    else:
+        os.mkfifo(odd)
+    (folder / "recording.yaml").write_text(
+        "camera: {width_px: 40, height_px: 30, focal_length_mm: 10.0, pixel_size_um: 5.0}\n")
+    with pytest.raises(ImportDataError, match="f01.png match the image files but are not readable regular files"):
+        import_images(folder, tmp_path / "r.mcap")
