@@ -17,7 +17,7 @@ import tempfile
 from pathlib import Path
 
 from rollingstar.logs.importers.corr import find_corr_folders, import_corr
-from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose
+from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose_recording
 
 ROOT = Path(__file__).resolve().parents[1]
 GROUPS = ("16mm_checker_2", "16mm_checker_calib/distorted", "16mm_checker_calib/undistorted",
@@ -52,11 +52,11 @@ def run(seed: int = 0) -> list[dict]:
             for sub in find_corr_folders(folder):
                 rec = Path(tmp) / f"{group.replace('/', '_')}_{sub.name}.mcap"
                 import_corr(sub, rec)
-                res, _ = diagnose(rec, options=opts)
+                res, _ = diagnose_recording(rec, options=opts)
                 rows.append(summarise(f"{group}/{sub.relative_to(folder)}", "image", res))
             rec = Path(tmp) / f"{group.replace('/', '_')}_joint.mcap"
             import_corr(folder, rec)
-            res, _ = diagnose(rec, options=opts)
+            res, _ = diagnose_recording(rec, options=opts)
             rows.append(summarise(group, "joint", res))
     return rows
 

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from rollingstar.estimators.diagnosis.observations import frame_normal, solve_frames
 from rollingstar.sensors.conventions import NS_PER_S
 from rollingstar.sensors.effects.chain import gyro_effects
 
@@ -114,8 +115,6 @@ def gyro_signature(effect, gyro: GyroData, t_ref_ns: np.ndarray) -> np.ndarray:
 
 def attitude_covariances(frame: np.ndarray, n_frames: int, att_jac: np.ndarray, sigma: np.ndarray, mask) -> np.ndarray:
     """``C_k``: inverse of each frame's attitude normal matrix over the stars in ``mask``, (F, 3, 3)."""
-    from rollingstar.estimators.diagnosis.observations import frame_normal
-
     wts = np.where(mask, 1.0 / sigma**2, 0.0)
     a, _ = frame_normal(frame, n_frames, att_jac, wts, np.zeros((frame.size, 2, 1)))
     return np.linalg.pinv(a, hermitian=True)
@@ -189,8 +188,6 @@ def channel_rows(obs, pred) -> np.ndarray:
 
 def absorbed_rotations(frame: np.ndarray, n_frames: int, att_jac_w: np.ndarray, cols_w: np.ndarray) -> np.ndarray:
     """Per-frame least-squares rotation (F, 3, m) fitted to whitened image columns (n, 2, m)."""
-    from rollingstar.estimators.diagnosis.observations import frame_normal, solve_frames
-
     a, b = frame_normal(frame, n_frames, att_jac_w, np.ones(frame.shape[0]), cols_w)
     return solve_frames(a, b)
 

@@ -13,16 +13,23 @@ the slow and fast halves of image speed. Two subset estimates ``a, b`` agree whe
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from rollingstar.estimators.diagnosis.gyro_channel import channel_rows
 from rollingstar.estimators.diagnosis.library import Candidate
 from rollingstar.estimators.diagnosis.observations import (
     Nuisance,
     Observations,
+    Prediction,
     fit_attitudes,
+    predict,
+    rates_from_attitudes,
 )
+from rollingstar.sensors.conventions import NS_PER_S
 
 STABILITY_Z = 3.0
 
@@ -52,9 +59,7 @@ def refit(obs: Observations, nuis: Nuisance, camera, timing, base_effects, candi
         return {"thetas": [], "sigmas": [], "corr": np.zeros((0, 0)), "nuisance": nuis, "success": True, "cost": None}
     m = sum(len(c.parameters) for c in candidates)
     z0 = np.zeros(m) if theta0 is None else np.concatenate([(t - c.defaults) / c.scales for c, t in zip(candidates, theta0)])
-    lo = np.concatenate([[(p.bounds[0] - p.default) / p.prior_scale for p in c.parameters] for c in candidates])
-    hi = np.concatenate([[(p.bounds[1] - p.default) / p.prior_scale for p in c.parameters] for c in candidates])
-    z0 = np.clip(z0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+    z0, lo, hi = _within_bounds(candidates, z0)
     state = {"nuis": nuis}
     sig = obs.sigma[mask]
 
@@ -123,8 +128,6 @@ def rate_operator(nuis: Nuisance, t_ref_ns: np.ndarray) -> np.ndarray:
     :func:`observations.rates_from_attitudes`) is recovered as the candidate closest to
     ``nuis.omega``; the operator then keeps that choice while the attitudes move.
     """
-    from rollingstar.estimators.diagnosis.observations import rates_from_attitudes
-
     f = len(t_ref_ns)
     c = np.zeros((f, max(f - 1, 0)))
     if f < 2:
@@ -146,7 +149,7 @@ def tied_rates(attitude, t_ref_ns: np.ndarray, c: np.ndarray) -> np.ndarray:
     f = len(t_ref_ns)
     if f < 2:
         return np.zeros((f, 3))
-    dt = np.diff(t_ref_ns).astype(float) / 1e9
+    dt = np.diff(t_ref_ns).astype(float) / NS_PER_S
     steps = (attitude[:-1].inv() * attitude[1:]).as_rotvec() / dt[:, None]
     return c @ steps
 
@@ -174,63 +177,99 @@ def joint_refit(obs: Observations, nuis: Nuisance, camera, timing, base_effects,
     covariance of ``z`` is the ``z`` block of ``(J^T J)^-1`` (noise known), i.e. the attitudes
     *and* the rates they imply are profiled out. Returns the same keys as :func:`refit`.
     """
-    from scipy.spatial.transform import Rotation
-
-    from rollingstar.estimators.diagnosis.observations import predict
-
     if not candidates:
         return {"thetas": [], "sigmas": [], "corr": np.zeros((0, 0)), "nuisance": nuis, "success": True, "cost": None}
-    f = obs.n_frames
-    free = np.bincount(obs.frame[mask], minlength=f) > 0
-    col_of = np.full(f, -1)
-    col_of[free] = np.arange(free.sum())
-    nf = int(free.sum())
-    tied = bool(moving) and f >= 2
-    c = rate_operator(nuis, obs.t_ref_ns) if tied else None
-    if tied:
-        dts = np.diff(obs.t_ref_ns).astype(float) / 1e9
-        d = np.zeros((f - 1, f))
-        d[np.arange(f - 1), np.arange(f - 1)] = -1.0 / dts
-        d[np.arange(f - 1), np.arange(1, f)] = 1.0 / dts
-        cd = c @ d  # (F, F): d omega_k / d delta_j (times I3)
-    m = sum(len(cand.parameters) for cand in candidates)
+    prob = _joint_problem(obs, nuis, camera, timing, base_effects, candidates, mask, moving)
+    m, nf = prob.m, prob.nf
     z0 = np.concatenate([(t - cand.defaults) / cand.scales for cand, t in zip(candidates, thetas)])
-    lo = np.concatenate([[(p.bounds[0] - p.default) / p.prior_scale for p in cand.parameters] for cand in candidates])
-    hi = np.concatenate([[(p.bounds[1] - p.default) / p.prior_scale for p in cand.parameters] for cand in candidates])
-    z0 = np.clip(z0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
-    sig = obs.sigma[mask]
-    idx = np.flatnonzero(mask)
-    dt_i = obs.dt_s()[idx]
-    k_i = obs.frame[idx]
-    att0 = nuis.attitude
+    z0, lo, hi = _within_bounds(candidates, z0)
+    x0 = np.concatenate([np.zeros(3 * nf), z0])
+    lb = np.concatenate([np.full(3 * nf, -np.inf), lo])
+    ub = np.concatenate([np.full(3 * nf, np.inf), hi])
+    try:
+        res = least_squares(prob.fun, x0, jac=prob.jac, bounds=(lb, ub), method="trf", x_scale="jac", max_nfev=max_nfev)
+    except (ValueError, np.linalg.LinAlgError):
+        return {"thetas": list(thetas), "sigmas": [np.full(len(cand.parameters), np.nan) for cand in candidates],
+                "corr": np.full((m, m), np.nan), "nuisance": nuis, "success": False, "cost": None}
+    out_s, corr = _sigmas_and_corr(_inverse_normal(prob.jac(res.x))[3 * nf:, 3 * nf:], candidates)
+    n2, th = prob.state(res.x)
+    return {"thetas": th, "sigmas": out_s, "corr": corr, "nuisance": n2, "success": bool(res.success),
+            "cost": float(2 * res.cost), "rates_tied": prob.tied}
 
-    def state(x):
+
+@dataclass(frozen=True, eq=False)
+class _JointProblem:
+    """The residuals and Jacobian of :func:`joint_refit` over ``x = (delta, z)``."""
+
+    obs: Observations
+    nuis: Nuisance  # the start: attitudes ``att0`` every ``delta`` rotates, and the untied rates
+    camera: object
+    timing: object
+    base_effects: tuple
+    candidates: list[Candidate]
+    free: np.ndarray  # (F,) frames with training stars: the ones with a free rotation
+    tied: bool  # rates follow the attitudes (a moving recording with >= 2 frames)
+    c: np.ndarray | None  # :func:`rate_operator`, when tied
+    cd: np.ndarray | None  # (F, F) d omega_k / d delta_j (times I3), when tied
+    idx: np.ndarray  # the training observations
+    sig: np.ndarray
+    dt_i: np.ndarray
+    k_i: np.ndarray
+    g_att: np.ndarray | None  # whitened d(increment rows)/d delta of the free frames, with a gyro
+
+    @property
+    def nf(self) -> int:
+        return int(self.free.sum())
+
+    @property
+    def m(self) -> int:
+        return sum(len(cand.parameters) for cand in self.candidates)
+
+    def state(self, x):
+        """The nuisance and per-candidate parameters of ``x``."""
+        f, nf = self.obs.n_frames, self.nf
         rv = np.zeros((f, 3))
-        rv[free] = x[:3 * nf].reshape(nf, 3)
-        att = att0 * Rotation.from_rotvec(rv)
-        omega = tied_rates(att, obs.t_ref_ns, c) if tied else nuis.omega
-        return Nuisance(att, omega), split_theta(candidates, x[3 * nf:])
+        rv[self.free] = x[:3 * nf].reshape(nf, 3)
+        att = self.nuis.attitude * Rotation.from_rotvec(rv)
+        omega = tied_rates(att, self.obs.t_ref_ns, self.c) if self.tied else self.nuis.omega
+        return Nuisance(att, omega), split_theta(self.candidates, x[3 * nf:])
 
-    def model(x):
-        n2, th = state(x)
-        return n2, predict(obs, n2, camera, timing, chain_with(base_effects, candidates, th))
+    def predict_at(self, nuis: Nuisance, thetas) -> Prediction:
+        return predict(self.obs, nuis, self.camera, self.timing, chain_with(self.base_effects, self.candidates, thetas))
 
-    chan = obs.channel
-    g_att = None if chan is None else chan.attitude_rows(f).reshape(chan.rows, f, 3)[:, free, :].reshape(chan.rows, 3 * nf)
-
-    def fun(x):
-        _, p = model(x)
+    def fun(self, x):
+        """Whitened training residuals (x, then y), then the gyro increment rows."""
+        obs, idx, sig = self.obs, self.idx, self.sig
+        p = self.predict_at(*self.state(x))
         return np.nan_to_num(np.concatenate([(obs.x[idx] - p.x[idx]) / sig, (obs.y[idx] - p.y[idx]) / sig,
                                              channel_rows(obs, p)]), nan=1e6)
 
-    def jac(x):
-        n2, p = model(x)
-        aj = p.att_jac[idx] / sig[:, None, None]  # (N, 2, 3)
+    def jac(self, x):
+        """Rows as :meth:`fun`; columns the free frames' rotations, then ``z`` (joint_refit doc)."""
+        n2, th = self.state(x)
+        p = self.predict_at(n2, th)
+        jd = self._attitude_columns(p)
+        jz, gz = self._effect_columns(x, n2)
+        full = np.concatenate([jd, jz], axis=2)
+        rows = [full[:, 0, :], full[:, 1, :]]
+        if self.obs.channel is not None:  # increment rows: d e / d delta (+I next frame, -I this frame), whitened
+            rows.append(np.concatenate([self.g_att, gz], axis=1))
+        return np.concatenate(rows)
+
+    def _attitude_columns(self, p: Prediction) -> np.ndarray:
+        """d(whitened residual)/d delta of the free frames, (N, 2, 3 nf), with the tied rates' share."""
+        idx, k_i, f = self.idx, self.k_i, self.obs.n_frames
+        aj = p.att_jac[idx] / self.sig[:, None, None]  # (N, 2, 3)
         jd = np.zeros((idx.size, 2, f, 3))
         jd[np.arange(idx.size), :, k_i, :] = aj
-        if tied:
-            jd += (aj[:, :, None, :] * (dt_i[:, None, None, None] * cd[k_i][:, None, :, None]))
-        jd = -jd[:, :, free, :].reshape(idx.size, 2, 3 * nf)
+        if self.tied:
+            jd += (aj[:, :, None, :] * (self.dt_i[:, None, None, None] * self.cd[k_i][:, None, :, None]))
+        return -jd[:, :, self.free, :].reshape(idx.size, 2, 3 * self.nf)
+
+    def _effect_columns(self, x, n2: Nuisance) -> tuple[np.ndarray, np.ndarray]:
+        """Central differences in ``z``: image columns (N, 2, m) and gyro increment columns (rows, m)."""
+        obs, idx, sig, m, nf = self.obs, self.idx, self.sig, self.m, self.nf
+        chan = obs.channel
         jz = np.zeros((idx.size, 2, m))
         gz = np.zeros((0 if chan is None else chan.rows, m))
         for j in range(m):  # p columns by central differences (the effects' Jacobians are at theta only)
@@ -239,30 +278,42 @@ def joint_refit(obs: Observations, nuis: Nuisance, camera, timing, base_effects,
             for s in (1.0, -1.0):
                 zz = x[3 * nf:].copy()
                 zz[j] += s * h
-                pp = predict(obs, n2, camera, timing, chain_with(base_effects, candidates, split_theta(candidates, zz)))
+                pp = self.predict_at(n2, split_theta(self.candidates, zz))
                 out.append(np.stack([pp.x[idx], pp.y[idx]], axis=-1))
                 gout.append(channel_rows(obs, pp))
             jz[:, :, j] = -(out[0] - out[1]) / (2 * h) / sig[:, None]
             if chan is not None:
                 gz[:, j] = (gout[0] - gout[1]) / (2 * h)
-        full = np.concatenate([jd, jz], axis=2)
-        rows = [full[:, 0, :], full[:, 1, :]]
-        if chan is not None:  # increment rows: d e / d delta (+I next frame, -I this frame), whitened
-            rows.append(np.concatenate([g_att, gz], axis=1))
-        return np.concatenate(rows)
+        return jz, gz
 
-    x0 = np.concatenate([np.zeros(3 * nf), z0])
-    lb = np.concatenate([np.full(3 * nf, -np.inf), lo])
-    ub = np.concatenate([np.full(3 * nf, np.inf), hi])
-    try:
-        res = least_squares(fun, x0, jac=jac, bounds=(lb, ub), method="trf", x_scale="jac", max_nfev=max_nfev)
-    except (ValueError, np.linalg.LinAlgError):
-        return {"thetas": list(thetas), "sigmas": [np.full(len(cand.parameters), np.nan) for cand in candidates],
-                "corr": np.full((m, m), np.nan), "nuisance": nuis, "success": False, "cost": None}
-    out_s, corr = _sigmas_and_corr(_inverse_normal(jac(res.x))[3 * nf:, 3 * nf:], candidates)
-    n2, th = state(res.x)
-    return {"thetas": th, "sigmas": out_s, "corr": corr, "nuisance": n2, "success": bool(res.success),
-            "cost": float(2 * res.cost), "rates_tied": tied}
+
+def _joint_problem(obs: Observations, nuis: Nuisance, camera, timing, base_effects, candidates: list[Candidate],
+                   mask: np.ndarray, moving: bool) -> _JointProblem:
+    """Set up :class:`_JointProblem`: free frames, the rate operator and its Jacobian, training rows."""
+    f = obs.n_frames
+    free = np.bincount(obs.frame[mask], minlength=f) > 0
+    nf = int(free.sum())
+    tied = bool(moving) and f >= 2
+    c = rate_operator(nuis, obs.t_ref_ns) if tied else None
+    cd = None
+    if tied:
+        dts = np.diff(obs.t_ref_ns).astype(float) / NS_PER_S
+        d = np.zeros((f - 1, f))
+        d[np.arange(f - 1), np.arange(f - 1)] = -1.0 / dts
+        d[np.arange(f - 1), np.arange(1, f)] = 1.0 / dts
+        cd = c @ d  # (F, F): d omega_k / d delta_j (times I3)
+    idx = np.flatnonzero(mask)
+    chan = obs.channel
+    g_att = None if chan is None else chan.attitude_rows(f).reshape(chan.rows, f, 3)[:, free, :].reshape(chan.rows, 3 * nf)
+    return _JointProblem(obs, nuis, camera, timing, tuple(base_effects), candidates, free, tied, c, cd, idx,
+                         obs.sigma[mask], obs.dt_s()[idx], obs.frame[idx], g_att)
+
+
+def _within_bounds(candidates: list[Candidate], z0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Prior-scaled parameter bounds ``lo, hi`` of ``candidates``, and ``z0`` moved just inside them."""
+    lo = np.concatenate([[(p.bounds[0] - p.default) / p.prior_scale for p in c.parameters] for c in candidates])
+    hi = np.concatenate([[(p.bounds[1] - p.default) / p.prior_scale for p in c.parameters] for c in candidates])
+    return np.clip(z0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo)), lo, hi
 
 
 def _inverse_normal(jac: np.ndarray) -> np.ndarray:

@@ -13,6 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
+from rollingstar.estimators.diagnosis.algorithm import Diagnosis
+from rollingstar.estimators.diagnosis.residuals import (
+    binned_structure,
+    channels,
+    covariates,
+)
+
 
 def _mpl():
     import matplotlib
@@ -23,17 +30,22 @@ def _mpl():
     return plt
 
 
-def quiver_maps(internals: dict, path: Path) -> None:
+def _before_after(d: Diagnosis):
+    """(label, prediction, colour) of the model as given and of the model with the named effects."""
+    return (("before", d.location.prediction, "C0"), ("after", d.model.prediction, "C2"))
+
+
+def quiver_maps(d: Diagnosis, path: Path) -> None:
     plt = _mpl()
-    obs, cam, m = internals["obs"], internals["camera"], internals["train"]
+    obs, cam, m = d.obs, d.sensor.camera, d.location.data.train
     fig, axes = plt.subplots(1, 2, figsize=(11, 5.2), sharex=True, sharey=True)
-    before = internals["pred_before"]
+    before = d.location.prediction
     r_before = np.hypot((obs.x - before.x)[m], (obs.y - before.y)[m])
     scale = max(np.median(r_before), 1e-9) / (0.1 * cam.width)  # px of residual per px of plot
-    for ax, key, title in ((axes[0], "pred_before", "before (simulation as given)"), (axes[1], "pred_after", "after (selected effects)")):
-        p = internals[key]
+    titles = ("before (simulation as given)", "after (selected effects)")
+    for ax, title, (_, p, color) in zip(axes, titles, _before_after(d)):
         dx, dy = (obs.x - p.x)[m], (obs.y - p.y)[m]
-        ax.quiver(p.x[m], p.y[m], dx, dy, angles="xy", scale_units="xy", scale=scale, width=0.002, color="C0" if key == "pred_before" else "C2")
+        ax.quiver(p.x[m], p.y[m], dx, dy, angles="xy", scale_units="xy", scale=scale, width=0.002, color=color)
         rms = np.sqrt(np.mean((dx**2 + dy**2) / 2))
         ax.set_title(f"{title}\nRMS {rms:.4f} px per axis")
         ax.set_xlim(-0.5, cam.width - 0.5)
@@ -47,22 +59,15 @@ def quiver_maps(internals: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def covariate_plot(result: dict, internals: dict, path: Path) -> str | None:
-    from rollingstar.estimators.diagnosis.residuals import (
-        binned_structure,
-        channels,
-        covariates,
-    )
-
-    loc = internals["located_full"]
+def covariate_plot(d: Diagnosis, path: Path) -> str | None:
+    loc = d.location.residuals
     top = loc["_structure_full"][0] if loc["_structure_full"] else None
     if top is None:
         return None
     plt = _mpl()
-    obs, cam, m = internals["obs"], internals["camera"], internals["train"]
+    obs, cam, m = d.obs, d.sensor.camera, d.location.data.train
     fig, ax = plt.subplots(figsize=(7, 4.2))
-    for key, label, color in (("pred_before", "before", "C0"), ("pred_after", "after", "C2")):
-        p = internals[key]
+    for label, p, color in _before_after(d):
         cov = covariates(obs, p, cam)[top["covariate"]]
         ch = channels(obs, p, cam)[top["channel"]]
         s = binned_structure(cov[m], ch[m])
@@ -113,11 +118,12 @@ def _f(v, fmt="{:.4g}"):
     return "n/a" if v is None else fmt.format(v)
 
 
-def write_report(result: dict, internals: dict, out_dir: Path) -> Path:
-    """Write ``index.html``, ``result.json`` and the PNGs into ``out_dir``; returns the HTML path."""
+def write_report(result: dict, d: Diagnosis, out_dir: Path) -> Path:
+    """Write ``index.html``, ``result.json`` (``result``: :func:`.algorithm.as_json` of ``d``) and
+    the PNGs into ``out_dir``; returns the HTML path."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    quiver_maps(internals, out_dir / "residual_quiver.png")
-    cov = covariate_plot(result, internals, out_dir / "residual_vs_covariate.png")
+    quiver_maps(d, out_dir / "residual_quiver.png")
+    cov = covariate_plot(d, out_dir / "residual_vs_covariate.png")
     heldout_plot(result, out_dir / "heldout_improvement.png")
     (out_dir / "result.json").write_text(json.dumps(result, indent=2))
     loc = result["located"]

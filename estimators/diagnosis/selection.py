@@ -22,6 +22,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from rollingstar.estimators.diagnosis.observations import frame_normal, solve_frames
+
 MIN_DELTA_BIC = 10.0
 BIC_WINDOW = 6.0
 CORR_LIMIT = 0.95
@@ -34,8 +36,6 @@ def project_frames(frame: np.ndarray, n_frames: int, att_jac: np.ndarray, cols: 
     ``att_jac`` (n, 2, 3) must be whitened the same way. Returns (n, 2, m). Vectorised over stars
     with per-frame normal equations (``np.add.at``).
     """
-    from rollingstar.estimators.diagnosis.observations import frame_normal, solve_frames
-
     a, b = frame_normal(frame, n_frames, att_jac, np.ones(frame.shape[0]), cols)
     coef = solve_frames(a, b)  # (F, 3, m)
     return cols - np.einsum("nki,nim->nkm", att_jac, coef[frame])

@@ -43,7 +43,7 @@ import numpy as np
 from rollingstar.config import parse_yaml, validate
 from rollingstar.errors import UserError
 from rollingstar.estimators.diagnosis.selection import canonical_correlation
-from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose
+from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose_recording
 from rollingstar.pipelines.simulate import build_simulator, simulate_to_log
 from rollingstar.progress import progress_bar
 from rollingstar.sensors.conventions import S_PER_NS
@@ -480,8 +480,8 @@ def run_case(i: int, kind: str, design: str, exposure_ms: float, case_seed: int,
             simulate_to_log(truth_cfg, rec, show_progress=False)
         t_start = time.perf_counter()
         try:
-            result, _ = diagnose(rec, cfg, None, options, sim_source="bench base scenario",
-                                 exclude_effects=[c.name for c in OUT_OF_LIBRARY])
+            result, _ = diagnose_recording(rec, cfg, None, options, sim_source="bench base scenario",
+                                           exclude_effects=[c.name for c in OUT_OF_LIBRARY])
         except UserError as exc:  # the pipeline could not identify stars: reported, not hidden
             rec.unlink(missing_ok=True)
             return {"case": i, "kind": kind, "design": design, "exposure_ms": exposure_ms, "truth": drawn,

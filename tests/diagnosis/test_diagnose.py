@@ -113,10 +113,11 @@ def test_null_recording_is_explained_within_noise(recordings):
 
 
 def test_heldout_frames_are_split_before_fitting(recordings):
-    from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose
+    from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose_recording
 
-    res, internals = diagnose(recordings["radial"], load_scenario(recordings["base"]), options=DiagnoseOptions(n_boot=0, stability=False))
-    obs = internals["obs"]
+    res, diagnosis = diagnose_recording(recordings["radial"], load_scenario(recordings["base"]),
+                                        options=DiagnoseOptions(n_boot=0, stability=False))
+    obs = diagnosis.obs
     held_frames = set(obs.frame[obs.heldout])
     assert held_frames and not held_frames & set(obs.frame[~obs.heldout])  # whole frames held out
     assert res["split"]["heldout_frames"] == len(held_frames) == round(0.25 * obs.n_frames)
@@ -143,3 +144,49 @@ def test_cli_errors_exit_2(recordings, tmp_path, case):
     assert res.exit_code == 2, res.output
     assert needle in res.output
     assert "Traceback" not in res.output
+
+
+@pytest.fixture(scope="module")
+def radial_steps(recordings):
+    """The algorithm on the radial recording's observations, and the command's result on the recording."""
+    from rollingstar.estimators.diagnosis.algorithm import diagnose
+    from rollingstar.pipelines.diagnose import (
+        DiagnoseOptions,
+        build_observations,
+        diagnose_recording,
+        identify_stars,
+        read_gyro,
+    )
+    from rollingstar.sensors import build
+
+    scenario = load_scenario(recordings["base"])
+    options = DiagnoseOptions(n_boot=5, stability=False)
+    _, stars, att = identify_stars(recordings["radial"], None, "<test>", False)
+    obs, att0 = build_observations(stars, att, scenario, build.build_catalog(scenario, build.build_camera(scenario)))
+    d = diagnose(obs, att0, scenario, read_gyro(recordings["radial"], scenario), options)
+    return d, diagnose_recording(recordings["radial"], scenario, options=options)[0]
+
+
+def test_algorithm_steps_on_observations(radial_steps):
+    d, _ = radial_steps
+    data = d.location.data
+    assert data.unit == "frames" and data.n_heldout_frames == round(0.25 * data.obs.n_frames)
+    assert d.location.residuals["chi2_dof"] > 1.5  # the model as given misses (dof ~ 600: 1 +- 0.06)
+    assert d.naming.model.names == ["radial_distortion"]
+    k1, sigma = d.model.thetas[0][0], d.model.fit["sigmas"][0][0]
+    assert abs(k1 - K1) < 4 * sigma
+    v = d.verification
+    assert v.heldout_confirms and v.quality.heldout_rms_px.after < v.quality.heldout_rms_px.before
+    assert [c.name for c in v.named] == ["radial_distortion"] and v.verdict.startswith("named: radial_distortion")
+    upd = d.updated_scenario()
+    assert [e.kind for e in upd.effects] == ["radial_distortion"] and upd.effects[0].params["k1"] == pytest.approx(k1)
+
+
+def test_json_is_built_from_the_typed_results(radial_steps):
+    from rollingstar.estimators.diagnosis.algorithm import as_json
+
+    d, command = radial_steps
+    res = as_json(d, recording=command["recording"], sim=command["sim"], pipeline=command["pipeline"])
+    assert json.dumps(res) == json.dumps(command)  # the command adds nothing but loading
+    assert res["train_rms_after_px"] == d.verification.quality.train_rms_px.after
+    assert res["effects"][0]["params"]["k1"]["value"] == float(d.model.thetas[0][0])

@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from rollingstar.config import validate
 from rollingstar.estimators.diagnosis import gyro_channel as gc
-from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose
+from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose_recording
 from rollingstar.pipelines.simulate import simulate_to_log
 from rollingstar.sensors.effects import EFFECTS
 from rollingstar.sensors.scenario import ScenarioConfig
@@ -70,7 +70,7 @@ def gyro_recordings(tmp_path_factory):
         rec = tmp / f"{label}.mcap"
         simulate_to_log(validate(ScenarioConfig, {**cfg.model_dump(mode="json"), "effects": effects}, "t"), rec,
                         show_progress=False)
-        out[label] = diagnose(rec, cfg, None, DiagnoseOptions(n_boot=10, stability=False))[0]
+        out[label] = diagnose_recording(rec, cfg, None, DiagnoseOptions(n_boot=10, stability=False))[0]
     return out
 
 

@@ -1,0 +1,173 @@
+"""Step 1, locate: where the simulation as given misses the recording.
+
+Before any fit, a share of the data is held out (:func:`split_heldout`). The attitudes and rates
+are then fitted under the simulation model as given; observations far beyond the noise (a wrong
+star match, not physics) are dropped and the fit repeated; with a gyro, attitude increments of
+consecutive training frames become a second residual channel. The result: chi-square per dof
+against the recording's noise and residual structure by covariate, channel, field region and time
+span (:mod:`.residuals`), and the linear problem of the candidates' signatures at the model as
+given (:mod:`.signatures`), from which the next step names effects.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from rollingstar.estimators.diagnosis import gyro_channel, residuals
+from rollingstar.estimators.diagnosis.gyro_channel import GyroChannel, GyroData
+from rollingstar.estimators.diagnosis.inputs import DiagnoseOptions, SensorModel
+from rollingstar.estimators.diagnosis.library import Candidate
+from rollingstar.estimators.diagnosis.observations import (
+    Nuisance,
+    Observations,
+    Prediction,
+    fit_nuisance,
+)
+from rollingstar.estimators.diagnosis.selection import LinearProblem
+from rollingstar.estimators.diagnosis.signatures import linear_problem
+
+MIN_STARS_PER_FRAME = 4  # an attitude from fewer stars says little: frames keep at least this many
+OUTLIER_SIGMA = 30.0  # far beyond noise, below the identifier's refine gate: a wrong match, not physics
+LOCATED_STRUCTURE_ROWS = 12  # covariate x channel tests reported (strongest first)
+
+
+@dataclass(frozen=True, eq=False)
+class Dataset:
+    """The observations as every fit uses them: held-out split made, gross outliers removed, and
+    with a gyro the increment channel of the training frames attached (``obs.channel``)."""
+
+    obs: Observations  # ``obs.heldout`` marks the held-out observations
+    unit: str  # what was held out: "frames" (>= 4 frames) or "stars" (within frames)
+    frame_has_train: np.ndarray  # (F,) frames with at least one training star
+    att_mask: np.ndarray  # observations the attitudes are fitted to: training stars, and held-out frames' own
+    n_rejected: int  # gross outliers dropped
+    channel_heldout: GyroChannel | None  # the increment channel of the pairs touching a held-out frame
+
+    @property
+    def train(self) -> np.ndarray:
+        return ~self.obs.heldout
+
+    @property
+    def heldout(self) -> np.ndarray:
+        return self.obs.heldout
+
+    @property
+    def n_train_frames(self) -> int:
+        return int(self.frame_has_train.sum())
+
+    @property
+    def n_heldout_frames(self) -> int:
+        return int((~self.frame_has_train).sum())
+
+    @property
+    def heldout_frames_fitted(self) -> int:
+        """Attitudes fitted to held-out data alone (3 dof each): the held-out frames, when whole frames are held out."""
+        return self.n_heldout_frames if self.unit == "frames" else 0
+
+    @property
+    def n_residuals(self) -> int:
+        """Rows of the training residual: x and y of every training star, and the gyro increment rows."""
+        return 2 * int(self.train.sum()) + (self.obs.channel.rows if self.obs.channel is not None else 0)
+
+    def blocks(self) -> np.ndarray:
+        """Bootstrap block of every residual row: its frame (its star, when stars are held out); gyro rows by pair."""
+        chan = self.obs.channel
+        blocks_all = self.obs.frame if self.unit == "frames" else np.arange(self.obs.n)
+        train = self.train
+        return np.concatenate([blocks_all[train], blocks_all[train], np.repeat(chan.pairs, 3) if chan is not None else []])
+
+
+@dataclass(frozen=True, eq=False)
+class Location:
+    """What the Locate step found: the data, the fit of the model as given, and where it misses."""
+
+    data: Dataset
+    nuisance: Nuisance  # attitudes and rates fitted under the model as given
+    prediction: Prediction
+    residuals: dict  # :func:`.residuals.locate` (chi-square, structure by covariate/channel, regions, time spans)
+    gyro_chi2: float | None  # chi-square of the gyro increment rows under the model as given
+    problem: LinearProblem  # every testable candidate's signature at the model as given
+    untestable: list[dict]  # ``{"name", "reason"}`` of the candidates that cannot be tested
+
+    def summary(self) -> dict:
+        """The reported part of :attr:`residuals`: no private keys, the strongest structure rows only."""
+        located = {k: v for k, v in self.residuals.items() if not k.startswith("_")}
+        located["structure"] = located["structure"][:LOCATED_STRUCTURE_ROWS]
+        return located
+
+
+def locate(obs: Observations, attitudes: Rotation, sensor: SensorModel, cands: dict[str, Candidate],
+           gyro: GyroData | None, options: DiagnoseOptions) -> Location:
+    """Hold out data, fit the model as given, reject gross outliers, measure where it misses."""
+    data, nuis0, pred0 = prepare_data(obs, attitudes, sensor, gyro, options)
+    obs = data.obs
+    gyro_chi2 = None if obs.channel is None else float(np.sum(gyro_channel.channel_rows(obs, pred0) ** 2))
+    located = residuals.locate(obs, pred0, sensor.camera, data.train, 3 * data.n_train_frames)
+    problem, untestable = linear_problem(obs, pred0, cands, sensor.effects, data.train, data.blocks())
+    return Location(data, nuis0, pred0, located, gyro_chi2, problem, untestable)
+
+
+def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gyro: GyroData | None,
+                 options: DiagnoseOptions) -> tuple[Dataset, Nuisance, Prediction]:
+    """The held-out split, the first nuisance fit, outlier rejection and the gyro channel.
+
+    Returns the data, and the attitudes/rates and prediction of the model as given on it.
+    """
+    heldout, unit = split_heldout(obs, options.heldout_fraction, options.seed)
+    obs = replace(obs, heldout=heldout)
+    frame_has_train, att_mask = attitude_mask(obs)
+    fit = (sensor.camera, sensor.timing, sensor.effects)
+    nuis0, pred0 = fit_nuisance(obs, attitudes, *fit, att_mask, sensor.moving)
+    if obs.sigma_source == "estimated":
+        obs = estimate_sigma(obs, pred0)
+        nuis0, pred0 = fit_nuisance(obs, attitudes, *fit, att_mask, sensor.moving)
+    # gross outliers (misidentified stars: the tracking refine gate is 2 px = 40 sigma at 0.05 px)
+    far = np.hypot(obs.x - pred0.x, obs.y - pred0.y) > OUTLIER_SIGMA * obs.sigma
+    n_rejected = int(far.sum())
+    if n_rejected:
+        obs = obs.take(~far)
+        frame_has_train, att_mask = attitude_mask(obs)
+        nuis0, pred0 = fit_nuisance(obs, attitudes, *fit, att_mask, sensor.moving)
+    # second channel: attitude increments of consecutive training frames against the gyro
+    gyro = gyro if unit == "frames" else None
+    chan = gyro_channel.build_channel(gyro, obs, pred0, frame_has_train, att_mask)
+    chan_out = gyro_channel.build_channel(gyro, obs, pred0, frame_has_train, att_mask, heldout=True)
+    if chan is not None:
+        obs = replace(obs, channel=chan)
+        nuis0, pred0 = fit_nuisance(obs, nuis0, *fit, att_mask, sensor.moving)
+    return Dataset(obs, unit, frame_has_train, att_mask, n_rejected, chan_out), nuis0, pred0
+
+
+def split_heldout(obs: Observations, fraction: float, seed: int) -> tuple[np.ndarray, str]:
+    """Held-out mask decided before any fit: whole frames (>= 4 frames), else stars within frames."""
+    rng = np.random.default_rng([seed, 7])
+    if obs.n_frames >= 4:
+        n_out = max(1, int(round(fraction * obs.n_frames)))
+        out_frames = rng.choice(obs.n_frames, size=n_out, replace=False)
+        return np.isin(obs.frame, out_frames), "frames"
+    mask = np.zeros(obs.n, dtype=bool)
+    perm = rng.permutation(obs.n)
+    # per frame keep at least MIN_STARS_PER_FRAME training stars
+    for k in range(obs.n_frames):
+        idx = perm[obs.frame[perm] == k]
+        n_out = min(int(round(fraction * idx.size)), max(idx.size - MIN_STARS_PER_FRAME, 0))
+        mask[idx[:n_out]] = True
+    return mask, "stars"
+
+
+def attitude_mask(obs: Observations) -> tuple[np.ndarray, np.ndarray]:
+    """Frames with training stars (F,), and the observations each frame's attitude is fitted to:
+    its training stars, or a held-out frame's own stars (the attitude is a nuisance, fitted anyway)."""
+    train = ~obs.heldout
+    frame_has_train = np.bincount(obs.frame[train], minlength=obs.n_frames) > 0
+    return frame_has_train, train | ~frame_has_train[obs.frame]
+
+
+def estimate_sigma(obs: Observations, pred: Prediction) -> Observations:
+    """Observations without a known noise get the residual scatter of ``pred`` (MAD) as their sigma."""
+    r = np.concatenate([obs.x - pred.x, obs.y - pred.y])
+    s = 1.4826 * np.median(np.abs(r - np.median(r)))
+    return replace(obs, sigma=np.where(np.isfinite(obs.sigma), obs.sigma, max(s, 1e-6)),
+                   sigma_source="estimated from the residual scatter (MAD): the chi-square test is then uninformative")

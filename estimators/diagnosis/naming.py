@@ -1,0 +1,185 @@
+"""Step 2, name: which library effects the recording shows.
+
+Forward-stepwise BIC on the linear problem at the model as given (:mod:`.selection`), refined with
+the nonlinear model (:func:`select_nonlinear`: backward elimination by nonlinear delta BIC, forward
+steps on the problem re-linearised at the fitted model). Then the selection statistics on the
+problem linearised at the fitted model: screening, bootstrap inclusion, aliases. An effect is named
+only when it wins the majority of bootstrap resamples (inclusion pooled over the candidates the
+data cannot tell from it) and still earns its BIC margin nonlinearly; otherwise it is reported as
+a weak candidate and the rest refitted.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rollingstar.estimators.diagnosis import gyro_channel, selection
+from rollingstar.estimators.diagnosis import refit as refit_mod
+from rollingstar.estimators.diagnosis.inputs import DiagnoseOptions, SensorModel
+from rollingstar.estimators.diagnosis.library import Candidate
+from rollingstar.estimators.diagnosis.locating import Dataset, Location
+from rollingstar.estimators.diagnosis.observations import (
+    Nuisance,
+    Prediction,
+    fit_attitudes,
+    fit_nuisance,
+)
+from rollingstar.estimators.diagnosis.signatures import linear_problem
+
+MIN_INCLUSION = 0.5
+MAX_ROUNDS = 3  # rounds of nonlinear backward / linear forward refinement
+
+
+@dataclass(frozen=True, eq=False)
+class NonlinearFit:
+    """Named effects refitted nonlinearly (:func:`refit.refit`), with the attitudes and rates
+    refitted under the resulting effect chain."""
+
+    names: list[str]
+    chosen: list[Candidate]
+    fit: dict  # :func:`refit.refit`: thetas, sigmas, corr, nuisance, success, cost
+    effects: tuple  # the scenario's chain with the named effects at their fitted parameters
+    nuisance: Nuisance
+    prediction: Prediction
+
+
+@dataclass(frozen=True, eq=False)
+class Naming:
+    """What the Name step decided, and the statistics it decided on."""
+
+    model: NonlinearFit  # the named effects
+    rounds: list[dict]  # nonlinear refinement: ``{"dropped", "delta_bic_nonlinear"}`` or ``{"added"}``
+    problem: selection.LinearProblem  # linearised at the fitted model, the selected effects added back
+    selection: dict  # :func:`selection.select` on ``problem``: screen, steps, inclusion, bootstrap sets
+    pooled_inclusion: dict[str, float]  # bootstrap inclusion pooled over each selected effect's aliases
+    weak: list[dict]  # selected effects not named (weak bootstrap support or nonlinear delta BIC)
+    delta_bic: dict[str, float]  # nonlinear drop-one delta BIC of every named effect
+    ambiguous: list[dict]  # named effects the data cannot tell from another candidate
+    correlations: dict[str, dict[str, float]]  # canonical correlation of each named effect with every screened one
+
+
+def name_effects(location: Location, sensor: SensorModel, cands: dict[str, Candidate],
+                 options: DiagnoseOptions) -> Naming:
+    """Select, refine nonlinearly, test the selection at the fitted model, drop weak effects."""
+    data, nuis0 = location.data, location.nuisance
+    blocks = data.blocks()
+    first = selection.forward_stepwise(location.problem, options.min_delta_bic)
+    model, rounds = select_nonlinear(data, sensor, nuis0, cands, [st["name"] for st in first], blocks, options)
+    # the selection statistics on the problem linearised at the final model, selected effects added back
+    problem, _ = linear_problem(data.obs, model.prediction, cands, model.effects, data.train, blocks,
+                                add_back={c.name: (th - c.defaults) / c.scales for c, th in zip(model.chosen, model.fit["thetas"])})
+    sel = selection.select(problem, n_boot=options.n_boot, seed=options.seed, min_delta_bic=options.min_delta_bic)
+    drop_one = drop_one_delta_bic(data, sensor, nuis0, model.chosen, model.fit)
+    pooled = pooled_inclusion(problem, sel, model.names)
+    weak = [n for n in model.names if (options.n_boot > 0 and pooled[n] < MIN_INCLUSION)
+            or drop_one.get(n, 0.0) < options.min_delta_bic]  # or no longer earning its place nonlinearly
+    weak_rows = []
+    if weak:
+        weak_rows = [{"name": n, "delta_bic_nonlinear": drop_one.get(n), "inclusion_probability": sel["inclusion"].get(n),
+                      "inclusion_with_aliases": pooled[n]} for n in weak]
+        model = refit_named(data, sensor, nuis0, cands, [n for n in model.names if n not in weak])
+        drop_one = drop_one_delta_bic(data, sensor, nuis0, model.chosen, model.fit)
+    screened = [row["name"] for row in sel["screen"]]
+    correlations = {g: {h: selection.canonical_correlation(selection.design(problem, [g]), selection.design(problem, [h]))
+                        for h in screened if h != g} for g in model.names if g in problem.groups}
+    return Naming(model, rounds, problem, sel, pooled, weak_rows, drop_one,
+                  selection.ambiguities(problem, model.names, screened), correlations)
+
+
+def pooled_inclusion(problem: selection.LinearProblem, sel: dict, names: list[str]) -> dict[str, float]:
+    """Bootstrap inclusion of each selected effect pooled over the candidates the data cannot tell
+    from it (those split the votes)."""
+    alias_of = {n: [h for h in problem.groups if h != n and n in problem.groups
+                    and selection.canonical_correlation(selection.design(problem, [n]), selection.design(problem, [h]))
+                    > selection.CORR_LIMIT] for n in names}
+    return {n: selection.pooled_inclusion(sel["bootstrap_sets"], n, alias_of[n]) for n in names}
+
+
+def refit_chi2(data: Dataset, sensor: SensorModel, nuis0: Nuisance, chosen: list[Candidate],
+               warm: dict | None = None) -> dict:
+    """Nonlinear refit on the training data; ``warm`` (name -> theta) starts parameters from a previous fit.
+
+    Without effects, ``cost`` is the chi-square of the model as given with the attitudes refitted.
+    """
+    obs, mask = data.obs, data.train
+    theta0 = None if not warm else [warm.get(c.name, c.defaults) for c in chosen]
+    fit = refit_mod.refit(obs, nuis0, sensor.camera, sensor.timing, sensor.effects, chosen, mask, theta0)
+    if fit["cost"] is None:
+        _, pred = fit_attitudes(obs, nuis0, sensor.camera, sensor.timing, sensor.effects, mask)
+        fit["cost"] = float(np.sum(((obs.x - pred.x)[mask] ** 2 + (obs.y - pred.y)[mask] ** 2) / obs.sigma[mask] ** 2)
+                            + np.sum(gyro_channel.channel_rows(obs, pred) ** 2))
+    return fit
+
+
+def with_nuisance(data: Dataset, sensor: SensorModel, nuis0: Nuisance, names: list[str], chosen: list[Candidate],
+                  fit: dict) -> NonlinearFit:
+    """The fitted effects as a chain, the attitudes and rates refitted under it (from ``nuis0``)."""
+    chain = refit_mod.chain_with(sensor.effects, chosen, fit["thetas"])
+    nuis1, pred1 = fit_nuisance(data.obs, nuis0, sensor.camera, sensor.timing, chain, data.att_mask, sensor.moving)
+    return NonlinearFit(names, chosen, fit, chain, nuis1, pred1)
+
+
+def refit_named(data: Dataset, sensor: SensorModel, nuis0: Nuisance, cands: dict[str, Candidate],
+                names: list[str]) -> NonlinearFit:
+    """Refit the effects ``names`` from their defaults."""
+    chosen = [cands[n] for n in names]
+    return with_nuisance(data, sensor, nuis0, names, chosen, refit_chi2(data, sensor, nuis0, chosen))
+
+
+def select_nonlinear(data: Dataset, sensor: SensorModel, nuis0: Nuisance, cands: dict[str, Candidate],
+                     names: list[str], blocks: np.ndarray, options: DiagnoseOptions) -> tuple[NonlinearFit, list[dict]]:
+    """Refine a linear selection with the nonlinear model: backward elimination by nonlinear
+    delta BIC, then forward stepwise on the problem re-linearised at the fitted model; repeat
+    until nothing changes (at most :data:`MAX_ROUNDS`). Returns the fit and the changes made."""
+    rounds = []
+    for _ in range(MAX_ROUNDS):
+        fit = refit_chi2(data, sensor, nuis0, [cands[n] for n in names])
+        names, fit, dropped = backward_eliminate(data, sensor, nuis0, cands, names, fit, options.min_delta_bic)
+        rounds += dropped
+        model = with_nuisance(data, sensor, nuis0, names, [cands[n] for n in names], fit)
+        others = {k: c for k, c in cands.items() if k not in names}
+        prob, _ = linear_problem(data.obs, model.prediction, others, model.effects, data.train, blocks)
+        steps = selection.forward_stepwise(prob, options.min_delta_bic)
+        if steps:
+            names = names + [st["name"] for st in steps]
+            rounds.append({"added": [st["name"] for st in steps]})
+        if not dropped and not steps:
+            return model, rounds
+    return refit_named(data, sensor, nuis0, cands, names), rounds
+
+
+def backward_eliminate(data: Dataset, sensor: SensorModel, nuis0: Nuisance, cands: dict[str, Candidate],
+                       names: list[str], fit: dict, min_delta_bic: float) -> tuple[list[str], dict, list[dict]]:
+    """Drop, one at a time, the effect that earns least nonlinear delta BIC while it is below the margin.
+
+    Returns the names kept, their fit, and ``{"dropped", "delta_bic_nonlinear"}`` per effect dropped.
+    """
+    dropped = []
+    while len(names) > 1:
+        chosen = [cands[n] for n in names]  # the names fit["thetas"] belong to
+        warm = {c.name: t for c, t in zip(chosen, fit["thetas"])}
+        worst, worst_bic, worst_fit = None, None, None
+        for n in names:
+            f = refit_chi2(data, sensor, nuis0, [cands[m] for m in names if m != n], warm)
+            d = f["cost"] - fit["cost"] - len(cands[n].parameters) * np.log(data.n_residuals)
+            if worst_bic is None or d < worst_bic:
+                worst, worst_bic, worst_fit = n, d, f
+        if worst_bic >= min_delta_bic:
+            break
+        names = [m for m in names if m != worst]
+        fit = worst_fit
+        dropped.append({"dropped": worst, "delta_bic_nonlinear": float(worst_bic)})
+    return names, fit, dropped
+
+
+def drop_one_delta_bic(data: Dataset, sensor: SensorModel, nuis0: Nuisance, chosen: list[Candidate],
+                       fit: dict) -> dict[str, float]:
+    """Nonlinear delta BIC of each selected effect: chi2 without it minus chi2 with all, minus its penalty."""
+    out = {}
+    warm = {c.name: t for c, t in zip(chosen, fit["thetas"])}
+    for c in chosen:
+        rest = [d for d in chosen if d is not c]
+        f = refit_chi2(data, sensor, nuis0, rest, warm)
+        out[c.name] = float(f["cost"] - fit["cost"] - len(c.parameters) * np.log(data.n_residuals))
+    return out
