@@ -1,6 +1,6 @@
 """Real-sky figures: extract, identify lost-in-space and solve every shared real image.
 
-    .venv/bin/python benchmarks/real_data.py [--out docs] [--json]
+    rollingstar figures real-data [--out docs] [--json] [--repeats 3]
 
 Per image: `cog` spots (background 'map'), `lost-in-space` identification (tetra3rs pattern
 solve + our verification), a joint least-squares fit of the attitude and the focal length to the
@@ -333,6 +333,10 @@ def run_real_data(base: Path | None = None, repeats: int = 3, show_progress: boo
     if not (base / "tetra3").is_dir() or not (base / "creusot").is_dir():
         raise UserError(f"real data not found at {base} (expected tetra3/ and creusot/; set ROLLINGSTAR_REAL_DATA)")
     jobs = tetra3_jobs(base) + creusot_jobs(base)
+    empty = [group for group in ("tetra3", "creusot") if not any(job.group == group for job in jobs)]
+    if empty:
+        raise UserError(f"real data at {base}: no images in {' and '.join(f'{g}/' for g in empty)} (a figure "
+                        "of 0 images would say nothing; check ROLLINGSTAR_REAL_DATA)")
     detected, discovered, rows = [], [], []
     with progress_bar("real images: detect + discover", len(jobs), show_progress) as advance:
         for job in jobs:
@@ -518,7 +522,7 @@ def _intro_lines(result: dict, command: str) -> list[str]:
         "`../shared/data/real`); timings are the minimum of "
         f"{result['repeats']} calls on the machine that ran it.",
         "",
-        "The same measurement: `rollingstar figures real-data --out docs`. Simulated check of the distortion fit "
+        "Simulated check of the distortion fit "
         "(known k1 recovered within its stated uncertainty): `pytest tests/estimators/test_distortion_fit.py`.",
         "",
         "tetra3 images: `cog` centroider (`" + json.dumps(result["cog"]) + "`), `lost-in-space` identifier "
@@ -556,7 +560,7 @@ def _creusot_lines(result: dict, cr: list[dict]) -> list[str]:
     return [
         "## creusot images (808 x 608, 8-bit; every PNG under `creusot/`)",
         "",
-        "Three passes (`rollingstar.studies/real_data.py: run_real_data`):",
+        "Three passes (`studies/real_data.py: run_real_data`):",
         "",
         "1. *Per image* (`DISCOVERY_PARAMS` = `" + json.dumps(result.get("discovery", {})) + "`): `lost-in-space` with "
         "`fit_distortion: radial`: after tetra3rs' pattern match the focal length and radial distortion k1, k2 "
@@ -565,7 +569,7 @@ def _creusot_lines(result: dict, cr: list[dict]) -> list[str]:
         "(>= 4 stars, RMS <= 4 px, false-match probability <= 1e-9). Focal length starts from each folder's `log.json` field "
         "of view (diagonal, `rollingstar.logs.importers.corr.focal_px_from_fov`; the malformed `Nunki/nunki.json` is read by the "
         "importer's tolerant reader). Last column of the table.",
-        "2. *Per lens folder* (`rollingstar.studies/real_calibration.py`): one focal length, k1, k2 and principal point shared by the "
+        "2. *Per lens folder* (`studies/real_calibration.py`): one focal length, k1, k2 and principal point shared by the "
         "folder's images, one attitude per image, fitted jointly to the stars pass 1 identified (5-sigma clipping, one refit); "
         "1-sigma from the fit's scatter-scaled covariance. Table below.",
         "3. *Final* (`FINAL_PARAMS` = `" + json.dumps(result.get("final", {})) + "`): every image identified again with the "

@@ -143,3 +143,13 @@ def test_per_lens_parameters_agree_across_images(full_run):
     # the author's undistortion leaves several times the raw frames' residual (docs/real-data.md)
     for lens in ("16mm", "8mm"):
         assert cal[f"{lens}_checker_calib/undistorted"]["rms_px"] > 3 * cal[f"{lens}_checker_calib/distorted"]["rms_px"]
+
+
+def test_an_empty_real_data_folder_is_an_error_not_a_page_of_zeros(tmp_path):
+    from rollingstar.errors import UserError
+    from rollingstar.studies.real_data import run_real_data
+
+    (tmp_path / "tetra3").mkdir()
+    (tmp_path / "creusot").mkdir()
+    with pytest.raises(UserError, match="no images in tetra3/ and creusot/"):
+        run_real_data(tmp_path, repeats=1, show_progress=False)
