@@ -33,6 +33,7 @@ from rollingstar.estimators.diagnosis.observations import (
 from rollingstar.estimators.diagnosis.report import write_report
 from rollingstar.logs.reader import LogReader
 from rollingstar.logs.topics import TOPIC_EST_ATTITUDE, TOPIC_EST_STARS
+from rollingstar.outputs import safe_output
 from rollingstar.pipelines.config import PipelineConfig, load_pipeline
 from rollingstar.pipelines.runner import run_pipeline
 from rollingstar.sensors import build
@@ -254,17 +255,21 @@ def diagnose_recording(recording: str | Path, scenario: ScenarioConfig | None = 
 
 def run_diagnose(recording: Path, sim: Path | None, pipeline: Path | None, out_dir: Path | None,
                  options: DiagnoseOptions = DiagnoseOptions()) -> dict:
-    """The CLI entry: load configs, diagnose, write the report directory; returns the JSON object."""
+    """The CLI entry: load configs, diagnose, write the report folder; returns the JSON object.
+
+    The report folder is written through :func:`rollingstar.outputs.safe_output` (an earlier report
+    stays until the new one is complete; an output folder inside or equal to an input is refused)."""
     scenario = load_scenario(sim) if sim is not None else None
     pipe = load_pipeline(pipeline) if pipeline is not None else None
     result, d = diagnose_recording(recording, scenario, pipe, options,
                                    pipeline_source=str(pipeline) if pipeline else DEFAULT_PIPELINE_SOURCE,
                                    sim_source=str(sim) if sim else None)
     if out_dir is not None:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "scenario_updated.yaml").write_text(to_yaml(d.updated_scenario()))
-        result["scenario_updated"] = str(out_dir / "scenario_updated.yaml")
-        write_report(result, d, out_dir)
+        inputs = [p for p in (recording, sim, pipeline) if p is not None]
+        with safe_output(out_dir, inputs, directory=True) as folder:
+            (folder / "scenario_updated.yaml").write_text(to_yaml(d.updated_scenario()))
+            result["scenario_updated"] = str(out_dir / "scenario_updated.yaml")
+            write_report(result, d, folder)
     return result
 
 

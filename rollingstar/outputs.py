@@ -57,6 +57,9 @@ def check_not_an_input(output: str | Path, inputs: Iterable[str | Path]) -> None
             what = "a path inside the input folder" if inside and resolved != src else "the input"
             raise UserError(f"{out}: the output is {what} {source}; writing it would destroy the input. "
                             "Choose another output path.")
+        if resolved in src.parents:
+            raise UserError(f"{out}: the output folder contains the input {source}, and an output folder is "
+                            "replaced as a whole. Choose another output path.")
 
 
 def _acquire(lock_path: Path, target: Path) -> int:

@@ -126,3 +126,10 @@ def test_a_folder_of_other_files_is_never_replaced(tmp_path):
     with pytest.warns(OverwriteWarning):  # its own earlier output is replaced
         with safe_output(empty, directory=True) as tmp:
             (tmp / "results.json").write_text("{}")
+
+
+def test_an_output_folder_that_contains_an_input_is_refused(tmp_path, recording):
+    with pytest.raises(UserError, match="contains the input"):
+        with safe_output(tmp_path, inputs=[recording], directory=True):
+            pass
+    assert recording.read_bytes() == b"precious"
