@@ -20,6 +20,7 @@ from rich.table import Table
 from rollingstar import __version__
 from rollingstar.config import find_config
 from rollingstar.errors import UserError
+from rollingstar.outputs import write_text
 
 app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, no_args_is_help=True,
                   help="Star-tracker estimation with rolling-shutter CMOS sensors.")
@@ -407,7 +408,7 @@ def bench_discrepancy(quick: bool = typer.Option(False, "--quick", help="the red
 
     result = run_benchmark(quick=quick, seed=seed, n_cases=cases, show_progress=not as_json)
     if out_md is not None:
-        out_md.write_text(format_markdown(result))
+        write_text(out_md, format_markdown(result))
     if as_json:
         print(json.dumps(result, indent=2))
     else:

@@ -173,3 +173,10 @@ def safe_output(target: str | Path, inputs: Iterable[str | Path] = (), directory
                 os.replace(tmp, partial)
             raise
         _install(tmp, target, directory)
+
+
+def write_text(target: str | Path, text: str, inputs: Iterable[str | Path] = ()) -> Path:
+    """Write ``text`` to ``target`` through :func:`safe_output` (a report, a table, a config)."""
+    with safe_output(target, inputs) as tmp:
+        tmp.write_text(text)
+    return Path(target)

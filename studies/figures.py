@@ -20,6 +20,7 @@ import numpy as np
 from rollingstar.config import CONFIGS
 from rollingstar.logs.reader import LogReader
 from rollingstar.logs.topics import TOPIC_TRUTH_STARS
+from rollingstar.outputs import write_text
 from rollingstar.pipelines.config import PipelineConfig, load_pipeline
 from rollingstar.pipelines.evaluate import evaluate_log
 from rollingstar.pipelines.runner import run_pipeline
@@ -293,14 +294,14 @@ def foundation_markdown(result: dict, command: str) -> str:
 def write_foundation_docs(result: dict, docs_dir: Path, command: str) -> Path:
     plot_foundation(result, docs_dir / "img")
     path = docs_dir / "foundation.md"
-    path.write_text(foundation_markdown(result, command))
-    (docs_dir / "foundation.json").write_text(json.dumps(result, indent=2))
+    write_text(path, foundation_markdown(result, command))
+    write_text(docs_dir / "foundation.json", json.dumps(result, indent=2))
     return path
 
 
 def real_data_figures(out_dir: Path | None, as_json: bool = False, repeats: int = 3) -> dict:
-    """``rollingstar figures real-data [--out docs]``: the same measurement as ``benchmarks/real_data.py``
-    (:func:`rollingstar.studies.real_data.run_real_data`), written to ``<out>/real-data.md``, ``.json`` and PNGs."""
+    """``rollingstar figures real-data [--out docs]``: :func:`rollingstar.studies.real_data.run_real_data`,
+    written to ``<out>/real-data.md``, ``.json`` and PNGs."""
     command = "rollingstar figures real-data" + (f" --out {out_dir}" if out_dir is not None else "")
     result = run_real_data(repeats=repeats, show_progress=not as_json)
     if out_dir is not None:

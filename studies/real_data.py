@@ -37,6 +37,7 @@ from rollingstar.logs.importers.common import WarningLog
 from rollingstar.logs.importers.corr import focal_px_from_fov, read_log_json
 from rollingstar.logs.importers.images import read_image
 from rollingstar.logs.importers.sidecar import load_camera
+from rollingstar.outputs import write_text
 from rollingstar.progress import progress_bar
 from rollingstar.sensors.camera import PinholeCamera
 from rollingstar.sensors.catalog import StarCatalog
@@ -660,7 +661,7 @@ def write_real_data_docs(result: dict, out_dir: Path, command: str) -> Path:
     slim = {**result, "rows": [{k: v for k, v in r.items() if not k.startswith("res_")} for r in result["rows"]]}
     for r in slim["rows"]:
         r["peer"] = {k: v for k, v in r["peer"].items() if k not in ("dx", "dy")}
-    (out_dir / "real-data.json").write_text(json.dumps(slim, indent=1))
+    write_text(out_dir / "real-data.json", json.dumps(slim, indent=1))
     path = out_dir / "real-data.md"
-    path.write_text(real_data_markdown(result, command, plots))
+    write_text(path, real_data_markdown(result, command, plots))
     return path
