@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from typing import Literal
 
+from rollingstar.estimators.data import FrameData, RateEstimate
 from rollingstar.estimators.plugin import Plugin
 
 #: The time a single-frame rate estimate refers to: ``frame_start`` = exposure start of row 0,
@@ -16,6 +17,17 @@ def reference_time_ns(reference: Reference, t0_ns: int, timing) -> int:
 
 
 class RateEstimator(Plugin):
-    """Sets ``frame.rate`` to a :class:`~rollingstar.estimators.data.RateEstimate` (camera frame, rad/s)."""
+    """Sets ``frame.rate`` to a :class:`~rollingstar.estimators.data.RateEstimate` (camera frame, rad/s).
+
+    A subclass implements :meth:`estimate`; :meth:`process` stores its result and flags the frame
+    ``rate_invalid`` when it is not valid."""
 
     role = "rate"
+
+    def estimate(self, frame: FrameData) -> RateEstimate:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def process(self, frame: FrameData) -> FrameData:
+        rate = self.estimate(frame)
+        out = frame.evolve(rate=rate)
+        return out if rate.valid else out.flagged("rate_invalid")

@@ -480,11 +480,6 @@ class LsRateEstimator(RateEstimator):
     name = "ls-rate"
     Params = LsRateParams
 
-    def process(self, frame: FrameData) -> FrameData:
-        rate = self.estimate(frame)
-        out = frame.evolve(rate=rate)
-        return out if rate.valid else out.flagged("rate_invalid")
-
     def _sigma(self, sigma_px: np.ndarray) -> np.ndarray:
         p = self.params
         fallback = getattr(self.context, "centroid_sigma_px", None)

@@ -296,11 +296,6 @@ class PsoRateEstimator(RateEstimator):
     name = "pso-rate"
     Params = PsoParams
 
-    def process(self, frame: FrameData) -> FrameData:
-        rate = self.estimate(frame)
-        out = frame.evolve(rate=rate)
-        return out if rate.valid else out.flagged("rate_invalid")
-
     def estimate(self, frame: FrameData) -> RateEstimate:
         """The rate estimate of ``frame`` at ``t_ref`` (invalid, with the reason, below three stars)."""
         p = self.params
