@@ -21,6 +21,7 @@ from pydantic import (
 )
 
 from rollingstar.config import Strict, parse_yaml, read_yaml, validate
+from rollingstar.sensors.effects import UnknownEffectError, resolve
 
 Vec3 = tuple[float, float, float]
 
@@ -145,8 +146,6 @@ class EffectConfig(Strict):
     @field_validator("kind")
     @classmethod
     def _known_kind(cls, v: str) -> str:
-        from rollingstar.sensors.effects import UnknownEffectError, resolve
-
         try:
             resolve(v)
         except UnknownEffectError as exc:
@@ -156,8 +155,6 @@ class EffectConfig(Strict):
     @field_validator("params")
     @classmethod
     def _known_params(cls, v: dict, info: ValidationInfo) -> dict:
-        from rollingstar.sensors.effects import resolve
-
         kind = info.data.get("kind")
         if kind is None:  # the kind itself was invalid: reported there
             return v
@@ -255,8 +252,6 @@ class ScenarioConfig(Strict):
 
     @model_validator(mode="after")
     def _effects_have_context(self):
-        from rollingstar.sensors.effects import resolve
-
         for i, e in enumerate(self.effects):
             cls = resolve(e.kind)
             if self.level == "image" and not cls.image_level:

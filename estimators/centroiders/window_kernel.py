@@ -41,6 +41,7 @@ from numba import njit
 
 from rollingstar.estimators.centroiders.edge import MARGIN_SIGMAS
 from rollingstar.estimators.centroiders.saturation import with_clipping
+from rollingstar.estimators.centroiders.window_cog import WindowSpots
 from rollingstar.estimators.centroiders.window_gyro import gyro_increment
 
 BG_STEP = 4  # background sums over every 4th row (all columns, contiguous): 1024 of a 64 x 64 window's pixels
@@ -389,8 +390,6 @@ def centroid_windows_at(image: np.ndarray, r0: np.ndarray, c0: np.ndarray, h: in
 
     Returns ``(WindowSpots, bgsum)`` (``bgsum`` (n, 3): count, sum d, sum d^2 over each window's
     background pixels, see the module docstring)."""
-    from rollingstar.estimators.centroiders.window_cog import WindowSpots
-
     img = np.asarray(image)
     clip = min(3.0, float(threshold_sigma))
     if img.dtype == bool:

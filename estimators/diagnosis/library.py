@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from rollingstar.estimators.diagnosis.observations import by_exposure
 from rollingstar.sensors.effects import EFFECTS
 from rollingstar.sensors.effects.chain import chain_jacobian
 
@@ -64,8 +65,6 @@ class Candidate:
 
         ``exposure_ns`` (per observation) evaluates a recording that mixes exposure times group by
         group (:func:`rollingstar.estimators.diagnosis.observations.by_exposure`)."""
-        from rollingstar.estimators.diagnosis.observations import by_exposure
-
         eff = self.instance()
         chain = tuple(base_effects) + (eff,)
 

@@ -45,6 +45,7 @@ from rollingstar.config import (
 )
 from rollingstar.errors import ConfigError
 from rollingstar.pipelines.config import PipelineConfig, load_pipeline
+from rollingstar.pipelines.runner import build_stages
 from rollingstar.sensors.scenario import ScenarioConfig, load_scenario
 
 
@@ -172,7 +173,6 @@ def _variant_config(base: ScenarioConfig, updates: dict, frames: int | None, sou
 
 def load_compare(path: str | Path) -> Comparison:
     """Validate the config, load every scenario and pipeline it names, build the stages (fail early)."""
-    from rollingstar.pipelines.runner import build_stages
 
     path = Path(path)
     source = str(path)

@@ -15,7 +15,14 @@ import time
 import warnings
 from pathlib import Path
 
+from rollingstar.config import parse_yaml, validate
+from rollingstar.errors import UserError
 from rollingstar.pipelines.compare.config import Task
+from rollingstar.pipelines.config import PipelineConfig
+from rollingstar.pipelines.evaluate import evaluate_log
+from rollingstar.pipelines.runner import build_stages, run_pipeline
+from rollingstar.pipelines.simulate import simulate_to_log
+from rollingstar.sensors.scenario import ScenarioConfig
 
 
 def run_task(task: Task) -> dict:
@@ -38,11 +45,6 @@ def run_task(task: Task) -> dict:
 
 
 def _run(task: Task) -> list[dict]:
-    from rollingstar.config import parse_yaml, validate
-    from rollingstar.errors import UserError
-    from rollingstar.pipelines.simulate import simulate_to_log
-    from rollingstar.sensors.scenario import ScenarioConfig
-
     rows = [{"variant": task.variant, "pipeline": name, "seed": task.seed} for name, _ in task.pipelines]
     with tempfile.TemporaryDirectory(prefix="rollingstar-compare-") as tmp, warnings.catch_warnings():
         warnings.simplefilter("ignore")  # per-frame warnings (e.g. dropped centroids) stay out of the bar
@@ -64,12 +66,6 @@ def _run(task: Task) -> list[dict]:
 def _run_pipeline(row: dict, rec: Path, out: Path, name: str, pipeline_yaml: str) -> None:
     """Run one pipeline on the recording and evaluate it into ``row`` (``metrics`` and ``timing``, or
     ``error`` when a stage fails on this scenario: recorded, not fatal)."""
-    from rollingstar.config import parse_yaml, validate
-    from rollingstar.errors import UserError
-    from rollingstar.pipelines.config import PipelineConfig
-    from rollingstar.pipelines.evaluate import evaluate_log
-    from rollingstar.pipelines.runner import build_stages, run_pipeline
-
     try:
         pipeline = validate(PipelineConfig, parse_yaml(pipeline_yaml, name), name)
         build_stages(pipeline, name)  # plugin modules imported before the clock starts

@@ -111,6 +111,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from rollingstar.sensors.effects.design import absorbed_attitude
+
 STAGE_TIME = 0  # shifts the instant a star is seen (rolling_shutter, time_offset, exposure_smear)
 STAGE_SKY = 1  # changes the line of sight in the camera frame (aberration, refraction, roll, ...)
 STAGE_OPTICS = 2  # lens/focal-plane mapping (focal length, distortion, principal point)
@@ -395,10 +397,6 @@ class Effect:
         repeated for every observation of the frame. Diagnosis compares it with a gyro or truth
         reference for effects whose image signature is (nearly) a rigid rotation.
         """
-        from rollingstar.sensors.effects.design import (
-            absorbed_attitude,  # design imports this module
-        )
-
         return absorbed_attitude(self.jacobian(ctx.x, ctx.y, ctx), ctx)
 
     def signature_rms_px(self, ctx: EffectContext) -> np.ndarray:

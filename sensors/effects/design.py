@@ -19,11 +19,15 @@ limit from gyro samples against a reference rate.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from rollingstar.sensors.conventions import NS_PER_S
-from rollingstar.sensors.effects.base import Effect, EffectContext
 from rollingstar.sensors.effects.geometry import rotation_jacobian
+
+if TYPE_CHECKING:  # names in annotations only: base imports this module
+    from rollingstar.sensors.effects.base import Effect, EffectContext
 
 NUISANCES = (None, "attitude", "attitude_rate")
 

@@ -40,9 +40,14 @@ from typing import ClassVar
 
 import numpy as np
 
-from rollingstar.config import parse_yaml, validate
+from rollingstar.config import parse_yaml, to_yaml, validate
 from rollingstar.errors import UserError
+from rollingstar.estimators.diagnosis import gyro_channel as gc
+from rollingstar.estimators.diagnosis.library import Candidate
 from rollingstar.estimators.diagnosis.selection import canonical_correlation
+from rollingstar.logs.reader import LogReader
+from rollingstar.logs.topics import TOPIC_CENTROIDS, TOPIC_TRUTH_STARS
+from rollingstar.logs.writer import LogWriter
 from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose_recording
 from rollingstar.pipelines.simulate import build_simulator, simulate_to_log
 from rollingstar.progress import progress_bar
@@ -55,6 +60,8 @@ from rollingstar.sensors.effects.base import (
 )
 from rollingstar.sensors.effects.context import context_from_attitude
 from rollingstar.sensors.effects.design import detection_limit, project_out
+from rollingstar.sensors.effects.geometry import rotation_jacobian
+from rollingstar.sensors.gyro import sample_times_ns
 from rollingstar.sensors.scenario import ScenarioConfig
 
 BASE_YAML = """
@@ -212,10 +219,6 @@ def simulate_mixed(cfg: ScenarioConfig, output: Path) -> None:
     ``t_ns`` (mid-exposure of its row) and ``row_time_ns`` of its own exposure, so the recording
     states the exposure of every frame; its declared scenario is the first exposure's.
     """
-    from rollingstar.config import to_yaml
-    from rollingstar.logs.reader import LogReader
-    from rollingstar.logs.topics import TOPIC_CENTROIDS, TOPIC_TRUTH_STARS
-    from rollingstar.logs.writer import LogWriter
 
     (cfg_a, _), (cfg_b, odd) = mixed_parts(cfg)
     pa, pb = output.with_suffix(".a.mcap"), output.with_suffix(".b.mcap")
@@ -251,8 +254,6 @@ class DesignContext:
     def design_matrix(self, eff, sigma: float) -> np.ndarray:
         """Whitened, attitude-projected image rows and, with a gyro, the whitened attitude-increment
         rows (:mod:`rollingstar.estimators.diagnosis.gyro_channel`) of ``eff``'s parameters, (N, p)."""
-        from rollingstar.estimators.diagnosis import gyro_channel as gc
-        from rollingstar.sensors.effects.geometry import rotation_jacobian
 
         for c in self.parts:
             c.check([eff])
@@ -307,8 +308,6 @@ def design_context(cfg: ScenarioConfig, design: str = "") -> DesignContext:
         whole = parts[0]
     gyro = t_ref = None
     if cfg.gyro.enabled:
-        from rollingstar.estimators.diagnosis import gyro_channel as gc
-        from rollingstar.sensors.gyro import sample_times_ns
 
         sim = build_simulator(cfg)
         timing = sim.timing
@@ -349,7 +348,6 @@ def _frame_context(cfg: ScenarioConfig, keep=None):
 
 def candidate_classes() -> dict[str, type[Effect]]:
     """Library effects the benchmark draws: image-plane ones whose context needs the recording meets."""
-    from rollingstar.estimators.diagnosis.library import Candidate
 
     out = {}
     for name, cls in sorted(EFFECTS.items()):
