@@ -17,7 +17,7 @@ recording per seed (seeds ``1 .. --seeds``):
 Printed per pipeline: RMSE per axis (arcsec, pooled over the seeds' valid estimates; mean over
 seeds), updates per frame, the mean single-frame Cramér-Rao bound (``rollingstar evaluate``), the
 ratio of the paper's per-star row to our RMSE (paper values from
-``rollingstar.studies/reproduce/data/he2021b.yaml``, labelled as the paper's), and the CPU time per frame of
+``studies/reproduce/data/he2021b.yaml``, labelled as the paper's), and the CPU time per frame of
 the attitude stage and of the whole run (process CPU time, this machine; compare side by side).
 """
 from __future__ import annotations

@@ -3,7 +3,7 @@
 
     .venv/bin/python benchmarks/windowed_speed.py [--frames 200] [--rounds 3] [--seed 1] [--json]
 
-Frames: the liu2013 reproduction's (``rollingstar.studies/reproduce/liu2013.py``: 1000 x 1000 px, 12-bit,
+Frames: the liu2013 reproduction's (``studies/reproduce/liu2013.py``: 1000 x 1000 px, 12-bit,
 two guide stars, 100 Hz, gyro-driven residual motion), rendered once. Centroiders, each set up
 fresh per round and fed the frames in order with their gyro samples, exactly as
 ``configs/pipelines/liu2013_*.yaml`` configure them:

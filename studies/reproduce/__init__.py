@@ -1,10 +1,10 @@
 """Reproductions of the seed papers' experiments: ``rollingstar reproduce <paper>``.
 
-Each paper has a module ``rollingstar.studies/reproduce/<paper>.py`` with
+Each paper has a module ``studies/reproduce/<paper>.py`` with
 
     def run(quick: bool, plots_dir: Path | None, seed: int) -> list[Row]
 
-and one data file ``rollingstar.studies/reproduce/data/<paper>.yaml`` holding the values the paper reports,
+and one data file ``studies/reproduce/data/<paper>.yaml`` holding the values the paper reports,
 each with the table or figure it comes from. Paper values are only ever printed in the "paper"
 column; "ours" is always measured by the run that prints it.
 """
