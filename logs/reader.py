@@ -158,6 +158,7 @@ class LogReader:
         self._summary = None
         self._truncated = False
         self._streamed: tuple[dict[int, Schema], dict[int, Channel], list[McapMessage], list[Metadata]] | None = None
+        self._streamed_in_write_order: list[McapMessage] = []
         if size >= 2 * MAGIC_SIZE + FOOTER_SIZE and tail == MAGIC:
             try:
                 self._summary = self._read_summary()
@@ -233,6 +234,7 @@ class LogReader:
                         order += 1
                     elif isinstance(item, Metadata):
                         metadata.append(item)
+            self._streamed_in_write_order = [m[2] for m in messages]
             messages.sort(key=lambda m: (m[0], m[1]))
             self._streamed = (schemas, channels, [m[2] for m in messages], metadata)
         return self._streamed
@@ -317,6 +319,24 @@ class LogReader:
         for msg in messages:
             raw = self._resolve(msg, schemas, channels)
             if raw is not None and (wanted is None or raw.channel.topic in wanted):
+                yield raw
+
+    def _raw_in_write_order(self) -> Iterator[_Raw]:
+        """Every message in file order: chunk after chunk, each chunk's messages as they were added."""
+        if self._summary is not None and self._summary.chunk_indexes:
+            summary = self._summary
+            with open(self.path, "rb") as f:
+                for ci in sorted(summary.chunk_indexes, key=lambda ci: ci.chunk_start_offset):
+                    for rec in self._load_chunk(f, ci):
+                        raw = self._resolve(rec, summary.schemas, summary.channels) \
+                            if isinstance(rec, McapMessage) else None
+                        if raw is not None:
+                            yield raw
+            return
+        schemas, channels, _, _ = self._stream_all()
+        for msg in self._streamed_in_write_order:
+            raw = self._resolve(msg, schemas, channels)
+            if raw is not None:
                 yield raw
 
     # --- metadata and version ----------------------------------------------------------------
@@ -421,6 +441,12 @@ class LogReader:
         """Decoded messages in log-time order (file order among equal times), optionally only some topics."""
         for raw in self._raw_messages(topics):
             yield self._decode(raw)
+
+    def written_messages(self) -> Iterator[tuple[Message, bytes]]:
+        """Every message in the order it was written (not log-time order), decoded, with its payload
+        bytes as stored (for :class:`~rollingstar.logs.digest.MessageDigest`)."""
+        for raw in self._raw_in_write_order():
+            yield self._decode(raw), raw.message.data
 
     # --- typed accessors -------------------------------------------------------------------------
     def scenario(self, missing_hint: str = "") -> ScenarioConfig:

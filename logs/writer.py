@@ -27,6 +27,7 @@ from google.protobuf.timestamp_pb2 import Timestamp
 from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import register_schema
 
+from .digest import MessageDigest
 from .errors import LogWriteError
 from .records import FORMAT_VERSION, TOPIC_RECORDS, _Record
 
@@ -123,13 +124,15 @@ class LogWriter:
 
     ``metadata`` maps record names to str->str dicts (``scenario``, ``pipeline``, ``sensor``);
     the ``rollingstar`` record (format version, software version, creation time, kind) is
-    written by the writer. Metadata is written at once, before any message.
+    written by the writer. Metadata is written at once, before any message. ``digest=True``: keep a
+    :class:`~rollingstar.logs.digest.MessageDigest` of every message written (:attr:`digest`).
     """
 
     def __init__(self, path: str | os.PathLike, kind: str = "simulation",
                  metadata: Mapping[str, Mapping[str, str]] | None = None, *,
-                 chunk_size: int = CHUNK_SIZE, compression: str = "zstd") -> None:
+                 chunk_size: int = CHUNK_SIZE, compression: str = "zstd", digest: bool = False) -> None:
         self.path = Path(path)
+        self.digest = MessageDigest() if digest else None
         if kind not in KINDS:
             raise ValueError(f"log kind must be one of {KINDS}, got {kind!r}")
         if compression not in ("zstd", "lz4", "none"):
@@ -149,6 +152,7 @@ class LogWriter:
         self._mcap.start(profile=PROFILE, library=f"rollingstar {software_version()}")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, tuple[int, str]] = {}
+        self._topics: dict[int, str] = {}  # channel id -> topic
         self._closed = False
         self.add_metadata("rollingstar", {
             "format_version": FORMAT_VERSION,
@@ -195,6 +199,7 @@ class LogWriter:
         channel_id = self._mcap.register_channel(topic=topic, message_encoding=encoding,
                                                  schema_id=self._schemas[schema_name])
         self._channels[topic] = (channel_id, schema_name)
+        self._topics[channel_id] = topic
         return channel_id
 
     def _add(self, channel_id: int, log_time_ns: int, data: bytes) -> None:
@@ -202,6 +207,8 @@ class LogWriter:
         if t < 0:
             raise ValueError(f"{self.path}: log times must be >= 0 ns, got {t}")
         self._mcap.add_message(channel_id=channel_id, log_time=t, publish_time=t, data=data)
+        if self.digest is not None:
+            self.digest.add(self._topics[channel_id], t, data)
 
     def _write_proto(self, topic: str, message: Any, log_time_ns: int) -> None:
         self._check_open()

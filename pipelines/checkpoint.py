@@ -5,25 +5,29 @@ carry state -- tracking priors, filters -- that only the frames before can rebui
 :mod:`rollingstar.pipelines.resume`). With one, it restores that state and reads on from the frame after it.
 
 What is saved, every ``every`` frames read (and once more on SIGINT): the stages, the frame checker
-(previous frame, for the time-order and duplicate checks), the run's counters and the frame indices
-written so far (as ranges). Saved only when no stage holds frames back (a smoother's held frames
-are neither written nor safely restartable), so pipelines with a smoother never checkpoint and
-resume from frame 0 as before.
+(previous frame, for the time-order and duplicate checks), the run's counters, and how many
+messages the output log had been given with their :class:`~rollingstar.logs.digest.MessageDigest`
+(a resume copies exactly those messages from the partial output and checks the digest). Saved only
+when no stage holds frames back (a smoother's held frames are neither written nor safely
+restartable), so pipelines with a smoother never checkpoint and resume from the first frame.
 
 Where: ``<output>.checkpoints/frames-<n>.pkl``, written to a temporary name and renamed (a kill
-while saving leaves the previous checkpoints intact); the newest ``KEEP`` are kept. The output log
-reaches the disk a chunk at a time, so the newest checkpoint may be ahead of what a killed run left
-readable: the resume takes the newest checkpoint whose written frames are all complete in the
-partial output, else runs from the start. The directory is removed when the run completes.
+while saving leaves the previous checkpoints intact); the newest ``KEEP`` are kept, and the one a
+resume started from. The output log reaches the disk a chunk at a time, so the newest checkpoint
+may be ahead of what a killed run left readable: the resume takes the newest checkpoint whose
+messages the partial output holds, else runs from the start. The folder is removed when the run
+completes.
+
+Identity: a checkpoint holds the :class:`RunIdentity` of its run (SHA-256 of the recording's
+content, of the scenario and of the pipeline); a checkpoint of another run is refused
+(:class:`~rollingstar.errors.UserError` naming what differs), never used.
 
 Format: pickle (the stages' state is whatever numpy arrays and Python objects each plugin keeps; a
 hand-written format per plugin would be a second description of every plugin's state). The sensor
 context (camera, catalogue) is not stored: it is rebuilt from the recording and re-attached. A
 stage that cannot be pickled (gtsam's ``BatchFixedLagSmoother``) turns checkpoints off for the run
-with one warning. A checkpoint names the recording (path, size, modification time), the scenario
-and the pipeline (their YAML) by a SHA-256 key and is used only when all match. Pickle runs code
-when loaded: a checkpoint is read only from beside the output the user names, written by this
-program; never resume from a checkpoint directory you did not write.
+with one warning. Pickle runs code when loaded: a checkpoint is read only from beside the output
+the user names, written by this program; never resume from a checkpoint folder you did not write.
 """
 from __future__ import annotations
 
@@ -33,8 +37,10 @@ import os
 import pickle
 import shutil
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
+
+from rollingstar.errors import UserError
 
 KEEP = 3
 DEFAULT_EVERY = 500
@@ -45,39 +51,69 @@ def checkpoint_dir(output: Path) -> Path:
     return output.with_name(output.name + ".checkpoints")
 
 
-def run_key(recording: Path, metadata: dict) -> str:
-    """SHA-256 of the recording's identity and the scenario and pipeline YAML."""
-    st = Path(recording).stat()
-    h = hashlib.sha256()
-    for part in (str(Path(recording).resolve()), str(st.st_size), str(st.st_mtime_ns),
-                 metadata["scenario"].get("yaml", ""), metadata["pipeline"].get("yaml", "")):
-        h.update(part.encode() + b"\0")
-    return h.hexdigest()
+def check_checkpoint_dir(output: Path) -> None:
+    """A :class:`UserError` when something other than a folder (a file, a symbolic link) is where the
+    checkpoints of ``output`` go."""
+    folder = checkpoint_dir(Path(output))
+    if folder.is_symlink() or (folder.exists() and not folder.is_dir()):
+        raise UserError(f"{folder}: exists and is not a folder; `rollingstar run` keeps the checkpoints of "
+                        f"{Path(output).name} there (for --resume). Remove it or choose another output path.")
+
+
+def _sha256_text(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+@dataclass(frozen=True)
+class RunIdentity:
+    """What a run's output is made from: SHA-256 of the recording's content, of the scenario YAML
+    and of the pipeline YAML. Written to the output (metadata record ``run``) and to each checkpoint."""
+
+    recording_sha256: str
+    scenario_sha256: str
+    pipeline_sha256: str
+
+    @classmethod
+    def of(cls, recording: str | Path, scenario_yaml: str, pipeline_yaml: str) -> RunIdentity:
+        with open(recording, "rb") as fh:
+            content = hashlib.file_digest(fh, "sha256").hexdigest()
+        return cls(content, _sha256_text(scenario_yaml), _sha256_text(pipeline_yaml))
+
+    def as_metadata(self) -> dict[str, str]:
+        return {"recording_sha256": self.recording_sha256, "scenario_sha256": self.scenario_sha256,
+                "pipeline_sha256": self.pipeline_sha256}
+
+    @classmethod
+    def from_metadata(cls, record: dict[str, str]) -> RunIdentity | None:
+        """The identity in a ``run`` metadata record; None when the record lacks one of its keys."""
+        try:
+            return cls(record["recording_sha256"], record["scenario_sha256"], record["pipeline_sha256"])
+        except (KeyError, TypeError):
+            return None
+
+    def differences(self, other: RunIdentity) -> str:
+        """Which inputs differ from ``other``'s, in words (``"the recording and the pipeline
+        differ"``); empty when none does."""
+        names = [f"the {name}" for name in ("recording", "scenario", "pipeline")
+                 if getattr(self, f"{name}_sha256") != getattr(other, f"{name}_sha256")]
+        if not names:
+            return ""
+        return f"{' and '.join(names)} {'differs' if len(names) == 1 else 'differ'}"
 
 
 @dataclass
 class RunState:
     """Everything the runner's loop needs to continue after ``frames_read`` frame messages."""
 
-    key: str
+    identity: RunIdentity
     frames_read: int  # frame messages consumed from the recording (duplicates included)
     n_frames: int  # frames processed
     stages: list
     checker: object
     counts: dict
     stage_seconds: dict
-    written: list[tuple[int, int]] = field(default_factory=list)  # frame indices written, as [start, stop) ranges
-
-    def written_within(self, done: set[int]) -> bool:
-        return all(i in done for a, b in self.written for i in range(a, b))
-
-
-def add_index(ranges: list[tuple[int, int]], index: int) -> None:
-    """Record frame ``index`` as written (ranges stay short for frames written in order)."""
-    if ranges and ranges[-1][1] == index:
-        ranges[-1] = (ranges[-1][0], index + 1)
-    else:
-        ranges.append((index, index + 1))
+    messages: int = 0  # messages given to the output log so far (in write order)
+    digest: str = ""  # their MessageDigest
 
 
 class _Pickler(pickle.Pickler):
@@ -145,19 +181,24 @@ class CheckpointWriter:
         shutil.rmtree(self.dir, ignore_errors=True)
 
 
-def load_checkpoint(output: Path, key: str, done: set[int], context) -> RunState | None:
-    """The newest checkpoint beside ``output`` for this run whose written frames are all in ``done``."""
-    folder = checkpoint_dir(Path(output))
-    for path in sorted(folder.glob("frames-*.pkl"), reverse=True):
+def load_checkpoints(output: Path, identity: RunIdentity, context) -> list[RunState]:
+    """Every readable checkpoint beside ``output``, newest first; a :class:`UserError` naming what
+    differs when one was saved by a run of another recording, scenario or pipeline."""
+    states = []
+    for path in sorted(checkpoint_dir(Path(output)).glob("frames-*.pkl"), reverse=True):
         try:
             with open(path, "rb") as fh:
                 state = _Unpickler(fh, context).load()
         except Exception as exc:  # a damaged checkpoint: try the one before
             warnings.warn(f"--resume: checkpoint {path} unreadable ({type(exc).__name__}: {exc}); trying an older one")
             continue
-        if not isinstance(state, RunState) or state.key != key:
-            warnings.warn(f"--resume: checkpoint {path} belongs to another recording, scenario or pipeline; not used")
+        saved = getattr(state, "identity", None) if isinstance(state, RunState) else None
+        if not isinstance(saved, RunIdentity):
+            warnings.warn(f"--resume: checkpoint {path} is not one this version of rollingstar wrote; not used")
             continue
-        if state.written_within(done):
-            return state
-    return None
+        differ = saved.differences(identity)
+        if differ:
+            raise UserError(f"--resume: checkpoint {path} belongs to another recording, scenario or pipeline "
+                            f"({differ}); remove {path.parent} or run without --resume")
+        states.append(state)
+    return states

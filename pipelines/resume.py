@@ -1,81 +1,164 @@
-"""``rollingstar run --resume``: continue a run whose output was cut short (killed or interrupted).
+"""``rollingstar run --resume``: continue a run that was cut short (killed, interrupted or failed).
 
-The partial output is read with the damaged-file reader (every complete chunk). A frame is
-*complete* when its ``/estimate/frame`` record is there (the runner writes it last for each frame).
-The resumed run writes a new log beside the output (``<output>.resume-tmp``) and moves it over the
-output at the end (so a resume killed in turn leaves the old partial output to resume from):
+A run writes its output through :func:`rollingstar.outputs.safe_output`: an interrupted or failed
+run leaves what it wrote in ``<output>.partial``, a killed one in ``.<output name>.tmp-<pid>``. The
+resume takes the newest of these (:func:`find_partial`; the resumed run holds the output's lock, so
+no live process writes them) and refuses it, with a :class:`~rollingstar.errors.UserError` naming
+what differs, when it was made from another recording, scenario or pipeline (its ``run`` metadata
+record, :class:`~rollingstar.pipelines.checkpoint.RunIdentity`).
 
-1. the partial output's truth messages and every message of its complete frames are copied;
-2. the stages carry state (tracking priors, filters, smoothers) that only the frames before can
-   rebuild: the run restores it from the newest usable checkpoint (:mod:`rollingstar.pipelines.checkpoint`)
-   and reads on from the frame after it, or, without one, runs again from the first frame of the
-   recording; a frame already complete is processed but not written again, a truth message
-   already copied is not written again.
+Frames are never recognised by their content or their ``frame`` field. Either
+
+a. a checkpoint (:mod:`rollingstar.pipelines.checkpoint`) says how many messages ``K`` the run had
+   written when it was saved, with their digest, and the partial output's first ``K`` messages *in
+   write order* have that digest: they are copied, the stages' state is restored, and the run
+   reads on from the frame after the checkpoint; or
+b. no checkpoint is usable: nothing is copied and the run starts again from the first frame.
 
 *Equivalent* (what the tests check): the resumed log and an uninterrupted run's log hold the same
-messages — topic, log time and decoded content, in log-time order — and the same metadata apart
-from the wall-clock ``rollingstar.created_utc``. This holds because the runner is deterministic.
+messages -- topic, log time and decoded content, in log-time order -- and the same metadata apart
+from the wall-clock ``rollingstar.created_utc``. This holds because the runner is deterministic:
+the first ``K`` messages of every run of one recording, scenario and pipeline are the same.
 """
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import warnings
-from dataclasses import dataclass, field
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
-from rollingstar.errors import UserError
+from rollingstar.errors import PipelineError, UserError
+from rollingstar.logs.digest import MessageDigest
 from rollingstar.logs.errors import LogFormatError, TruncatedLogWarning
-from rollingstar.logs.reader import LogReader, Message
-from rollingstar.logs.topics import TOPIC_EST_ATTITUDE, TOPIC_EST_FRAME, TOPIC_EST_POSE, TOPIC_EST_SPOTS, TRUTH_TOPICS
+from rollingstar.logs.reader import LogReader
+from rollingstar.logs.writer import LogWriter
+from rollingstar.outputs import PARTIAL_SUFFIX
+from rollingstar.pipelines.checkpoint import RunIdentity, RunState, load_checkpoints
+
+#: The output's metadata record that holds its :class:`RunIdentity`.
+IDENTITY_RECORD = "run"
 
 
-@dataclass
-class Partial:
-    """What a resumed run keeps from the partial output."""
+@dataclass(frozen=True)
+class ResumePoint:
+    """Where a resumed run starts: the partial output it continues (None: there is none) and the
+    checkpoint whose messages it copies from it (None: it runs from the first frame, copying nothing)."""
 
-    done: set[int] = field(default_factory=set)
-    copy: list[Message] = field(default_factory=list)
-    truth_keys: set[tuple[str, int]] = field(default_factory=set)
+    partial: Path | None = None
+    reader: LogReader | None = None
+    state: RunState | None = None
+    partials: tuple[Path, ...] = ()  # every partial output of this run: obsolete once it completes
+
+    def copy_into(self, writer: LogWriter) -> None:
+        """Copy the checkpoint's messages from the partial output, in write order, and check that
+        ``writer`` (made with ``digest=True``) now holds exactly them."""
+        if self.state is None:
+            return
+        count = self.state.messages
+        with _quiet():
+            for i, (message, _) in enumerate(self.reader.written_messages()):
+                if i == count:
+                    break
+                writer.write_message(message)
+        if (writer.digest.count, writer.digest.hexdigest()) != (count, self.state.digest):
+            raise PipelineError(f"--resume: the {count} message(s) copied from {self.partial} were not written back "
+                                "as they were read (a bug in copying); run again without --resume")
 
 
-def temp_path(output: Path) -> Path:
-    return output.with_name(output.name + ".resume-tmp")
+def leftovers(output: Path) -> list[Path]:
+    """What earlier runs of ``output`` left: ``<output>.partial`` and killed runs' temporary files."""
+    killed = [p for p in output.parent.iterdir() if p.name.startswith(f".{output.name}.tmp-")]
+    candidates = [output.with_name(output.name + PARTIAL_SUFFIX), *killed]
+    return [p for p in candidates if p.is_file() and not p.is_symlink()]
 
 
-def load_partial(output: Path, metadata: dict[str, dict[str, str]]) -> Partial:
-    """The complete frames of ``output``; a :class:`UserError` when it was not written by this pipeline and recording."""
-    output = Path(output)
-    if not output.exists():
-        warnings.warn(f"--resume: {output} does not exist; running from the start")
-        return Partial()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", TruncatedLogWarning)  # a cut file is what resume is for
+def find_partials(output: Path, identity: RunIdentity) -> list[tuple[Path, LogReader]]:
+    """The partial outputs of ``output`` made from ``identity``'s inputs, opened, newest first.
+
+    The newest one that reads as a log must be such a one (else a :class:`UserError` naming what
+    differs); an older one of another run is left alone, with a warning. Empty (with a warning)
+    when there is none."""
+    found: list[tuple[Path, LogReader]] = []
+    for path in sorted(leftovers(output), key=lambda p: p.stat().st_mtime_ns, reverse=True):
         try:
-            reader = LogReader(output)
+            with _quiet():
+                reader = LogReader(path)
         except LogFormatError as exc:
-            raise UserError(f"--resume: cannot read the partial output: {exc}") from None
-        meta = reader.metadata()
-        for name in ("scenario", "pipeline"):
-            if meta.get(name, {}).get("yaml") != metadata[name].get("yaml"):
-                raise UserError(f"--resume: {output} was written by a different {name} "
-                                f"(its metadata '{name}' differs from this run's); remove it or choose another -o")
-        messages = list(reader.messages())
-    done = {int(m.data["frame"]) for m in messages if m.topic == TOPIC_EST_FRAME}
-    t0_done = {int(m.data["t0_ns"]) for m in messages if m.topic == TOPIC_EST_FRAME}
-    att_times = {int(m.data["t_ns"]) for m in messages
-                 if m.topic == TOPIC_EST_ATTITUDE and int(m.data["frame"]) in done and m.data["valid"]}
-    part = Partial(done=done)
-    for m in messages:
-        if m.topic in TRUTH_TOPICS:
-            keep = True
-            part.truth_keys.add((m.topic, m.log_time_ns))
-        elif isinstance(m.data, dict) and "frame" in m.data:
-            keep = int(m.data["frame"]) in done
-        elif m.topic == TOPIC_EST_SPOTS:
-            keep = m.log_time_ns in t0_done
-        elif m.topic == TOPIC_EST_POSE:
-            keep = m.log_time_ns in att_times
-        else:
-            keep = False
-        if keep:
-            part.copy.append(m)
-    return part
+            warnings.warn(f"--resume: {path} is not a readable log ({exc}); not used")
+            continue
+        try:
+            check_identity(path, reader, identity)
+        except UserError as exc:
+            if not found:
+                raise
+            warnings.warn(f"{exc}: not used")
+            continue
+        found.append((path, reader))
+    if not found:
+        warnings.warn(f"--resume: found no partial output of {output} ({output.name}{PARTIAL_SUFFIX} or a killed "
+                      f"run's .{output.name}.tmp-*); running from the first frame")
+    return found
+
+
+def check_identity(path: Path, reader: LogReader, identity: RunIdentity) -> None:
+    """A :class:`UserError` unless ``reader`` is a ``run`` log made from ``identity``'s inputs."""
+    meta = reader.metadata()
+    saved = RunIdentity.from_metadata(meta.get(IDENTITY_RECORD, {}))
+    if meta.get("rollingstar", {}).get("kind") != "run" or saved is None:
+        raise UserError(f"--resume: {path} is not the output of a `rollingstar run` that records what it was made "
+                        f"from (metadata '{IDENTITY_RECORD}'); remove it or run without --resume")
+    differ = saved.differences(identity)
+    if differ:
+        raise UserError(f"--resume: {path} was made from another recording, scenario or pipeline ({differ}: their "
+                        f"SHA-256 are not the ones it records); remove it or run without --resume")
+
+
+def find_resume_point(output: Path, identity: RunIdentity, context) -> ResumePoint:
+    """The furthest checkpoint whose messages one of the partial outputs holds, with that partial
+    output (see the module docstring); without one, the newest partial output and no checkpoint."""
+    partials = find_partials(output, identity)
+    if not partials:
+        return ResumePoint()
+    states = load_checkpoints(output, identity, context)
+    best = ResumePoint(*partials[0])
+    for path, reader in partials:
+        held = prefix_digests(reader, {state.messages for state in states})
+        usable = [state for state in states if held.get(state.messages) == state.digest]
+        if usable and (best.state is None or usable[0].frames_read > best.state.frames_read):
+            best = ResumePoint(path, reader, usable[0])
+    return dataclasses.replace(best, partials=tuple(path for path, _ in partials))
+
+
+def prefix_digests(reader: LogReader, counts: set[int]) -> dict[int, str]:
+    """For each ``k`` in ``counts`` that the log holds that many messages of: the digest of its first
+    ``k`` messages in write order."""
+    digest, out = MessageDigest(), {}
+    if 0 in counts:
+        out[0] = digest.hexdigest()
+    last = max(counts, default=0)
+    with _quiet():
+        for message, data in _readable(reader):
+            if digest.count >= last:
+                break
+            digest.add(message.topic, message.log_time_ns, data)
+            if digest.count in counts:
+                out[digest.count] = digest.hexdigest()
+    return out
+
+
+def _readable(reader: LogReader) -> Iterator:
+    """The log's messages in write order, up to the first that cannot be decoded."""
+    try:
+        yield from reader.written_messages()
+    except LogFormatError:
+        return
+
+
+@contextlib.contextmanager
+def _quiet():
+    """A cut or damaged partial output is what a resume is for: the reader's warnings about it are not news."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", TruncatedLogWarning)
+        yield

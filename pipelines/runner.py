@@ -4,16 +4,19 @@ Message time is the only clock: frames are replayed in log-time order and each f
 gyro samples logged since the previous frame (:mod:`rollingstar.pipelines.source`); the stages run
 over each frame in turn (:mod:`rollingstar.pipelines.stages`); the estimates are written to the
 output log (:mod:`rollingstar.pipelines.sink`). The output log is self-contained for evaluation: it
-holds the recording's scenario metadata and truth topics, the pipeline config, and the estimates.
+holds the recording's scenario metadata and truth topics, the pipeline config, the estimates, and
+what it was made from (metadata record ``run``: SHA-256 of the recording's content, the scenario
+and the pipeline, :class:`~rollingstar.pipelines.checkpoint.RunIdentity`).
 
-``--resume`` wraps both ends: the source skips the frames a checkpoint already holds, and the sink
-neither writes again what the partial output holds complete; a checkpoint is saved every
-``checkpoint_every`` frames and once more after SIGINT (:mod:`rollingstar.pipelines.checkpoint`,
-:mod:`rollingstar.pipelines.resume`).
+The output is written through :func:`rollingstar.outputs.safe_output`: never over an input, one
+writer at a time, an earlier output replaced only when the run completes; a failed or interrupted
+run leaves ``<output>.partial``, a killed one ``.<output name>.tmp-<pid>``. ``--resume`` continues
+from there (:mod:`rollingstar.pipelines.resume`) with a checkpoint of the stages' state, saved
+every ``checkpoint_every`` frames and once more after SIGINT (:mod:`rollingstar.pipelines.checkpoint`).
 """
 from __future__ import annotations
 
-import os
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,19 +25,21 @@ from pydantic import ValidationError
 from rollingstar.config import format_validation_error, to_yaml
 from rollingstar.errors import ConfigError
 from rollingstar.estimators.plugin import Plugin
+from rollingstar.logs.errors import LogWriteError
 from rollingstar.logs.writer import LogWriter
+from rollingstar.outputs import PARTIAL_SUFFIX, check_not_an_input, safe_output
 from rollingstar.pipelines.checkpoint import (
     DEFAULT_EVERY,
     CheckpointWriter,
+    RunIdentity,
     RunState,
-    load_checkpoint,
-    run_key,
+    check_checkpoint_dir,
 )
 from rollingstar.pipelines.config import PipelineConfig
 from rollingstar.pipelines.frame_checks import FrameChecker
 from rollingstar.pipelines.interrupt import Interrupted, StopFlag, stop_on_sigint
 from rollingstar.pipelines.registry import UnknownPluginError, get_plugin_class, stage_params
-from rollingstar.pipelines.resume import Partial, load_partial, temp_path
+from rollingstar.pipelines.resume import IDENTITY_RECORD, ResumePoint, find_resume_point, leftovers
 from rollingstar.pipelines.sink import EstimateSink, new_counts
 from rollingstar.pipelines.source import FrameSource, Recording, open_recording
 from rollingstar.pipelines.stages import StagePipeline, setup_stages, zero_stage_seconds
@@ -69,39 +74,75 @@ def build_stages(config: PipelineConfig, source: str = "<pipeline>") -> list[Plu
 
 def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | Path, pipeline_source: str = "<pipeline>",
                  show_progress: bool = True, max_frames: int | None = None, resume: bool = False,
-                 checkpoint_every: int = DEFAULT_EVERY) -> RunSummary:
+                 checkpoint_every: int = DEFAULT_EVERY, inputs: Iterable[str | Path] = ()) -> RunSummary:
     """Run ``pipeline`` over ``recording`` and write estimates (plus truth and metadata) to ``output``.
 
-    ``resume``: continue from a partial ``output`` (see :mod:`rollingstar.pipelines.resume`), from the newest
-    usable checkpoint if there is one (:mod:`rollingstar.pipelines.checkpoint`, saved every
-    ``checkpoint_every`` frames and on SIGINT; 0: none). On SIGINT the frame in hand is finished,
-    the log finalised and :class:`rollingstar.pipelines.interrupt.Interrupted` raised.
+    ``output`` is refused when it is, or links to, the recording or one of ``inputs`` (the pipeline
+    file). ``resume``: continue from the partial output an earlier run of the same recording,
+    scenario and pipeline left (:mod:`rollingstar.pipelines.resume`), from the newest usable
+    checkpoint (saved every ``checkpoint_every`` frames and on SIGINT; 0: none). On SIGINT the frame
+    in hand is finished, the log finalised as ``<output>.partial`` and
+    :class:`rollingstar.pipelines.interrupt.Interrupted` raised.
     """
+    output = Path(output)
+    inputs = [recording, *inputs]
+    check_not_an_input(output, inputs)
+    check_checkpoint_dir(output)
     stages = build_stages(pipeline, pipeline_source)
     rec = open_recording(recording)
     setup_stages(stages, rec.context, pipeline_source, recording)
-    metadata = {"scenario": rec.scenario, "pipeline": {"yaml": to_yaml(pipeline), "source": str(pipeline_source)}}
-    output = Path(output)
-    start = _Start.find(rec, stages, metadata, output, resume, checkpoint_every)
+    pipeline_yaml = to_yaml(pipeline)
+    identity = RunIdentity.of(recording, rec.scenario.get("yaml", ""), pipeline_yaml)
+    metadata = {"scenario": rec.scenario, "pipeline": {"yaml": pipeline_yaml, "source": str(pipeline_source)},
+                IDENTITY_RECORD: identity.as_metadata()}
+    tmp = None
+    try:
+        with safe_output(output, inputs) as tmp:
+            start = _Start.find(rec, stages, identity, output, resume, checkpoint_every if tmp != output else 0)
+            summary = _run(rec, pipeline.name, start, tmp, metadata, output, max_frames, show_progress)
+            _remove_leftovers(output, tmp, start)
+    except LogWriteError as exc:  # it names the temporary file, kept as <output>.partial
+        if tmp is None or tmp == output:
+            raise
+        raise LogWriteError(str(exc).replace(str(tmp), str(_partial(output)))) from None
+    return summary
+
+
+def _partial(output: Path) -> Path:
+    return output.with_name(output.name + PARTIAL_SUFFIX)
+
+
+def _run(rec: Recording, name: str, start: _Start, target: Path, metadata: dict, output: Path,
+         max_frames: int | None, show_progress: bool) -> RunSummary:
+    """The run itself, into ``target``: copy what the resume point holds, then stream the frames."""
     state = start.state
     run = StagePipeline(state.stages, rec.holds_centroids, state.stage_seconds)
     source = FrameSource(rec, state.checker, run.needs_truth, skip=state.frames_read, delivered=state.n_frames)
-    target = temp_path(output) if resume else output
-    with stop_on_sigint() as stop, LogWriter(target, kind="run", metadata=metadata) as writer, \
-            progress_bar(f"run {pipeline.name}", rec.n_frame_messages, show_progress) as advance:
-        sink = EstimateSink(writer, start.partial, state.counts, state.written)
-        checkpoints = _Checkpoints(start.saver, state.key, source, run, sink)
+    with stop_on_sigint() as stop, LogWriter(target, kind="run", metadata=metadata, digest=True) as writer, \
+            progress_bar(f"run {name}", rec.n_frame_messages, show_progress) as advance:
+        start.point.copy_into(writer)
+        sink = EstimateSink(writer, state.counts)
+        checkpoints = _Checkpoints(start.saver, state.identity, source, run, sink)
         _stream(source, run, sink, checkpoints, max_frames, stop, advance)
-    if resume:
-        os.replace(target, output)
     if stop.requested:
         checkpoints.save()  # a resume continues right after the last frame written
-        raise Interrupted(f"interrupted: {output} is finalised and holds the {source.delivered} frame(s) processed "
-                          f"before SIGINT; continue with `rollingstar run ... -o {output} --resume`")
-    start.saver.remove()
+        raise Interrupted(f"interrupted: {output} was not written (an earlier one is kept as it was); "
+                          f"{_partial(output)} holds the {source.delivered} frame(s) processed before SIGINT; "
+                          f"continue with `rollingstar run ... -o {output} --resume`")
     counts = sink.counts
     return RunSummary(str(output), source.delivered, counts["att"], counts["valid"], counts["flagged"],
                       run.stage_seconds, source.skip)
+
+
+def _remove_leftovers(output: Path, tmp: Path, start: _Start) -> None:
+    """The run completed: what earlier attempts left (the checkpoints, killed runs' temporary files,
+    the partial outputs of this recording, scenario and pipeline a resume found) describes nothing
+    the user still needs."""
+    start.saver.remove()
+    partial = _partial(output)
+    for path in leftovers(output):
+        if path != tmp and (path != partial or path in start.point.partials):
+            path.unlink(missing_ok=True)
 
 
 def _stream(source: FrameSource, run: StagePipeline, sink: EstimateSink, checkpoints: _Checkpoints,
@@ -109,7 +150,6 @@ def _stream(source: FrameSource, run: StagePipeline, sink: EstimateSink, checkpo
     """Every frame from the source through the stages into the sink; then the frames the stages
     still hold, unless SIGINT cut the run (they would be estimates of a cut recording, not the ones
     a full run writes)."""
-    sink.copy_kept()
     for item in source.frames(max_frames, stop):
         sink.write_truth(item.truth)
         if item.frame is not None:
@@ -123,39 +163,38 @@ def _stream(source: FrameSource, run: StagePipeline, sink: EstimateSink, checkpo
 
 @dataclass(frozen=True)
 class _Start:
-    """Where a run starts: what the partial output holds (resume), the state to continue from, the
-    checkpoint writer."""
+    """Where a run starts: the state to continue from, what it copies from a partial output (a
+    resume) and the checkpoint writer."""
 
-    partial: Partial
     state: RunState
+    point: ResumePoint
     saver: CheckpointWriter
 
     @classmethod
-    def find(cls, rec: Recording, stages: list[Plugin], metadata: dict, output: Path, resume: bool,
+    def find(cls, rec: Recording, stages: list[Plugin], identity: RunIdentity, output: Path, resume: bool,
              checkpoint_every: int) -> _Start:
         """A fresh run starts from the first frame with ``stages`` (and removes an earlier run's
-        checkpoints); a resumed one keeps the partial output's complete frames and continues from
-        the newest usable checkpoint, else from the first frame."""
-        partial = load_partial(output, metadata) if resume else Partial()
-        key = run_key(Path(rec.path), metadata)
-        state = load_checkpoint(output, key, partial.done, rec.context) if resume else None
+        checkpoints); a resumed one from the newest checkpoint whose messages the newest partial
+        output holds, else from the first frame."""
+        point = find_resume_point(output, identity, rec.context) if resume else ResumePoint()
+        state = point.state
         saver = CheckpointWriter(output, rec.context, checkpoint_every, keep=state.frames_read if state else None)
-        if not resume:
-            saver.remove()  # an earlier run's checkpoints do not describe this output
+        if point.partial is None:
+            saver.remove()  # checkpoints without their partial output describe nothing this run can use
         if state is None:
-            state = RunState(key, 0, 0, stages, FrameChecker(rec.path, rec.frame_topic, rec.context), new_counts(),
-                             zero_stage_seconds(stages))
-        return cls(partial, state, saver)
+            state = RunState(identity, 0, 0, stages, FrameChecker(rec.path, rec.frame_topic, rec.context),
+                             new_counts(), zero_stage_seconds(stages))
+        return cls(state, point, saver)
 
 
 class _Checkpoints:
     """Saves the run's state every ``saver.every`` frames read: where the source is, the stages,
-    the frame checker and what the sink wrote."""
+    the frame checker, the counters and the messages written so far (count and digest)."""
 
-    def __init__(self, saver: CheckpointWriter, key: str, source: FrameSource, run: StagePipeline,
+    def __init__(self, saver: CheckpointWriter, identity: RunIdentity, source: FrameSource, run: StagePipeline,
                  sink: EstimateSink) -> None:
         self.saver = saver
-        self.key = key
+        self.identity = identity
         self.source = source
         self.run = run
         self.sink = sink
@@ -166,6 +205,6 @@ class _Checkpoints:
             self.save()
 
     def save(self) -> None:
-        source, sink = self.source, self.sink
-        self.saver.save(RunState(self.key, source.frames_read, source.delivered, self.run.stages, source.checker,
-                                 sink.counts, self.run.stage_seconds, sink.written))
+        source, digest = self.source, self.sink.writer.digest
+        self.saver.save(RunState(self.identity, source.frames_read, source.delivered, self.run.stages, source.checker,
+                                 self.sink.counts, self.run.stage_seconds, digest.count, digest.hexdigest()))

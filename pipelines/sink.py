@@ -1,10 +1,9 @@
 """The sink of a run: the output log's estimate topics, and the recording's truth passed through.
 
 :class:`EstimateSink` writes each finished frame (:func:`write_frame`: its stars, spot labels,
-attitude estimates and poses, rate, and last its ``/estimate/frame`` status, which marks the
-frame complete for ``run --resume``) and counts what it wrote. On a resumed run it is given what
-the partial output already holds (:class:`~rollingstar.pipelines.resume.Partial`): those messages
-are copied once, and the frames and truth messages among them are not written again.
+attitude estimates and poses, rate, and last its ``/estimate/frame`` status) and counts what it
+wrote. The writer's own :class:`~rollingstar.logs.digest.MessageDigest` (``LogWriter(digest=True)``)
+counts and hashes every message, for the checkpoints of ``run --resume``.
 """
 from __future__ import annotations
 
@@ -26,8 +25,6 @@ from rollingstar.logs.topics import (
     TOPIC_EST_STARS,
 )
 from rollingstar.logs.writer import LogWriter
-from rollingstar.pipelines.checkpoint import add_index
-from rollingstar.pipelines.resume import Partial
 from rollingstar.sensors.conventions import quat_to_fields
 
 
@@ -39,35 +36,22 @@ def new_counts() -> dict[str, int]:
 class EstimateSink:
     """Writes finished frames and truth messages to ``writer``.
 
-    ``kept``: what the partial output of a resumed run already holds (nothing for a fresh run).
-    ``counts`` (see :func:`new_counts`) and ``written`` (the frame indices handed to :meth:`write`,
-    as ranges) go on from a checkpoint's when given.
+    ``counts`` (see :func:`new_counts`) go on from a checkpoint's when given.
     """
 
-    def __init__(self, writer: LogWriter, kept: Partial | None = None, counts: dict[str, int] | None = None,
-                 written: list[tuple[int, int]] | None = None) -> None:
+    def __init__(self, writer: LogWriter, counts: dict[str, int] | None = None) -> None:
         self.writer = writer
-        self.kept = kept if kept is not None else Partial()
         self.counts = counts if counts is not None else new_counts()
-        self.written = written if written is not None else []
-
-    def copy_kept(self) -> None:
-        """Copy the partial output's messages (a resumed run, before the first frame)."""
-        for m in self.kept.copy:
-            self.writer.write_message(m)
 
     def write_truth(self, messages: Iterable[Message]) -> None:
-        """Pass the recording's truth messages through (those the partial output holds already excepted)."""
+        """Pass the recording's truth messages through."""
         for m in messages:
-            if (m.topic, m.log_time_ns) not in self.kept.truth_keys:
-                self.writer.write_json(m.topic, m.data, m.log_time_ns)
+            self.writer.write_json(m.topic, m.data, m.log_time_ns)
 
     def write(self, frames: Iterable[FrameData]) -> None:
-        """Write and count finished frames (a frame the partial output holds complete is only counted)."""
+        """Write and count finished frames."""
         for frame in frames:
-            if frame.index not in self.kept.done:
-                write_frame(self.writer, frame)
-            add_index(self.written, frame.index)
+            write_frame(self.writer, frame)
             self.counts["att"] += len(frame.attitudes)
             self.counts["valid"] += sum(a.valid for a in frame.attitudes)
             self.counts["flagged"] += bool(frame.flags)

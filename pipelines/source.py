@@ -75,8 +75,9 @@ class RecordedFrame:
     """One frame message of the recording.
 
     ``truth``: the truth messages logged with it, to pass on to the output. ``frame``: the frame for
-    the stages, or None when it is not to be processed: it was processed before the checkpoint the
-    run resumed from, or it is an exact duplicate of the previous frame (``duplicate``, warned).
+    the stages, or None when it is not to be processed: it was read before the checkpoint the run
+    resumed from (its truth is in the messages copied from the partial output: ``truth`` is empty),
+    or it is an exact duplicate of the previous frame (``duplicate``, warned).
     """
 
     truth: tuple[Message, ...]
@@ -88,9 +89,10 @@ class FrameSource:
     """The frames of ``recording`` in log-time order, checked by ``checker``.
 
     ``with_truth``: frames carry the recording's truth attitude samples (``frame.truth``).
-    ``skip``: the first ``skip`` frame messages were processed before a checkpoint: only their truth
-    is passed on (the checker's state comes from the same checkpoint). ``delivered``: frames handed
-    to the stages before that checkpoint (it numbers the frames of an image recording).
+    ``skip``: the first ``skip`` frame messages were read before a checkpoint: they are read past
+    without a frame or truth (the checker's state comes from the same checkpoint, their truth was
+    copied with the checkpoint's messages). ``delivered``: frames handed to the stages before that
+    checkpoint (it numbers the frames of an image recording).
 
     ``frames_read`` counts the frame messages read (duplicates and skipped ones included),
     ``delivered`` the frames handed on.
@@ -107,17 +109,19 @@ class FrameSource:
 
     def frames(self, max_frames: int | None, stop: StopFlag) -> Iterator[RecordedFrame]:
         """Every frame message in turn; ends before the next one once ``max_frames`` frames were
-        delivered or ``stop.requested`` (SIGINT)."""
+        delivered or ``stop.requested`` (SIGINT), but never among the skipped ones (a checkpoint
+        saved then would pair the restored stages with a source that is not yet where they were)."""
         groups = iter_frames(self.recording.reader, self.recording.frame_topic, [TOPIC_GYRO, *TRUTH_TOPICS],
                              tolerate_bad_side=True)
         for group in groups:
-            if (max_frames is not None and self.delivered >= max_frames) or stop.requested:
+            if self.frames_read >= self.skip and (
+                    (max_frames is not None and self.delivered >= max_frames) or stop.requested):
                 return
             self.frames_read += 1
-            truth = tuple(m for topic in TRUTH_TOPICS for m in group.side.get(topic, []))
             if self.frames_read <= self.skip:
-                yield RecordedFrame(truth, None)
+                yield RecordedFrame((), None)
                 continue
+            truth = tuple(m for topic in TRUTH_TOPICS for m in group.side.get(topic, []))
             frame = self._frame(group)
             if frame is None:
                 yield RecordedFrame(truth, None, duplicate=True)

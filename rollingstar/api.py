@@ -50,8 +50,9 @@ def run(pipeline: str | Path | PipelineConfig, recording: str | Path, output: st
         show_progress: bool = False) -> RunSummary:
     """Run a pipeline over a recording and write its estimates (``rollingstar run``)."""
     config, source = _pipeline(pipeline)
+    inputs = [] if isinstance(pipeline, PipelineConfig) else [source]
     return run_pipeline(recording, config, output, pipeline_source=source, show_progress=show_progress,
-                        resume=resume)
+                        resume=resume, inputs=inputs)
 
 
 def evaluate(output: str | Path) -> dict:

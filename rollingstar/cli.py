@@ -136,10 +136,10 @@ def run(pipeline: str = typer.Argument(..., help="pipeline YAML, or a shipped pi
     pipeline = find_config(pipeline, "pipeline")
     cfg = load_pipeline(pipeline)
     s = run_pipeline(recording, cfg, output, pipeline_source=str(pipeline), show_progress=not quiet, resume=resume,
-                     checkpoint_every=checkpoint_every)
+                     checkpoint_every=checkpoint_every, inputs=[pipeline])
     if resume:
         out.print(f"resumed from a checkpoint after {s.resumed_after_frames} frames" if s.resumed_after_frames else
-                  "resumed: no usable checkpoint, every frame re-run (frames already written were not written again)")
+                  "resumed: no usable checkpoint, every frame re-run from the first")
     out.print(f"wrote {s.output}: {s.frames} frames, {s.valid_estimates}/{s.attitude_estimates} valid attitude "
               f"estimates, {s.flagged_frames} flagged frames")
 

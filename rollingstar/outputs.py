@@ -21,6 +21,7 @@ import errno
 import fcntl
 import os
 import shutil
+import stat
 import warnings
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -131,6 +132,16 @@ def _holds_other_files(folder: Path) -> bool:
     return folder.is_dir() and any(folder.iterdir()) and not (folder / FOLDER_MARK).is_file()
 
 
+def _is_special_file(target: Path) -> bool:
+    """A device, pipe or socket (``-o /dev/null``): written to directly, since renaming a file over it
+    would replace the device itself."""
+    try:
+        mode = target.stat().st_mode
+    except OSError:
+        return False
+    return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
+
+
 def _has_content(target: Path) -> bool:
     return target.is_file() or (target.is_dir() and any(target.iterdir()))
 
@@ -151,9 +162,13 @@ def safe_output(target: str | Path, inputs: Iterable[str | Path] = (), directory
     """Yield a temporary path beside ``target`` to write to; rename it into place on success.
 
     On an exception (Ctrl-C included) the target is untouched and the temporary path becomes
-    ``<target>.partial`` (replacing an older one); the exception propagates."""
+    ``<target>.partial`` (replacing an older one); the exception propagates. A ``target`` that is a
+    device or pipe is yielded itself: there is nothing to replace atomically or to keep."""
     target = Path(target)
     check_not_an_input(target, inputs)
+    if not directory and _is_special_file(target):
+        yield target
+        return
     _check_target_kind(target, directory)
     with output_lock(target):
         if _has_content(target):

@@ -1,6 +1,7 @@
-"""SIGINT at a known frame, in process: the output is finalised, and ``resume`` gives the output of
-an uninterrupted run, for a pipeline that checkpoints and for one with a smoother (which restarts
-from the first frame). The subprocess kill-and-resume cases are in tests/reliability/test_crash.py."""
+"""SIGINT at a known frame, in process: the partial output ``<output>.partial`` is finalised, and
+``resume`` gives the output of an uninterrupted run, for a pipeline that checkpoints and for one with
+a smoother (which restarts from the first frame). The subprocess kill-and-resume cases are in
+tests/reliability/test_crash.py."""
 from __future__ import annotations
 
 import json
@@ -58,7 +59,9 @@ def test_sigint_finalises_and_resume_equals_an_uninterrupted_run(tmp_path, small
     with pytest.raises(Interrupted, match=r"holds the 8 frame\(s\) processed before SIGINT; continue with "
                                           r"`rollingstar run \.\.\. -o .*out\.mcap --resume`"):
         run_pipeline(small_recording, pipeline, out, show_progress=False)
-    frames = [m.data["frame"] for m in LogReader(out).messages("/estimate/frame")]  # a finalised log
+    partial = tmp_path / "out.mcap.partial"
+    assert not out.exists()
+    frames = [m.data["frame"] for m in LogReader(partial).messages("/estimate/frame")]  # a finalised log
     assert frames == list(range(8 if checkpoints else len(frames))) and len(frames) <= 8
     assert checkpoint_dir(out).exists() == checkpoints
     resumed = run_pipeline(small_recording, pipeline, out, show_progress=False, resume=True)
@@ -66,4 +69,4 @@ def test_sigint_finalises_and_resume_equals_an_uninterrupted_run(tmp_path, small
     assert (resumed.frames, resumed.attitude_estimates, resumed.valid_estimates, resumed.flagged_frames) == \
         (full.frames, full.attitude_estimates, full.valid_estimates, full.flagged_frames)
     assert _messages(out) == _messages(ref)
-    assert not checkpoint_dir(out).exists()
+    assert not checkpoint_dir(out).exists() and not partial.exists()

@@ -1,9 +1,10 @@
 """Crash safety and determinism with real subprocesses (docs/reliability.md).
 
 Killed (SIGKILL) or interrupted (SIGINT) part-way, ``rollingstar run`` leaves a log whose every
-complete message reads back; ``run --resume`` then produces an output *equivalent* to an
-uninterrupted run: the same messages (topic, log time, decoded content) in log-time order and the
-same metadata apart from the wall-clock ``rollingstar.created_utc``.
+complete message reads back (a killed run in ``.<output>.tmp-<pid>``, an interrupted one in
+``<output>.partial``; the output itself is not written); ``run --resume`` then produces an output
+*equivalent* to an uninterrupted run: the same messages (topic, log time, decoded content) in
+log-time order and the same metadata apart from the wall-clock ``rollingstar.created_utc``.
 """
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ from rollingstar.logs.reader import LogReader
 from rollingstar.pipelines.simulate import simulate_to_log
 from rollingstar.sensors.scenario import load_scenario
 
-from .helpers import PIPELINE, ROOT, SCENARIO
+from .helpers import PIPELINE, ROOT, SCENARIO, assert_exit_2, rewrite
 
 FRAMES = 250
 
@@ -70,6 +71,12 @@ def _written(out) -> int:
     return max((c.stat().st_size for c in candidates if c.exists()), default=-1)
 
 
+def _leftovers(out) -> list:
+    """What a cut run of ``out`` left: ``<name>.partial`` and killed runs' ``.<name>.tmp-<pid>``."""
+    return sorted(p.name for p in out.parent.iterdir() if p.name == f"{out.name}.partial"
+                  or p.name.startswith(f".{out.name}.tmp-"))
+
+
 def _start(args, out, min_bytes):
     """Start ``rollingstar ARGS`` and return once ``out`` (or its temporary file) has ``min_bytes``
     on disk (finished chunks)."""
@@ -94,7 +101,10 @@ def test_killed_run_keeps_complete_messages_and_resumes_to_an_equivalent_output(
     proc = _start(["run", PIPELINE, rec, "-o", out, "-q", "--checkpoint-every", every], out, 520_000)
     proc.send_signal(getattr(signal, sig))
     _, err = proc.communicate(timeout=60)
-    partial, _, truncated = _read(out)
+    assert not out.exists()
+    cut = tmp_path / ("out.mcap.partial" if sig == "SIGINT" else f".out.mcap.tmp-{proc.pid}")
+    assert _leftovers(out) == [cut.name]
+    partial, _, truncated = _read(cut)
     full, _, _ = _read(ref)
     assert set(partial) <= set(full)  # every message read back is one the full run writes, intact
     frames = [json.loads(k[2])["frame"] for k in partial if k[0] == "/estimate/frame"]
@@ -119,6 +129,42 @@ def test_killed_run_keeps_complete_messages_and_resumes_to_an_equivalent_output(
     else:
         assert not resumed and "every frame re-run" in res.stdout, res.stdout
     assert not (tmp_path / "out.mcap.checkpoints").exists()  # removed once the run completes
+    assert _leftovers(out) == [] and not list(tmp_path.glob(".out.mcap.lock"))
+
+
+def test_killed_run_of_a_recording_with_repeated_frame_fields_resumes_to_an_equivalent_output(tmp_path, recording):
+    """The ``frame`` field of the centroid records repeats (0..6, 0..6, ...): a resume counts
+    messages, never frame fields, and writes every frame."""
+    rec = rewrite(recording[0], tmp_path / "repeated.mcap", lambda ms: [
+        type(m)(m.topic, m.log_time_ns, m.schema_name, dict(m.data, frame=m.data["frame"] % 7))
+        if m.topic == "/camera/centroids" else m for m in ms])
+    ref, out = tmp_path / "ref.mcap", tmp_path / "out.mcap"
+    args = ["run", PIPELINE, rec, "-q", "--checkpoint-every", "20"]
+    p = subprocess.run([sys.executable, "-m", "rollingstar.cli", *map(str, args), "-o", ref], cwd=ROOT,
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and f"{FRAMES} frames" in p.stdout, p.stderr
+    proc = _start([*args, "-o", out], out, 520_000)
+    proc.kill()
+    proc.communicate(timeout=60)
+    res = subprocess.run([sys.executable, "-m", "rollingstar.cli", *map(str, args), "-o", out, "--resume"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and f"wrote {out}: {FRAMES} frames" in res.stdout, res.stderr
+    assert "resumed from a checkpoint after" in res.stdout, res.stdout
+    _assert_equivalent(out, ref)
+    assert sum(1 for k in _read(out)[0] if k[0] == "/estimate/frame") == FRAMES
+
+
+def test_a_second_run_to_one_output_is_refused_naming_the_first(tmp_path, recording):
+    rec, ref = recording
+    out = tmp_path / "out.mcap"
+    first = _start(["run", PIPELINE, rec, "-o", out, "-q"], out, 1)
+    lock = tmp_path / ".out.mcap.lock"
+    assert lock.read_text() == f"pid {first.pid}"
+    assert_exit_2(("run", PIPELINE, rec, "-o", out, "-q"), "another rollingstar command is writing this output",
+                  f"(pid {first.pid})")
+    _, err = first.communicate(timeout=120)
+    assert first.returncode == 0, err  # the first run is not disturbed
+    _assert_equivalent(out, ref)
 
 
 def test_interrupted_simulate_exits_130_keeping_a_finalised_partial_log(tmp_path):

@@ -38,14 +38,15 @@ def test_disk_full_part_way_keeps_every_finished_chunk(tmp_path, small_recording
     monkeypatch.setattr(writer_module.os, "write", write)
     out = tmp_path / "o.mcap"
     pipeline = PipelineConfig(stages=[{"kind": "tracking"}, {"kind": "quest"}])
-    with pytest.raises(LogWriteError, match=r"o\.mcap: No space left on device after 60000 bytes"):
+    with pytest.raises(LogWriteError, match=r"o\.mcap\.partial: No space left on device after 60000 bytes"):
         # small chunks, so that several are finished before the disk is full
         monkeypatch.setattr(runner_module, "LogWriter", functools.partial(writer_module.LogWriter, chunk_size=8192))
         run_pipeline(small_recording, pipeline, out, show_progress=False)
     monkeypatch.undo()
-    assert out.stat().st_size == 60_000
+    partial = tmp_path / "o.mcap.partial"  # what was written; the output itself is not
+    assert partial.stat().st_size == 60_000 and not out.exists()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        frames = [m.data["frame"] for m in LogReader(out).messages("/estimate/frame")]
+        frames = [m.data["frame"] for m in LogReader(partial).messages("/estimate/frame")]
     assert any(issubclass(w.category, TruncatedLogWarning) for w in caught)
     assert 0 < len(frames) < 20 and frames == list(range(len(frames)))
