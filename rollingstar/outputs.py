@@ -33,6 +33,10 @@ PARTIAL_SUFFIX = ".partial"
 FOLDER_MARK = ".rollingstar-output"
 
 
+class PartialOutputWarning(UserWarning):
+    """A command failed; what it wrote is kept under the ``.partial`` name."""
+
+
 class OverwriteWarning(UserWarning):
     """An existing output is being replaced (it stays untouched until the new one is complete)."""
 
@@ -181,11 +185,14 @@ def safe_output(target: str | Path, inputs: Iterable[str | Path] = (), directory
             (tmp / FOLDER_MARK).write_text("written by rollingstar; a later run may replace this folder\n")
         try:
             yield tmp
-        except BaseException:
+        except BaseException as exc:
             if tmp.exists():
                 partial = target.with_name(target.name + PARTIAL_SUFFIX)
                 _remove(partial)
                 os.replace(tmp, partial)
+                if not isinstance(exc, KeyboardInterrupt):  # an interruption's own message says where
+                    warnings.warn(PartialOutputWarning(f"what was written before the failure is kept as {partial}; "
+                                                       f"{target} is untouched"), stacklevel=3)
             raise
         _install(tmp, target, directory)
 
