@@ -7,6 +7,7 @@ import pytest
 from rollingstar.errors import PipelineError
 from rollingstar.estimators.attitude.base import AttitudeSolver
 from rollingstar.logs.reader import LogReader
+from rollingstar.outputs import PartialOutputWarning
 from rollingstar.pipelines import runner as runner_module
 from rollingstar.pipelines.config import PipelineConfig
 from rollingstar.pipelines.runner import run_pipeline
@@ -37,7 +38,8 @@ def test_a_plugin_that_raises_names_stage_and_frame_and_keeps_earlier_frames(tmp
     monkeypatch.setattr(runner_module, "get_plugin_class", lambda kind: Exploding if kind == "exploding" else real(kind))
     out = tmp_path / "o.mcap"
     with pytest.raises(PipelineError, match=r"stage 'exploding' \(attitude\) failed on frame 4 \(t0 = \d+ ns\): "
-                                            r"ZeroDivisionError: division by zero"):
+                                            r"ZeroDivisionError: division by zero"), \
+            pytest.warns(PartialOutputWarning, match="o.mcap.partial; .*o.mcap is untouched"):
         run_pipeline(small_recording, PipelineConfig(stages=[{"kind": "tracking"}, {"kind": "exploding"}]), out,
                      show_progress=False)
     assert not out.exists()  # what was written is kept under its own name

@@ -8,7 +8,14 @@ import sys
 import pytest
 
 from rollingstar.errors import UserError
-from rollingstar.outputs import FOLDER_MARK, OverwriteWarning, check_not_an_input, output_lock, safe_output
+from rollingstar.outputs import (
+    FOLDER_MARK,
+    OverwriteWarning,
+    PartialOutputWarning,
+    check_not_an_input,
+    output_lock,
+    safe_output,
+)
 
 
 @pytest.fixture
@@ -58,10 +65,15 @@ def test_success_replaces_the_target_and_says_so(tmp_path):
 def test_failure_keeps_the_previous_output_and_the_partial_under_its_own_name(tmp_path, exc):
     target = tmp_path / "out.mcap"
     target.write_bytes(b"good 20-frame log")
-    with pytest.raises(type(exc)), pytest.warns(OverwriteWarning):
+    with pytest.raises(type(exc)), pytest.warns(UserWarning) as warned:
         with safe_output(target) as tmp:
             tmp.write_bytes(b"10 frames")
             raise exc
+    assert any(w.category is OverwriteWarning for w in warned)
+    said = [str(w.message) for w in warned if w.category is PartialOutputWarning]
+    # a failure says where its partial result is; an interruption says it in its own message
+    assert said == ([] if isinstance(exc, KeyboardInterrupt) else [f"what was written before the failure is kept "
+                                                                  f"as {target}.partial; {target} is untouched"])
     assert target.read_bytes() == b"good 20-frame log"
     assert (tmp_path / "out.mcap.partial").read_bytes() == b"10 frames"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.mcap", "out.mcap.partial"]

@@ -11,6 +11,7 @@ import pytest
 from rollingstar.logs import writer as writer_module
 from rollingstar.logs.errors import LogWriteError, TruncatedLogWarning
 from rollingstar.logs.reader import LogReader
+from rollingstar.outputs import PartialOutputWarning
 from rollingstar.pipelines import runner as runner_module
 from rollingstar.pipelines.config import PipelineConfig
 from rollingstar.pipelines.runner import run_pipeline
@@ -38,7 +39,8 @@ def test_disk_full_part_way_keeps_every_finished_chunk(tmp_path, small_recording
     monkeypatch.setattr(writer_module.os, "write", write)
     out = tmp_path / "o.mcap"
     pipeline = PipelineConfig(stages=[{"kind": "tracking"}, {"kind": "quest"}])
-    with pytest.raises(LogWriteError, match=r"o\.mcap\.partial: No space left on device after 60000 bytes"):
+    with pytest.raises(LogWriteError, match=r"o\.mcap\.partial: No space left on device after 60000 bytes"), \
+            pytest.warns(PartialOutputWarning, match="o.mcap.partial"):
         # small chunks, so that several are finished before the disk is full
         monkeypatch.setattr(runner_module, "LogWriter", functools.partial(writer_module.LogWriter, chunk_size=8192))
         run_pipeline(small_recording, pipeline, out, show_progress=False)
