@@ -22,7 +22,7 @@ demo: $(STAMP)
 # collected) must fail the run.
 test: $(STAMP)
 	$(PY) -m ruff check --no-cache .
-	@$(PY) -m pytest -q -p no:cacheprovider; rc=$$?; \
+	@$(PY) -m pytest -q -p no:cacheprovider --durations=10; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; exit 1; fi; exit $$rc
 
 bench: $(STAMP)

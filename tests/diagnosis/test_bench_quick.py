@@ -5,6 +5,8 @@ import pytest
 
 from rollingstar.studies.bench.discrepancy import NULL_FRACTION, run_benchmark
 
+pytestmark = pytest.mark.slow  # whole reproductions, benchmarks or killed processes: `-m 'not slow'` skips them
+
 
 @pytest.fixture(scope="module")
 def bench():

@@ -14,6 +14,8 @@ from typer.testing import CliRunner
 
 from rollingstar.cli import app
 
+pytestmark = pytest.mark.slow  # whole reproductions, benchmarks or killed processes: `-m 'not slow'` skips them
+
 EXPECTED = {"quest", "kf", "rate", "centroid_full", "centroid_windowed", "render", "render_speedup",
             "replay_centroid", "replay_image", "compare"}
 

@@ -26,6 +26,8 @@ from rollingstar.sensors.scenario import load_scenario
 
 from .helpers import PIPELINE, ROOT, SCENARIO, assert_exit_2, rewrite
 
+pytestmark = pytest.mark.slow  # whole reproductions, benchmarks or killed processes: `-m 'not slow'` skips them
+
 FRAMES = 250
 
 

@@ -12,6 +12,8 @@ import pytest
 
 from rollingstar.studies.reproduce import paper_values, run_reproduction
 
+pytestmark = pytest.mark.slow  # whole reproductions, benchmarks or killed processes: `-m 'not slow'` skips them
+
 
 @pytest.fixture(scope="module")
 def rows():

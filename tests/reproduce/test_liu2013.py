@@ -6,6 +6,8 @@ import pytest
 
 from rollingstar.studies.reproduce import liu2013
 
+pytestmark = pytest.mark.slow  # whole reproductions, benchmarks or killed processes: `-m 'not slow'` skips them
+
 
 @pytest.fixture(scope="module")
 def summary():
