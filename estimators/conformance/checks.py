@@ -11,7 +11,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
-import time
 from collections.abc import Callable, Iterator
 
 import numpy as np
@@ -40,7 +39,6 @@ CENTROID_MATCH_PX = 0.5  # a detected spot in the moving scene lies this close t
 # (the scene's velocities are ~90 px/s; a px-per-frame or sign mistake is off by ~100 %).
 VELOCITY_RELATIVE_TOLERANCE = 0.3
 VELOCITY_FLOOR_PX_S = 5.0
-MAX_CONSTRUCTOR_S = 0.05
 # The columns an identifier sets; every other column of a star passes through unchanged.
 IDENTIFICATION_COLUMNS = ("catalog_id", "ref_icrs")
 
@@ -200,10 +198,9 @@ def check_attitudes(before: FrameData, out: FrameData, scene, empty: bool, max_e
 
 # ------------------------------------------------------------------------------ checks of every plugin
 def check_constructor_only_stores_params(cls):
-    """The constructor is cheap, validates the parameters into ``cls.Params`` and stores nothing else."""
-    start = time.perf_counter()
+    """The constructor validates the parameters into ``cls.Params`` and stores nothing else (heavy
+    work belongs in ``setup``; checked by what the instance holds, never by a clock)."""
     plugin = cls()
-    assert time.perf_counter() - start < MAX_CONSTRUCTOR_S, "the constructor must not do heavy work"
     assert issubclass(cls, Plugin), "a plugin subclasses a role base class of rollingstar.estimators"
     assert cls.role and cls.name, "a plugin class sets role and name"
     assert set(vars(plugin)) == {"params"}, f"the constructor created state: {sorted(vars(plugin))}"
