@@ -27,6 +27,8 @@ from google.protobuf.timestamp_pb2 import Timestamp
 from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import register_schema
 
+from rollingstar.errors import UserError
+
 from .digest import MessageDigest
 from .errors import LogWriteError
 from .records import FORMAT_VERSION, TOPIC_RECORDS, _Record
@@ -52,7 +54,7 @@ def creation_time() -> datetime:
         try:
             return datetime.fromtimestamp(int(epoch), timezone.utc)
         except ValueError:
-            raise ValueError(f"SOURCE_DATE_EPOCH must be an integer number of seconds, got {epoch!r}") from None
+            raise UserError(f"SOURCE_DATE_EPOCH must be a whole number of seconds, got {epoch[:40]!r}") from None
     return datetime.now(timezone.utc)
 
 

@@ -479,6 +479,12 @@ def main() -> None:
 
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
+    # Read by our log writer and, at import, by numpy.f2py (which numba loads): checked before both.
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    if epoch is not None and not epoch.strip().isdigit():
+        err.print(f"[bold red]error:[/] SOURCE_DATE_EPOCH must be a whole number of seconds since 1970 "
+                  f"(reproducible builds), got {epoch[:40]!r}; unset it or fix it", highlight=False, soft_wrap=True)
+        sys.exit(2)
     return app()
 
 

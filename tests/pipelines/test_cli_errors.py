@@ -109,3 +109,11 @@ def test_version(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "rollingstar", "--version"], capture_output=True, text=True,
                           cwd=tmp_path, timeout=300)
     assert proc.returncode == 0 and proc.stdout.strip() == f"rollingstar {rollingstar.__version__}"
+
+
+def test_an_unparsable_source_date_epoch_is_named(tmp_path):
+    env = dict(__import__("os").environ, SOURCE_DATE_EPOCH="yesterday")
+    proc = subprocess.run([sys.executable, "-m", "rollingstar", "simulate", "he2021b", "-o", tmp_path / "r.mcap",
+                           "--frames", "2", "-q"], capture_output=True, text=True, cwd=tmp_path, env=env, timeout=300)
+    assert_clean_error(proc, "SOURCE_DATE_EPOCH must be a whole number of seconds", "'yesterday'")
+    assert not (tmp_path / "r.mcap").exists()
