@@ -98,6 +98,9 @@ def read_yaml(path: str | Path) -> dict:
             raise ConfigError(f"{path}: {path.stat().st_size} bytes; a config may be at most {MAX_YAML_BYTES} bytes")
         text = path.read_text()
     except UnicodeDecodeError as exc:
+        if path.read_bytes()[:5] == b"\x89MCAP":
+            raise ConfigError(f"{path}: an MCAP recording where a YAML config was expected; are the arguments in "
+                              "order (e.g. `rollingstar run PIPELINE RECORDING -o OUTPUT`)?") from None
         raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}): a config must be a YAML file") from None
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read config file: {exc.strerror}") from None

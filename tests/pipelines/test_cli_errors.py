@@ -117,3 +117,8 @@ def test_an_unparsable_source_date_epoch_is_named(tmp_path):
                            "--frames", "2", "-q"], capture_output=True, text=True, cwd=tmp_path, env=env, timeout=300)
     assert_clean_error(proc, "SOURCE_DATE_EPOCH must be a whole number of seconds", "'yesterday'")
     assert not (tmp_path / "r.mcap").exists()
+
+
+def test_arguments_in_the_wrong_order_are_named(tmp_path, small_recording):
+    assert_clean_error(cli("run", small_recording, BASELINE, "-o", tmp_path / "o.mcap"),
+                       "an MCAP recording where a YAML config was expected; are the arguments in order")
