@@ -25,7 +25,11 @@ class StarTable:
       own row; a rolling-shutter correction moves every star to one common time and says so here.
     - ``row_time_ns``: exposure start of the star's (fractional) centroid row, ``t0 + y * line_delay``.
     - ``flux`` (ADU or electrons above background), ``peak``, ``npix``, ``saturated``, ``snr``.
-    - ``sigma_px``: 1-sigma position uncertainty per axis (NaN when unknown).
+    - ``sigma_px``: 1-sigma position uncertainty per axis (NaN when unknown); with a 2-D covariance
+      it is the derived isotropic equivalent ``sqrt((cov_xx + cov_yy) / 2)``.
+    - ``cov_xx, cov_xy, cov_yy``: the 2 x 2 position covariance (px^2) in image axes (NaN when
+      unknown; then ``sigma_px`` stands for ``diag(sigma_px^2, sigma_px^2)``). A smeared spot's
+      covariance is long along the smear and short across it.
     - ``vx, vy``: image velocity in px/s (NaN when unknown; star-motion filters fill it).
     - ``catalog_id``: identified catalogue star (-1 when unidentified); ``ref_icrs`` its ICRS unit
       vector (NaN rows when unidentified).
@@ -41,6 +45,9 @@ class StarTable:
     saturated: np.ndarray
     snr: np.ndarray
     sigma_px: np.ndarray
+    cov_xx: np.ndarray
+    cov_xy: np.ndarray
+    cov_yy: np.ndarray
     vx: np.ndarray
     vy: np.ndarray
     catalog_id: np.ndarray
@@ -72,6 +79,9 @@ class StarTable:
             "saturated": np.zeros(n, dtype=bool),
             "snr": np.full(n, np.nan),
             "sigma_px": np.full(n, np.nan),
+            "cov_xx": np.full(n, np.nan),
+            "cov_xy": np.full(n, np.nan),
+            "cov_yy": np.full(n, np.nan),
             "vx": np.full(n, np.nan),
             "vy": np.full(n, np.nan),
             "catalog_id": np.full(n, -1, dtype=np.int64),
@@ -104,6 +114,24 @@ class StarTable:
             if np.shape(value) != old.shape:
                 raise ValueError(f"column {name!r}: expected shape {old.shape}, got {np.shape(value)}")
         return replace(self, **{k: np.asarray(v, dtype=getattr(self, k).dtype).copy() for k, v in columns.items()})
+
+    def position_covariance(self, default_sigma_px: float, use_star_sigma: bool = True) -> np.ndarray:
+        """Each star's 2 x 2 position covariance (n, 2, 2), px^2: its own ``cov_*`` when finite and
+        positive definite, else ``sigma_px^2 I`` when ``sigma_px`` is finite and positive, else
+        ``default_sigma_px^2 I``. With ``use_star_sigma=False`` every star gets the default."""
+        n = self.n
+        cov = np.zeros((n, 2, 2))
+        cov[:, 0, 0] = cov[:, 1, 1] = float(default_sigma_px) ** 2
+        if not use_star_sigma or n == 0:
+            return cov
+        sig = self.sigma_px
+        iso = np.isfinite(sig) & (sig > 0)
+        cov[iso, 0, 0] = cov[iso, 1, 1] = sig[iso] ** 2
+        xx, xy, yy = self.cov_xx, self.cov_xy, self.cov_yy
+        with np.errstate(invalid="ignore"):
+            full = np.isfinite(xx) & np.isfinite(xy) & np.isfinite(yy) & (xx > 0) & (yy > 0) & (xx * yy - xy * xy > 0)
+        cov[full, 0, 0], cov[full, 0, 1], cov[full, 1, 0], cov[full, 1, 1] = xx[full], xy[full], xy[full], yy[full]
+        return cov
 
     @property
     def identified(self) -> np.ndarray:
@@ -178,6 +206,26 @@ class TruthSamples:
 
 
 @dataclass(frozen=True)
+class IdentificationCheck:
+    """How likely a frame's identified stars are chance coincidences (identifiers/integrity.py).
+
+    ``false_match_prob``: the probability that ``n_matched`` or more of ``n_detections`` random
+    detections would fall within ``gate_px`` of one of the ``n_predicted`` catalogue stars on the
+    detector; ``bound`` the largest accepted; ``passed`` whether it was accepted; ``reason`` why
+    not ("" when passed).
+    """
+
+    false_match_prob: float
+    n_detections: int
+    n_matched: int
+    n_predicted: int
+    gate_px: float
+    bound: float
+    passed: bool
+    reason: str = ""
+
+
+@dataclass(frozen=True)
 class FrameData:
     """Everything the stages know about one frame.
 
@@ -186,7 +234,11 @@ class FrameData:
     identifier could not match; ``attitudes`` one or more estimates (several per frame for
     sub-frame solvers); ``flags`` short machine-readable notes (e.g. ``"too_few_stars"``);
     ``truth`` the recording's truth samples of this frame, present only when a stage of the
-    pipeline declares ``needs_truth`` (None otherwise, and always on real data).
+    pipeline declares ``needs_truth`` (None otherwise, and always on real data);
+    ``camera`` the camera model an identifier fitted on this frame (focal length, principal point,
+    distortion), which later stages use instead of the sensor context's (None: the context's, see
+    :func:`frame_camera`); ``identification`` the integrity check of the frame's identified stars
+    (:class:`IdentificationCheck`, None before an identifier ran).
     """
 
     index: int
@@ -199,6 +251,8 @@ class FrameData:
     rate: RateEstimate | None = None
     flags: tuple[str, ...] = ()
     truth: TruthSamples | None = None
+    camera: Any = None
+    identification: "IdentificationCheck | None" = None
 
     def evolve(self, **changes) -> "FrameData":
         """A new frame with some fields replaced (frames are immutable)."""
@@ -238,6 +292,11 @@ class SensorContext:
             centroid_sigma_px=cfg.noise.centroid_sigma_px if cfg.level == "centroid" else None,
             bit_depth=cfg.image.bit_depth if cfg.level == "image" else None,
         )
+
+
+def frame_camera(frame: FrameData, context):
+    """The camera model for ``frame``: the one an identifier fitted on it, else the context's."""
+    return frame.camera if frame.camera is not None else context.camera
 
 
 #: Centroid 1-sigma (px per axis) the estimators assume when neither the stars, their parameters
