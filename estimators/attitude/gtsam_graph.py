@@ -8,8 +8,9 @@ Factors:
 
 - star ``i`` at state ``s``: ``AttitudeFactorRot3(r_s, nRef = r_i, model, bMeasured = b_i)`` with
   error ``nRef.error(R b_i)`` (the 2-vector of the measured direction rotated to ICRS in the
-  tangent plane of the catalogue direction, rad), isotropic 1-sigma ``sigma_i`` (optionally
-  wrapped in a Huber M-estimator);
+  tangent plane of the catalogue direction, rad), isotropic 1-sigma ``sigma_i``, or the star's
+  2 x 2 direction covariance when the frame's stars carry anisotropic ones (optionally wrapped in
+  a Huber M-estimator);
 - between consecutive states ``s -> s'`` in segment ``k``: ``AHRSFactor(r_s, r_s', b_k, pim)``
   with ``pim`` the ``PreintegratedAhrsMeasurements`` of the gyro over ``[t_s, t_s']`` (one
   zero-order-hold step of the mean rate, from :class:`GyroIntegrator`) or of a zero rate
@@ -46,15 +47,29 @@ def rotation_of(rot3: gtsam.Rot3) -> Rotation:
     return Rotation.from_matrix(rot3.matrix())
 
 
-def star_factors(key: int, body: np.ndarray, ref: np.ndarray, sigma_rad: np.ndarray, huber_k: float | None = None):
-    """One ``AttitudeFactorRot3`` per star (the GTSAM API builds factors one by one)."""
+def star_factors(key: int, body: np.ndarray, ref: np.ndarray, sigma_rad: np.ndarray, huber_k: float | None = None,
+                 cov_rad2: np.ndarray | None = None, basis: np.ndarray | None = None, R_lin: Rotation | None = None):
+    """One ``AttitudeFactorRot3`` per star (the GTSAM API builds factors one by one).
+
+    Noise model: isotropic ``sigma_rad``; or, with ``cov_rad2`` (m, 2, 2), each star's tangent-plane
+    covariance in the basis ``basis`` (m, 3, 2) perpendicular to its measured ``b``
+    (:mod:`rollingstar.estimators.attitude.star_covariance`), carried to the factor's error
+    ``nRef.basis()^T R b``: ``M Sigma M^T`` with ``M = B^T R E`` (``B`` GTSAM's basis of the catalogue
+    direction, ``R = R_lin`` the state's initial value; at the solution ``R b ~ r`` and ``M`` is a
+    2-D rotation, so an arcsecond-level error of ``R_lin`` changes the model by ~1e-5 relative).
+    """
     out = []
-    for b, r, s in zip(body, ref, sigma_rad):
-        model = gtsam.noiseModel.Isotropic.Sigma(2, float(s))
+    for i, (b, r, s) in enumerate(zip(body, ref, sigma_rad)):
+        n_ref = gtsam.Unit3(np.asarray(r, dtype=float))
+        if cov_rad2 is None:
+            model = gtsam.noiseModel.Isotropic.Sigma(2, float(s))
+        else:
+            M = n_ref.basis().T @ R_lin.as_matrix() @ basis[i]
+            C = M @ cov_rad2[i] @ M.T
+            model = gtsam.noiseModel.Gaussian.Covariance(0.5 * (C + C.T))
         if huber_k is not None:
             model = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_k), model)
-        out.append(gtsam.AttitudeFactorRot3(key, gtsam.Unit3(np.asarray(r, dtype=float)), model,
-                                            gtsam.Unit3(np.asarray(b, dtype=float))))
+        out.append(gtsam.AttitudeFactorRot3(key, n_ref, model, gtsam.Unit3(np.asarray(b, dtype=float))))
     return out
 
 

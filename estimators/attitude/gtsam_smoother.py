@@ -9,8 +9,10 @@ Factor graph (GTSAM, Dellaert & Kaess, "Factor graphs for robot perception", 201
   it needs no interpolation model inside the star factors (the motion model between states carries
   it, exactly like the gyro does), every estimate is at a time a star was seen (the update rate of
   he2021b's per-star REQUEST), and the chain stays sparse (tridiagonal in time);
-- each identified star: an ``AttitudeFactorRot3`` (body vector from the camera unprojection,
-  reference ``ref_icrs``, 1-sigma ``sigma_px / focal_px``);
+- each identified star: an ``AttitudeFactorRot3`` (body vector from the unprojection by the frame's
+  camera, :func:`~rollingstar.estimators.data.frame_camera`, reference ``ref_icrs``, 1-sigma
+  ``sigma_px / focal_px``; when the frame's stars carry anisotropic 2 x 2 position covariances, each
+  star's exact 2 x 2 direction covariance, :mod:`rollingstar.estimators.attitude.star_covariance`);
 - between consecutive states: an ``AHRSFactor`` of ``PreintegratedAhrsMeasurements`` of the gyro
   (bias estimated, one bias per frame segment with a random walk), or, without a gyro, of a zero
   rate with the "bias" standing for minus the body rate: a nearly-constant-angular-velocity motion
@@ -78,7 +80,7 @@ from rollingstar.estimators.attitude.observations import (
 )
 from rollingstar.estimators.attitude.robust import apply_robust
 from rollingstar.estimators.attitude.wahba import quest, quest_covariance
-from rollingstar.estimators.data import AttitudeEstimate, FrameData, RateEstimate, default_sigma_px
+from rollingstar.estimators.data import AttitudeEstimate, FrameData, RateEstimate, default_sigma_px, frame_camera
 from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.gyro import GyroIntegrator
 
@@ -152,9 +154,11 @@ class GtsamSmoother(AttitudeSolver):
     def process(self, frame: FrameData) -> FrameData:
         if frame.gyro.t_ns.size:
             self._gyro.add(frame.gyro)
-        frame = apply_robust(frame, self.context.camera, self.params, self._sigma_px, self.params.use_star_sigma)
-        obs, dropped = star_observations(frame.stars, self.context.camera, self._sigma_px,
-                                         self.params.use_star_sigma, self._merge_ns)
+        p = self.params
+        camera = frame_camera(frame, self.context)
+        frame = apply_robust(frame, camera, p, self._sigma_px, p.use_star_sigma, p.star_covariance)
+        obs, dropped = star_observations(frame.stars, camera, self._sigma_px, p.use_star_sigma, self._merge_ns,
+                                         p.star_covariance)
         reason = ""
         if obs.n == 0:
             reason = "no identified stars" + (f" ({dropped} with non-finite position or reference)" if dropped else "")
@@ -331,7 +335,7 @@ class GtsamSmoother(AttitudeSolver):
         for j in range(b.m):
             key = rot_key(b.first + j)
             values.insert(key, to_rot3(b.init[j]))
-            for f in star_factors(key, obs.body[slices[j]], obs.ref[slices[j]], obs.sigma_rad[slices[j]], self.params.huber_k):
+            for f in self._star_factors(key, obs, slices[j], b.init[j]):
                 graph.add(f)
             t_j = int(obs.state_t_ns[j])
             if j > 0:
@@ -348,6 +352,14 @@ class GtsamSmoother(AttitudeSolver):
         if stamps is not None:
             stamps[kb] = (int(obs.state_t_ns[-1]) - self._t_origin) * S_PER_NS
         self._last = (b.first + b.m - 1, int(obs.state_t_ns[-1]), b.segment, t_seg)
+
+    def _star_factors(self, key: int, obs: StarObservations, sl: slice, R_init: Rotation) -> list:
+        """The star factors of one state (isotropic, or with the stars' 2 x 2 covariances)."""
+        d = obs.direction
+        if d is None:
+            return star_factors(key, obs.body[sl], obs.ref[sl], obs.sigma_rad[sl], self.params.huber_k)
+        return star_factors(key, obs.body[sl], obs.ref[sl], obs.sigma_rad[sl], self.params.huber_k,
+                            d.cov[sl], d.basis[sl], R_init)
 
     def _mean_rate(self, t_a: int, t_b: int) -> np.ndarray:
         if self._mode != "gyro":

@@ -14,6 +14,7 @@ three lines of the Kalman gain and Joseph update while forcing a state layout it
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg import block_diag
 from scipy.spatial.transform import Rotation
 
 from rollingstar.estimators.attitude.base import AttitudeSolver
@@ -27,8 +28,8 @@ from rollingstar.estimators.attitude.observations import (
     tangent_basis,
 )
 from rollingstar.estimators.attitude.robust import apply_robust
-from rollingstar.estimators.attitude.wahba import quest, quest_covariance
-from rollingstar.estimators.data import AttitudeEstimate, FrameData, RateEstimate, default_sigma_px
+from rollingstar.estimators.attitude.wahba import quest, quest_covariance, refine_attitude
+from rollingstar.estimators.data import AttitudeEstimate, FrameData, RateEstimate, default_sigma_px, frame_camera
 from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.gyro import GyroIntegrator
 from rollingstar.sensors.so3 import skew
@@ -64,29 +65,36 @@ def propagation_matrices(theta: np.ndarray, dt: float, sigma_v: float, sigma_u: 
     return Phi, Q
 
 
-def star_update(R: Rotation, P: np.ndarray, body: np.ndarray, ref: np.ndarray, sigma_rad: np.ndarray):
+def star_update(R: Rotation, P: np.ndarray, body: np.ndarray, ref: np.ndarray, sigma_rad: np.ndarray,
+                cov_rad2: np.ndarray | None = None):
     """One MEKF measurement update with the m stars of one state (Markley & Crassidis sec. 7.2.3).
 
     Predicted camera vector ``b^ = R^T r``; the truth ``R Exp(dtheta)`` sees ``b^ + [b^ x] dtheta``.
     Each star is measured in the plane perpendicular to its measured vector ``b`` (two components,
-    basis ``E``, 1-sigma ``sigma`` each, the QUEST measurement model), so ``z = E^T (b - b^)``,
-    ``H = [E^T [b^ x], 0]`` (2m x 6), ``R_z = diag(sigma^2)``. Gain ``K = P H^T (H P H^T + R_z)^-1``,
-    correction ``dx = K z``, Joseph-form covariance ``(I - K H) P (I - K H)^T + K R_z K^T``.
-    Returns the error-state correction ``dx`` (6,), the updated covariance and the normalised
-    innovation squared ``z^T S^-1 z``.
+    basis ``E = tangent_basis(b)``, 1-sigma ``sigma`` each, the QUEST measurement model), so
+    ``z = E^T (b - b^)``, ``H = [E^T [b^ x], 0]`` (2m x 6), ``R_z = diag(sigma^2)``; with ``cov_rad2``
+    (m, 2, 2), each star's tangent-plane covariance in that basis
+    (:mod:`rollingstar.estimators.attitude.star_covariance`), ``R_z`` is block diagonal with those
+    blocks instead. Gain ``K = P H^T (H P H^T + R_z)^-1``, correction ``dx = K z``, Joseph-form
+    covariance ``(I - K H) P (I - K H)^T + K R_z K^T``. Returns the error-state correction ``dx`` (6,),
+    the updated covariance and the normalised innovation squared ``z^T S^-1 z``.
     """
     pred = R.inv().apply(ref)  # (m, 3)
     E = tangent_basis(body)  # (m, 3, 2)
     z = np.einsum("mik,mi->mk", E, body - pred).reshape(-1)
     H = np.zeros((z.size, 6))
     H[:, :3] = np.einsum("mik,mij->mkj", E, skew(pred)).reshape(-1, 3)
-    Rz = np.repeat(np.asarray(sigma_rad, dtype=float) ** 2, 2)
-    S = H @ P @ H.T + np.diag(Rz)
+    if cov_rad2 is None:
+        Rz = np.repeat(np.asarray(sigma_rad, dtype=float) ** 2, 2)
+        S = H @ P @ H.T + np.diag(Rz)
+    else:
+        Rz = block_diag(*np.asarray(cov_rad2, dtype=float))
+        S = H @ P @ H.T + Rz
     PHt = P @ H.T
     K = np.linalg.solve(S, PHt.T).T
     dx = K @ z
     IKH = np.eye(6) - K @ H
-    P_new = IKH @ P @ IKH.T + (K * Rz) @ K.T
+    P_new = IKH @ P @ IKH.T + ((K * Rz) @ K.T if cov_rad2 is None else K @ Rz @ K.T)
     nis = float(z @ np.linalg.solve(S, z))
     return dx, 0.5 * (P_new + P_new.T), nis
 
@@ -114,7 +122,10 @@ class MekfFilter(AttitudeSolver):
 
     Initialisation: QUEST (:func:`wahba.quest`) on the first frame with two non-collinear stars
     gives the attitude at the stars' weighted-mean time ``t_q`` (to first order in the rate) with
-    Shuster's covariance, and ``beta = 0`` with the prior sigma of the motion model. That frame's
+    Shuster's covariance (refined with the stars' 2 x 2 covariances when they carry anisotropic ones,
+    :func:`wahba.refine_attitude`, as the ``quest`` solver does), and ``beta = 0`` with the prior
+    sigma of the motion model. Stars are unprojected with the frame's camera
+    (:func:`~rollingstar.estimators.data.frame_camera`). That frame's
     estimates are this solution propagated from ``t_q`` to each state (covariance
     ``Phi P0 Phi^T + Q``, which carries the rate uncertainty); its stars are not fused a second
     time. From the next frame on, every state is propagated and updated in time order (the
@@ -174,10 +185,13 @@ class MekfFilter(AttitudeSolver):
         res = quest(obs.ref[None], obs.body[None], a[None])
         if not res.valid[0]:
             return "filter not initialised: the frame's stars do not fix all three axes (fewer than 2 or collinear)"
-        cov = quest_covariance(obs.body[None], a[None])[0]
+        q, cov = res.q_xyzw[0], quest_covariance(obs.body[None], a[None])[0]
+        if obs.direction is not None:  # 2 x 2 star covariances: QUEST refined with them (as the quest solver)
+            d = obs.direction
+            q, cov = refine_attitude(q, obs.ref, d.body, d.basis, d.info)
         base = int(obs.t_ns[0])
         self._t = base + int(np.rint(np.sum(a * (obs.t_ns - base)) / np.sum(a)))
-        self._R = Rotation.from_quat(res.q_xyzw[0])
+        self._R = Rotation.from_quat(q)
         self._beta = np.zeros(3)
         self._P = np.zeros((6, 6))
         self._P[:3, :3] = cov
@@ -205,9 +219,11 @@ class MekfFilter(AttitudeSolver):
             self._gyro.add(frame.gyro)
             self._t_last_sample = int(self._gyro.origin_ns + round(self._gyro.tau[-1] / S_PER_NS))
             self._held_ns = 0
-        frame = apply_robust(frame, self.context.camera, self.params, self._sigma_px, self.params.use_star_sigma)
-        obs, dropped = star_observations(frame.stars, self.context.camera, self._sigma_px,
-                                         self.params.use_star_sigma, self._merge_ns)
+        p = self.params
+        camera = frame_camera(frame, self.context)
+        frame = apply_robust(frame, camera, p, self._sigma_px, p.use_star_sigma, p.star_covariance)
+        obs, dropped = star_observations(frame.stars, camera, self._sigma_px, p.use_star_sigma, self._merge_ns,
+                                         p.star_covariance)
         t_frame = int(self.context.timing.frame_reference_ns(frame.t0_ns))
         if obs.n == 0:
             why = "no identified stars" + (f" ({dropped} with non-finite position or reference)" if dropped else "")
@@ -227,7 +243,8 @@ class MekfFilter(AttitudeSolver):
             ests = []
             for j, sl in enumerate(obs.state_slices()):  # sequential by nature (see class docstring)
                 self._propagate(int(obs.state_t_ns[j]))
-                dx, self._P, nis = star_update(self._R, self._P, obs.body[sl], obs.ref[sl], obs.sigma_rad[sl])
+                cov = None if obs.direction is None else obs.direction.cov[sl]
+                dx, self._P, nis = star_update(self._R, self._P, obs.body[sl], obs.ref[sl], obs.sigma_rad[sl], cov)
                 self.nis.append(nis)
                 self._R = self._R * Rotation.from_rotvec(dx[:3])
                 self._beta = self._beta + dx[3:]

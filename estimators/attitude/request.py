@@ -20,7 +20,12 @@ from scipy.spatial.transform import Rotation
 
 from rollingstar.estimators.attitude.base import AttitudeSolver
 from rollingstar.estimators.attitude.robust import RobustParams, apply_robust
-from rollingstar.estimators.data import AttitudeEstimate, FrameData, default_sigma_px
+from rollingstar.estimators.attitude.star_covariance import (
+    anisotropic_covariance,
+    direction_covariance,
+    isotropic_sigma_px,
+)
+from rollingstar.estimators.data import AttitudeEstimate, FrameData, default_sigma_px, frame_camera
 from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.so3 import skew
 
@@ -46,6 +51,10 @@ class RequestParams(RobustParams):  # robust: the shared outlier gate (robust.py
         default=None, gt=0, description="1-sigma centroid error (px) for stars whose sigma_px is NaN; None: the "
         "sensor context's centroid_sigma_px, else 0.05 px.")
     use_star_sigma: bool = Field(default=True, description="Weight by each star's own sigma_px when finite.")
+    star_covariance: bool = Field(
+        default=True, description="Stars with anisotropic 2 x 2 position covariances (cov_xx, cov_xy, cov_yy): K "
+        "takes their isotropic equivalents and the reported covariance is the scalar-weighted estimate's actual "
+        "one under the 2 x 2 noise (sandwich); False: the scalar sigma_px alone.")
     rate_sigma_deg_s: float = Field(
         default=0.0, ge=0.0, description="1-sigma rate error (deg/s) inflating the sigma of a star corrected over "
         "|dt|: sigma^2 + (f_px * rate_sigma * |dt|)^2.")
@@ -145,6 +154,17 @@ class RequestSolver(AttitudeSolver):
     ``covariance_rad2``: inverse of the information matrix ``sum a_i (I - w_i w_i^T)`` propagated
     and faded like K (Shuster's QUEST covariance of all fused stars; exact for ``rho = 1`` and an
     exact rate, approximate otherwise). ``n_stars``: the stars of the group (new in this update).
+
+    Stars with 2 x 2 position covariances (``star_covariance``; a frame with one that is not
+    isotropic): Davenport's K holds one scalar weight per star, so K takes each star's isotropic
+    equivalent ``a_i = f^2 / (trace(C_i) / 2)`` (the attitude is the scalar-weighted REQUEST
+    solution, not the 2 x 2 optimum; refining it would need every fused star, which K summarises
+    away). Its covariance is then reported honestly for that estimator under the 2 x 2 noise: the
+    sandwich ``J^-1 M J^-1`` with ``J`` as above and ``M = sum a_i^2 H_i^T Sigma_i H_i``
+    (``H_i = E_i^T [w_i x]``, ``Sigma_i`` the star's tangent-plane covariance,
+    :mod:`rollingstar.estimators.attitude.star_covariance`, plus the ``rate_sigma_deg_s`` term),
+    propagated like ``J`` and faded by ``rho^2``. With isotropic noise and ``rho = 1``, ``M = J``.
+    Stars are unprojected with the frame's camera (:func:`~rollingstar.estimators.data.frame_camera`).
     Invalid (reason given, never invented): no stars, no rate, fewer than ``min_stars`` fused, or
     the fused stars do not fix all three axes (e.g. one star); flag ``"attitude_invalid"``.
     """
@@ -161,9 +181,10 @@ class RequestSolver(AttitudeSolver):
         super().setup(context)
         p = self.params
         self._sigma_px = default_sigma_px(p.sigma_px, context)
-        self._focal_px = float(context.camera.focal_px)
         self._K = np.zeros((4, 4))
         self._J = np.zeros((3, 3))
+        self._M = np.zeros((3, 3))  # sum a^2 H^T Sigma H of the fused stars (sandwich covariance)
+        self._sandwich = False  # the fused state holds a star of anisotropic covariance
         self._b = 0.0
         self._n_fused = 0
         self._t_last: int | None = None
@@ -241,7 +262,8 @@ class RequestSolver(AttitudeSolver):
     # ------------------------------------------------------------------ per frame
     def process(self, frame: FrameData) -> FrameData:
         p = self.params
-        frame = apply_robust(frame, self.context.camera, p, self._sigma_px, p.use_star_sigma)
+        cam = frame_camera(frame, self.context)
+        frame = apply_robust(frame, cam, p, self._sigma_px, p.use_star_sigma, p.star_covariance)
         sel, flags, invalid = self._usable_stars(frame)
         if invalid is not None:
             return self._append(frame, [invalid], flags + ("attitude_invalid",))
@@ -254,10 +276,10 @@ class RequestSolver(AttitudeSolver):
             ests = [AttitudeEstimate.invalid(int(t), int(m), reason) for t, m in zip(t_ref, ends - starts)]
             return self._append(frame, ests, flags + ("attitude_invalid",))
 
-        w_c, a, good_star, theta_i = self._corrected_stars(sel, t_ref[group_of])
-        dK, db, dJ, m_good = _group_information(w_c, sel.ref_icrs, a, good_star, starts, group_of, width)
-        Ks, Js, valid, reasons = self._fuse(t_ref, theta_i, group_of, dK, db, dJ, m_good)
-        ests = _estimates(Ks, Js, valid, reasons, t_ref, ends - starts)
+        w_c, a, good_star, theta_i, cov_dir = self._corrected_stars(sel, t_ref[group_of], cam)
+        dK, db, dJ, dM, m_good = _group_information(w_c, sel.ref_icrs, a, good_star, starts, group_of, width, cov_dir)
+        Ks, Js, Ms, valid, reasons = self._fuse(t_ref, theta_i, group_of, dK, db, dJ, dM, m_good)
+        ests = _estimates(Ks, Js, Ms, valid, reasons, t_ref, ends - starts)
         if not valid.all():
             flags += ("attitude_invalid",)
         return self._append(frame, ests, flags)
@@ -280,12 +302,13 @@ class RequestSolver(AttitudeSolver):
             return None, flags, AttitudeEstimate.invalid(t_frame, 0, "no identified star with finite position and reference")
         return sel.take(np.argsort(sel.t_ns, kind="stable")), flags, None
 
-    def _corrected_stars(self, sel, t_k: np.ndarray):
+    def _corrected_stars(self, sel, t_k: np.ndarray, cam):
         """Camera vectors of the stars moved to their group's reference time ``t_k`` (eqs 5-6,
         Algorithm 1 line 7), their weights ``a_i = 1 / sigma_rad^2``, which of them are finite,
-        and the rotation vectors ``theta_i`` over ``[t_i, t_k]`` (NaN where the rate is unknown)."""
+        the rotation vectors ``theta_i`` over ``[t_i, t_k]`` (NaN where the rate is unknown), and
+        the stars' tangent-plane covariances (basis, covariance rad^2) when they carry anisotropic
+        2 x 2 ones (else None)."""
         p = self.params
-        cam = self.context.camera
         t_i = sel.t_ns.astype(np.int64)
         dt = (t_i - t_k).astype(float) * S_PER_NS  # t_i - t_ref <= 0
         w_raw = cam.unproject(sel.x, sel.y)
@@ -301,17 +324,28 @@ class RequestSolver(AttitudeSolver):
         yc = sel.y - dt * vel[:, 1]
         w_c = cam.unproject(xc, yc)
 
-        sigma_px = np.full(sel.n, self._sigma_px)
-        if p.use_star_sigma:
-            sigma_px = np.where(np.isfinite(sel.sigma_px) & (sel.sigma_px > 0), sel.sigma_px, sigma_px)
-        sig2 = sigma_px**2 + (self._focal_px * np.radians(p.rate_sigma_deg_s) * dt) ** 2
-        a = self._focal_px**2 / sig2
-        return w_c, a, np.isfinite(w_c).all(axis=1), theta_i
+        focal = float(cam.focal_px)
+        cov_px = anisotropic_covariance(sel, self._sigma_px, p.use_star_sigma, p.star_covariance)
+        cov_dir = None
+        if cov_px is None:
+            sigma_px = np.full(sel.n, self._sigma_px)
+            if p.use_star_sigma:
+                sigma_px = np.where(np.isfinite(sel.sigma_px) & (sel.sigma_px > 0), sel.sigma_px, sigma_px)
+        else:
+            sigma_px = isotropic_sigma_px(cov_px)
+            d = direction_covariance(cam, xc, yc, cov_px)
+            rate_var = (np.radians(p.rate_sigma_deg_s) * dt) ** 2  # rad^2, isotropic
+            cov_dir = (d.basis, d.cov + rate_var[:, None, None] * np.eye(2))
+        sig2 = sigma_px**2 + (focal * np.radians(p.rate_sigma_deg_s) * dt) ** 2
+        a = focal**2 / sig2
+        return w_c, a, np.isfinite(w_c).all(axis=1), theta_i, cov_dir
 
-    def _fuse(self, t_ref, theta_i, group_of, dK, db, dJ, m_good):
+    def _fuse(self, t_ref, theta_i, group_of, dK, db, dJ, dM, m_good):
         """Propagate and fuse the groups one after the other (eqs 9-16, 30-31), carrying the state
-        ``K, J, b`` and the fused star count across frames; returns per group the fused ``K`` and
-        information ``J``, whether its attitude is valid, and the reason where it is not."""
+        ``K, J, b`` (and the sandwich's ``M``) and the fused star count across frames; returns per
+        group the fused ``K``, information ``J``, ``M`` (None where the state never held a star of
+        anisotropic covariance: the covariance is then ``J^-1``), whether its attitude is valid, and
+        the reason where it is not. ``dM`` None: the frame's stars are isotropic (``dM = dJ``)."""
         p = self.params
         G = t_ref.size
         t_prev = np.concatenate([[t_ref[0] if self._t_last is None else self._t_last], t_ref[:-1]])
@@ -321,25 +355,30 @@ class RequestSolver(AttitudeSolver):
         rho = p.forgetting
         Ks = np.zeros((G, 4, 4))
         Js = np.zeros((G, 3, 3))
+        Ms: list[np.ndarray | None] = [None] * G
         valid = np.zeros(G, dtype=bool)
         reasons = [""] * G
-        K, J, b, nf = self._K, self._J, self._b, self._n_fused
+        K, J, M, b, nf = self._K, self._J, self._M, self._b, self._n_fused
+        sandwich = self._sandwich or dM is not None
         for j in range(G):
             if not np.isfinite(theta[j]).all() or not np.isfinite(theta_i[group_of == j]).all():
                 # no rate over the interval: nothing can be propagated; restart from this group
-                K, J, b, nf = np.zeros((4, 4)), np.zeros((3, 3)), 0.0, 0
+                K, J, M, b, nf = np.zeros((4, 4)), np.zeros((3, 3)), np.zeros((3, 3)), 0.0, 0
+                sandwich = dM is not None
                 reasons[j] = "no angular rate over the update interval"
                 continue
             if b > 0:
                 K = Phi[j] @ K @ Phi[j].T  # eq (16)
                 J = C[j] @ J @ C[j].T
+                M = C[j] @ M @ C[j].T
             b_new = rho * b + db[j]  # eq (30)
             if b_new > 0:
                 K = (rho * b / b_new) * K + dK[j] / b_new  # eq (31)
             J = rho * J + dJ[j]
+            M = rho**2 * M + (dJ[j] if dM is None else dM[j])
             b = b_new
             nf += int(m_good[j])
-            Ks[j], Js[j] = K, J
+            Ks[j], Js[j], Ms[j] = K, J, (M if sandwich else None)
             if nf < p.min_stars:
                 reasons[j] = f"fewer than {p.min_stars} stars fused ({nf})"
                 continue
@@ -348,9 +387,9 @@ class RequestSolver(AttitudeSolver):
                 reasons[j] = "fused stars do not fix all three axes (collinear or a single star)"
                 continue
             valid[j] = True
-        self._K, self._J, self._b, self._n_fused = K, J, b, nf
+        self._K, self._J, self._M, self._b, self._n_fused, self._sandwich = K, J, M, b, nf, sandwich
         self._t_last = int(t_ref[-1])
-        return Ks, Js, valid, reasons
+        return Ks, Js, Ms, valid, reasons
 
     @staticmethod
     def _append(frame: FrameData, ests: list[AttitudeEstimate], flags: tuple[str, ...]) -> FrameData:
@@ -366,9 +405,11 @@ def _groups(n: int, group_size) -> tuple[np.ndarray, np.ndarray, np.ndarray, int
     return starts, ends, np.repeat(np.arange(starts.size), ends - starts), g
 
 
-def _group_information(w_c, ref_icrs, a, good_star, starts, group_of, g: int):
-    """Per group ``Delta K``, ``Delta b`` (eqs 24-29), the information ``sum a_i (I - w_i w_i^T)``
-    and the number of finite stars, vectorised with a padded (G, g, 3) layout (g: the group size)."""
+def _group_information(w_c, ref_icrs, a, good_star, starts, group_of, g: int, cov_dir=None):
+    """Per group ``Delta K``, ``Delta b`` (eqs 24-29), the information ``sum a_i (I - w_i w_i^T)``,
+    the sandwich term ``sum a_i^2 H_i^T Sigma_i H_i`` (None without ``cov_dir``, the stars' tangent
+    bases and covariances) and the number of finite stars, vectorised with a padded (G, g, 3) layout
+    (g: the group size)."""
     G, n = starts.size, group_of.size
     slot = np.arange(n) - starts[group_of]
     W = np.zeros((G, g, 3))
@@ -379,19 +420,29 @@ def _group_information(w_c, ref_icrs, a, good_star, starts, group_of, g: int):
     A[group_of, slot] = np.where(good_star, a, 0.0)
     dK, db = davenport_k(W, V, A)
     dJ = np.einsum("gn,ij->gij", A, np.eye(3)) - np.einsum("gn,gni,gnj->gij", A, W, W)
+    dM = None
+    if cov_dir is not None:
+        basis, cov = cov_dir
+        H = np.swapaxes(basis, -1, -2) @ skew(np.where(good_star[:, None], w_c, 0.0))  # (n, 2, 3)
+        per_star = np.where(good_star, a, 0.0)[:, None, None] ** 2 * (np.swapaxes(H, -1, -2) @ cov @ H)
+        dM = np.zeros((G, 3, 3))
+        np.add.at(dM, group_of, per_star)
     m_good = np.bincount(group_of, weights=good_star.astype(float), minlength=G).astype(int)
-    return dK, db, dJ, m_good
+    return dK, db, dJ, dM, m_good
 
 
-def _estimates(Ks, Js, valid, reasons, t_ref, n_stars) -> list[AttitudeEstimate]:
+def _estimates(Ks, Js, Ms, valid, reasons, t_ref, n_stars) -> list[AttitudeEstimate]:
     """One estimate per group: the dominant eigenvector of its fused K (eq 32, batched over the
-    frame's updates) with the inverse information as covariance, or invalid with its reason."""
+    frame's updates) with the inverse information as covariance (the sandwich ``J^-1 M J^-1`` where
+    ``M`` is given), or invalid with its reason."""
     q, _ = dominant_quaternion(Ks)
     ests = []
     for j in range(len(t_ref)):
         m = int(n_stars[j])
         if valid[j]:
             cov = np.linalg.inv(Js[j])
+            if Ms[j] is not None:
+                cov = cov @ Ms[j] @ cov
             ests.append(AttitudeEstimate(t_ns=int(t_ref[j]), q_xyzw=q[j].copy(), n_stars=m, valid=True,
                                          covariance_rad2=0.5 * (cov + cov.T)))
         else:

@@ -20,6 +20,14 @@ attitude per frame:
   ``sigma_i / sqrt(w_i)``, so a solver weighting by the stars' own sigma (``use_star_sigma``, the
   default) fuses it with a bounded influence.
 
+Stars with 2 x 2 position covariances (a frame where one is not isotropic, see
+:mod:`rollingstar.estimators.attitude.star_covariance`): the residual of star ``i`` is its
+Mahalanobis distance scaled back to an angle, ``e_i = |W_i E_i^T (b_i - A r_i)| * s_i`` (``W_i`` the
+whitening of its tangent-plane covariance, ``s_i = sqrt(trace / 2)`` of that covariance, its
+isotropic-equivalent sigma), so the threshold keeps its meaning for a star of isotropic noise while a
+residual along a smeared star's long axis counts less than one across it; Huber inflates the
+star's whole covariance by ``1 / w_i``.
+
 Stars refer to their own rows' times on a rolling-shutter frame; where a star carries its image
 velocity (``vx``, ``vy``, px/s) it is moved to the frame's mean star time first (first order), so
 the frame's motion does not count as residual. Without velocities the threshold must exceed the
@@ -32,6 +40,11 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from rollingstar.estimators.attitude.star_covariance import (
+    DirectionCovariance,
+    anisotropic_covariance,
+    direction_covariance,
+)
 from rollingstar.estimators.attitude.wahba import quest
 from rollingstar.estimators.data import FrameData, StarTable
 from rollingstar.sensors.conventions import S_PER_NS
@@ -55,9 +68,18 @@ class RobustParams(BaseModel):
         default=300, ge=1, description="RANSAC: star pairs tried (all pairs when fewer; else drawn with seed 0).")
 
 
-def star_residuals_rad(R_mats: np.ndarray, body: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """Angle (rad) between each observation ``b_i`` and the prediction ``R^T r_i``: (H, n) for (H, 3, 3) camera-to-ICRS."""
+def star_residuals_rad(R_mats: np.ndarray, body: np.ndarray, ref: np.ndarray,
+                       direction: DirectionCovariance | None = None) -> np.ndarray:
+    """Angle (rad) between each observation ``b_i`` and the prediction ``R^T r_i``: (H, n) for (H, 3, 3)
+    camera-to-ICRS. With ``direction`` (2 x 2 tangent-plane covariances of the ``b_i``): the
+    Mahalanobis distance of the tangent-plane residual times the star's isotropic-equivalent sigma
+    (module docstring)."""
     pred = np.einsum("hji,nj->hni", R_mats, ref)  # R^T r
+    if direction is not None:
+        e = np.einsum("nik,hni->hnk", direction.basis, pred - body[None])  # (H, n, 2)
+        white = np.einsum("nkl,hnl->hnk", direction.whiten, e)
+        scale = np.sqrt(0.5 * np.trace(direction.cov, axis1=1, axis2=2))
+        return np.linalg.norm(white, axis=-1) * scale[None]
     chord = np.linalg.norm(pred - body[None], axis=-1)
     return 2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0))
 
@@ -77,7 +99,7 @@ def _pairs(n: int, max_hypotheses: int) -> np.ndarray:
     return pairs
 
 
-def _ransac(body, ref, a, thr, max_hypotheses: int) -> tuple[np.ndarray, bool]:
+def _ransac(body, ref, a, thr, max_hypotheses: int, direction=None) -> tuple[np.ndarray, bool]:
     """Inlier mask of the identified stars and whether the consensus was decisive (>= 3 stars)."""
     n = body.shape[0]
     pairs = _pairs(n, max_hypotheses)
@@ -86,7 +108,7 @@ def _ransac(body, ref, a, thr, max_hypotheses: int) -> tuple[np.ndarray, bool]:
     if not ok.any():
         return np.ones(n, dtype=bool), False
     mats = _quat_to_mats(res.q_xyzw[ok])
-    e = star_residuals_rad(mats, body, ref)  # (H, n)
+    e = star_residuals_rad(mats, body, ref, direction)  # (H, n)
     inl = e < thr
     count = inl.sum(axis=1)
     cost = np.minimum(e, thr) ** 2
@@ -97,20 +119,20 @@ def _ransac(body, ref, a, thr, max_hypotheses: int) -> tuple[np.ndarray, bool]:
         return np.ones(n, dtype=bool), False
     refit = quest(ref[mask][None], body[mask][None], a[mask][None])
     if refit.valid[0]:
-        e_ref = star_residuals_rad(_quat_to_mats(refit.q_xyzw[:1]), body, ref)[0]
+        e_ref = star_residuals_rad(_quat_to_mats(refit.q_xyzw[:1]), body, ref, direction)[0]
         if (e_ref < thr).sum() >= 3:
             mask = e_ref < thr
     return mask, True
 
 
-def _huber(body, ref, a, thr) -> np.ndarray:
+def _huber(body, ref, a, thr, direction=None) -> np.ndarray:
     """Huber weights ``w_i = min(1, k / e_i)`` at the IRLS fixed point (1 for every star if the fit fails)."""
     w = np.ones(body.shape[0])
     for _ in range(HUBER_ITERATIONS):
         res = quest(ref[None], body[None], (a * w)[None])
         if not res.valid[0]:
             return np.ones(body.shape[0])
-        e = star_residuals_rad(_quat_to_mats(res.q_xyzw[:1]), body, ref)[0]
+        e = star_residuals_rad(_quat_to_mats(res.q_xyzw[:1]), body, ref, direction)[0]
         w_new = np.minimum(1.0, thr / np.maximum(e, 1e-300))
         if np.allclose(w_new, w, rtol=1e-6, atol=1e-9):
             break
@@ -118,8 +140,32 @@ def _huber(body, ref, a, thr) -> np.ndarray:
     return w
 
 
+def _gate_inputs(sel: StarTable, camera, default_sigma_px: float, use_star_sigma: bool, star_covariance: bool):
+    """Camera and ICRS unit vectors of the selected stars (moved to their mean time when they carry
+    image velocities), their isotropic sigma (px), and their pixel and direction covariances when
+    the 2 x 2 weighting applies (else None, None)."""
+    x, y = sel.x.astype(float), sel.y.astype(float)
+    vx, vy = sel.vx, sel.vy
+    moving = np.isfinite(vx) & np.isfinite(vy)
+    if moving.any():  # to the mean star time, first order in the image velocity
+        dt = (sel.t_ns - int(np.mean(sel.t_ns))).astype(float) * S_PER_NS
+        x = np.where(moving, x - vx * dt, x)
+        y = np.where(moving, y - vy * dt, y)
+    body = camera.unproject(x, y).reshape(-1, 3)
+    body = body / np.linalg.norm(body, axis=1, keepdims=True)
+    ref = sel.ref_icrs / np.linalg.norm(sel.ref_icrs, axis=1, keepdims=True)
+    cov_px = anisotropic_covariance(sel, default_sigma_px, use_star_sigma, star_covariance)
+    if cov_px is not None:
+        direction = direction_covariance(camera, x, y, cov_px)
+        return direction.body, ref, np.sqrt(0.5 * (cov_px[:, 0, 0] + cov_px[:, 1, 1])), cov_px, direction
+    sigma = np.full(sel.n, float(default_sigma_px))
+    if use_star_sigma:
+        sigma = np.where(np.isfinite(sel.sigma_px) & (sel.sigma_px > 0), sel.sigma_px, sigma)
+    return body, ref, sigma, None, None
+
+
 def robust_gate(stars: StarTable, camera, params: RobustParams, default_sigma_px: float,
-                use_star_sigma: bool = True) -> tuple[StarTable, tuple[str, ...]]:
+                use_star_sigma: bool = True, star_covariance: bool = True) -> tuple[StarTable, tuple[str, ...]]:
     """The frame's stars with outliers unidentified (ransac) or down-weighted (huber), and flags.
 
     Only identified stars with finite position and reference take part; fewer than three leave the
@@ -131,24 +177,12 @@ def robust_gate(stars: StarTable, camera, params: RobustParams, default_sigma_px
     idx = np.flatnonzero(use)
     if idx.size < 3:
         return stars, ()
-    sel = stars.take(idx)
-    x, y = sel.x.astype(float), sel.y.astype(float)
-    vx, vy = sel.vx, sel.vy
-    moving = np.isfinite(vx) & np.isfinite(vy)
-    if moving.any():  # to the mean star time, first order in the image velocity
-        dt = (sel.t_ns - int(np.mean(sel.t_ns))).astype(float) * S_PER_NS
-        x = np.where(moving, x - vx * dt, x)
-        y = np.where(moving, y - vy * dt, y)
-    body = camera.unproject(x, y).reshape(-1, 3)
-    body = body / np.linalg.norm(body, axis=1, keepdims=True)
-    ref = sel.ref_icrs / np.linalg.norm(sel.ref_icrs, axis=1, keepdims=True)
-    sigma = np.full(sel.n, float(default_sigma_px))
-    if use_star_sigma:
-        sigma = np.where(np.isfinite(sel.sigma_px) & (sel.sigma_px > 0), sel.sigma_px, sigma)
+    body, ref, sigma, cov_px, direction = _gate_inputs(stars.take(idx), camera, default_sigma_px, use_star_sigma,
+                                                       star_covariance)
     a = 1.0 / sigma ** 2
     thr = float(params.robust_threshold_px) / float(camera.focal_px)
     if params.robust == "ransac":
-        mask, decided = _ransac(body, ref, a, thr, params.robust_max_hypotheses)
+        mask, decided = _ransac(body, ref, a, thr, params.robust_max_hypotheses, direction)
         if not decided:
             return stars, ("robust_undecided",)
         out = idx[~mask]
@@ -159,21 +193,27 @@ def robust_gate(stars: StarTable, camera, params: RobustParams, default_sigma_px
         cid[out] = -1
         refs[out] = np.nan
         return stars.with_columns(catalog_id=cid, ref_icrs=refs), (f"outliers_rejected:{out.size}",)
-    w = _huber(body, ref, a, thr)
+    w = _huber(body, ref, a, thr, direction)
     down = w < 1.0 - 1e-9
     if not down.any():
         return stars, ()
+    flags = (f"outliers_downweighted:{int(down.sum())}",)
     sig_all = stars.sigma_px.astype(float).copy()
     sig_all[idx] = sigma / np.sqrt(w)
-    return stars.with_columns(sigma_px=sig_all), (f"outliers_downweighted:{int(down.sum())}",)
+    if cov_px is None:
+        return stars.with_columns(sigma_px=sig_all), flags
+    cov = {k: getattr(stars, k).astype(float).copy() for k in ("cov_xx", "cov_xy", "cov_yy")}
+    for k, (i, j) in zip(cov, ((0, 0), (0, 1), (1, 1))):
+        cov[k][idx] = cov_px[:, i, j] / w
+    return stars.with_columns(sigma_px=sig_all, **cov), flags
 
 
 def apply_robust(frame: FrameData, camera, params: RobustParams, default_sigma_px: float,
-                 use_star_sigma: bool = True) -> FrameData:
+                 use_star_sigma: bool = True, star_covariance: bool = True) -> FrameData:
     """:func:`robust_gate` on ``frame.stars``; the flags are added to the frame's."""
     if getattr(params, "robust", "none") == "none":
         return frame
-    stars, flags = robust_gate(frame.stars, camera, params, default_sigma_px, use_star_sigma)
+    stars, flags = robust_gate(frame.stars, camera, params, default_sigma_px, use_star_sigma, star_covariance)
     if stars is frame.stars and not flags:
         return frame
     return frame.evolve(stars=stars, flags=frame.flags + flags)

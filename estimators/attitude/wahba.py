@@ -24,7 +24,9 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-__all__ = ["QuestResult", "quest", "quest_covariance", "wahba_loss"]
+from rollingstar.sensors.so3 import skew
+
+__all__ = ["QuestResult", "quest", "quest_covariance", "wahba_loss", "refine_attitude"]
 
 
 class QuestResult(NamedTuple):
@@ -323,3 +325,42 @@ def wahba_loss(q_xyzw, ref_icrs, obs_cam, weights=None) -> np.ndarray:
     R = Rotation.from_quat(np.asarray(q_xyzw, dtype=float).reshape(F, 4)).as_matrix()
     pred = np.einsum("fji,fnj->fni", R, ref)  # R^T r
     return 0.5 * np.einsum("fn,fn->f", w, np.sum((obs - pred) ** 2, axis=-1))
+
+
+def refine_attitude(q_xyzw, ref_icrs, obs_cam, basis, info, iterations: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton refinement of one camera-to-ICRS attitude with a full 2 x 2 weight per star.
+
+    QUEST accepts one scalar weight per star; a star whose direction is better known across one
+    axis than along the other (a smeared spot) needs its 2 x 2 tangent-plane information ``W_i``
+    (rad^-2, in the orthonormal basis ``E_i`` (3 x 2) perpendicular to the measured ``b_i``, see
+    :mod:`rollingstar.estimators.attitude.star_covariance`). With ``R = R0 Exp(delta)`` the predicted
+    direction is ``R^T r_i ~ p_i + [p_i x] delta`` (``p_i = R0^T r_i``), so the residual
+    ``e_i = E_i^T (b_i - R^T r_i)`` is linear in ``delta`` with ``H_i = E_i^T [p_i x]``; each iteration solves
+
+        (sum H_i^T W_i H_i) delta = sum H_i^T W_i E_i^T (b_i - p_i),     R0 <- R0 Exp(delta),
+
+    starting from ``q_xyzw`` (the QUEST solution: one or two iterations converge, the model is linear
+    to the arcsecond). Returns the refined quaternion (scalar last, ``w >= 0``) and the covariance of
+    its error ``(sum H_i^T W_i H_i)^-1`` (rad^2, camera frame, ``R_true = R Exp(d)``), evaluated at the
+    solution. With ``W_i = a_i I`` the minimiser is QUEST's (Wahba's loss and this one differ by terms
+    of fourth order in the residuals) and the covariance Shuster's ``(sum a_i (I - b_i b_i^T))^-1``.
+    Arrays: ``ref_icrs``, ``obs_cam`` (n, 3) unit vectors, ``basis`` (n, 3, 2), ``info`` (n, 2, 2).
+    """
+    ref = np.asarray(ref_icrs, dtype=float).reshape(-1, 3)
+    obs = np.asarray(obs_cam, dtype=float).reshape(-1, 3)
+    E = np.asarray(basis, dtype=float)
+    W = np.asarray(info, dtype=float)
+    Et = np.swapaxes(E, -1, -2)
+    R = Rotation.from_quat(q_xyzw)
+    for step in range(iterations + 1):
+        p = R.inv().apply(ref)  # R^T r
+        H = Et @ skew(p)  # (n, 2, 3)
+        HtW = np.swapaxes(H, -1, -2) @ W  # (n, 3, 2)
+        normal = np.sum(HtW @ H, axis=0)
+        if step == iterations:
+            break
+        e = np.einsum("nki,ni->nk", Et, obs - p)
+        delta = np.linalg.solve(normal, np.einsum("nik,nk->i", HtW, e))
+        R = R * Rotation.from_rotvec(delta)
+    cov = np.linalg.inv(normal)
+    return R.as_quat(canonical=True), 0.5 * (cov + cov.T)

@@ -1,0 +1,117 @@
+"""The covariance of a star's camera-frame direction, from the 2 x 2 covariance of its pixel position.
+
+A star at pixel ``(x, y)`` with position covariance ``C`` (2 x 2, px^2, image axes; a smeared spot's
+is long along the smear and short across it) has the unit direction ``b = unproject(x, y)``
+(he2021b eq 2, after undistortion when the camera has radial distortion). To first order a pixel
+error ``d`` moves ``b`` by ``J d`` with ``J = d b / d(x, y)`` (3 x 2, both columns perpendicular to
+``b``), so ``Cov(b) = J C J^T``: rank 2, in the plane perpendicular to ``b``. In an orthonormal
+tangent basis ``E`` of that plane (:func:`tangent_basis`) it is the 2 x 2 ``Sigma = E^T J C J^T E``
+(rad^2), with information ``Sigma^-1`` and the whitening ``W = L^-1`` (``L L^T = Sigma``, Cholesky),
+so that ``W e`` has unit covariance for a tangent-plane error ``e`` and ``W^T W = Sigma^-1``.
+
+``J`` from the camera's projection Jacobian ``P = d(x, y) / d w`` (2 x 3; it includes the radial
+distortion of a distorted camera): ``P J = I`` and ``b^T J = 0`` give ``J = E (P E)^-1``. For a camera
+model without ``projection_jacobian``, central differences of ``unproject``.
+
+The solvers that weight stars by a scalar (QUEST, Davenport's K of REQUEST) use ``sigma_px / f``
+rad for a star of isotropic position noise (the pixel's angular size at the principal point; the
+off-axis foreshortening, about 1 % at the edge of a 10 deg field, is neglected). Every consumer
+keeps exactly that scalar path for a frame whose stars all have isotropic covariances
+(:func:`anisotropic_covariance` returns None), and weights every star of the frame by its exact
+``Sigma`` as soon as one star carries a 2 x 2 covariance that is not isotropic.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["tangent_basis", "direction_jacobian", "DirectionCovariance", "direction_covariance",
+           "anisotropic_covariance", "isotropic_sigma_px", "is_isotropic", "FD_STEP_PX"]
+
+FD_STEP_PX = 1e-3  # central-difference step of the unprojection for cameras without projection_jacobian
+
+
+def tangent_basis(u: np.ndarray) -> np.ndarray:
+    """Two orthonormal vectors perpendicular to each unit vector: (n, 3, 2) columns ``e1, e2``."""
+    u = np.asarray(u, dtype=float).reshape(-1, 3)
+    # Helper axis: the coordinate axis least aligned with u (never parallel to it).
+    helper = np.eye(3)[np.argmin(np.abs(u), axis=1)]
+    e1 = np.cross(u, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(u, e1)
+    return np.stack([e1, e2], axis=-1)
+
+
+def direction_jacobian(camera, x, y) -> tuple[np.ndarray, np.ndarray]:
+    """Unit camera directions ``b`` (n, 3) of the pixels and ``J = d b / d(x, y)`` (n, 3, 2)."""
+    x = np.asarray(x, dtype=float).reshape(-1)
+    y = np.asarray(y, dtype=float).reshape(-1)
+    body = camera.unproject(x, y).reshape(-1, 3)
+    body = body / np.linalg.norm(body, axis=1, keepdims=True)
+    if hasattr(camera, "projection_jacobian"):
+        E = tangent_basis(body)
+        PE = np.asarray(camera.projection_jacobian(body), dtype=float) @ E  # (n, 2, 2)
+        return body, E @ np.linalg.inv(PE)
+    h = FD_STEP_PX
+    cols = [(camera.unproject(x + dx, y + dy) - camera.unproject(x - dx, y - dy)).reshape(-1, 3) / (2 * h)
+            for dx, dy in ((h, 0.0), (0.0, h))]
+    return body, np.stack(cols, axis=-1)
+
+
+@dataclass(frozen=True)
+class DirectionCovariance:
+    """Per star: unit direction ``body`` (n, 3), tangent basis ``basis`` (n, 3, 2), and in that basis
+    the covariance ``cov`` (n, 2, 2) rad^2, its inverse ``info`` and the whitening ``whiten``
+    (``whiten @ cov @ whiten^T = I``)."""
+
+    body: np.ndarray
+    basis: np.ndarray
+    cov: np.ndarray
+    info: np.ndarray
+    whiten: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return int(self.body.shape[0])
+
+    def take(self, index) -> "DirectionCovariance":
+        return DirectionCovariance(*(np.asarray(a)[index] for a in (self.body, self.basis, self.cov, self.info, self.whiten)))
+
+
+def direction_covariance(camera, x, y, cov_px) -> DirectionCovariance:
+    """The tangent-plane covariance of each star's direction from its pixel covariance ``cov_px``
+    (n, 2, 2) px^2 (module docstring: ``Sigma = E^T J C J^T E``)."""
+    body, J = direction_jacobian(camera, x, y)
+    E = tangent_basis(body)
+    M = np.swapaxes(E, -1, -2) @ J  # (n, 2, 2): tangent components of the pixel columns
+    cov = M @ np.asarray(cov_px, dtype=float).reshape(-1, 2, 2) @ np.swapaxes(M, -1, -2)
+    cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))
+    info = np.linalg.inv(cov)
+    info = 0.5 * (info + np.swapaxes(info, -1, -2))
+    whiten = np.linalg.inv(np.linalg.cholesky(cov))
+    return DirectionCovariance(body, E, cov, info, whiten)
+
+
+def is_isotropic(cov_px) -> np.ndarray:
+    """Stars whose pixel covariance is ``s^2 I`` exactly (n,) bool."""
+    c = np.asarray(cov_px, dtype=float).reshape(-1, 2, 2)
+    return (c[:, 0, 1] == 0.0) & (c[:, 1, 0] == 0.0) & (c[:, 0, 0] == c[:, 1, 1])
+
+
+def isotropic_sigma_px(cov_px) -> np.ndarray:
+    """The isotropic equivalent 1-sigma per axis (px) of each 2 x 2 covariance, ``sqrt(trace / 2)``
+    (the ``sigma_px`` a centroider derives from its 2-D covariance)."""
+    c = np.asarray(cov_px, dtype=float).reshape(-1, 2, 2)
+    return np.sqrt(0.5 * (c[:, 0, 0] + c[:, 1, 1]))
+
+
+def anisotropic_covariance(stars, default_sigma_px: float, use_star_sigma: bool = True,
+                           star_covariance: bool = True) -> np.ndarray | None:
+    """The stars' 2 x 2 position covariances (n, 2, 2) px^2 (:meth:`StarTable.position_covariance`) when
+    the full-covariance weighting applies, None when the scalar ``sigma_px`` weighting is exact: with
+    ``star_covariance`` off, or when every star's covariance is isotropic (see the module docstring)."""
+    if not star_covariance or not use_star_sigma or stars is None or stars.n == 0:
+        return None
+    cov = stars.position_covariance(default_sigma_px, use_star_sigma)
+    return None if is_isotropic(cov).all() else cov
