@@ -9,18 +9,34 @@ and are written, without feeding the priors again (they are late).
 On a centroid recording the centroiders are skipped (the recording holds their output), and so
 are the identifiers on a frame whose stars all arrive identified (``rollingstar import`` of
 astrometry.net tables).
+
+Every identifier's output is checked for chance coincidences
+(:func:`rollingstar.estimators.identifiers.integrity.check_identification`, whatever the
+identifier): a frame whose matches are more likely than ``max_false_match_prob`` to be chance
+keeps no identified star (they move to ``unmatched``), is flagged
+``identification_rejected:<reason>``, and any attitude a later stage still reports for it is
+made invalid with that reason. A frame whose identified stars scatter far more than their stated
+position covariances allow (the check's chi-square, ``integrity.inconsistent``) keeps its
+attitudes, with their covariances scaled by the chi-square per degree of freedom and the flag
+``covariance_scaled:<factor>``. ``frame.identification`` carries the check either way.
 """
 from __future__ import annotations
 
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 
 import numpy as np
 
 from rollingstar.errors import PipelineError, UserError
 from rollingstar.estimators.centroiders.base import Centroider
-from rollingstar.estimators.data import FrameData, SensorContext
+from rollingstar.estimators.data import AttitudeEstimate, FrameData, SensorContext, frame_camera
 from rollingstar.estimators.identifiers.base import Identifier
+from rollingstar.estimators.identifiers.integrity import (
+    DEFAULT_MAX_FALSE_MATCH_PROB,
+    check_identification,
+    inconsistent,
+)
 from rollingstar.estimators.plugin import Plugin
 
 
@@ -43,12 +59,17 @@ class StagePipeline:
 
     ``holds_centroids``: the recording holds centroids, not images (centroiders are skipped).
     ``stage_seconds``: seconds spent in each stage so far (:func:`zero_stage_seconds` when not given).
+    ``context``: the sensor context the identification check uses (None: no check, for tests of
+    the stage mechanics); ``max_false_match_prob`` its bound.
     """
 
-    def __init__(self, stages: list[Plugin], holds_centroids: bool, stage_seconds: dict[str, float] | None = None):
+    def __init__(self, stages: list[Plugin], holds_centroids: bool, stage_seconds: dict[str, float] | None = None,
+                 context: SensorContext | None = None, max_false_match_prob: float = DEFAULT_MAX_FALSE_MATCH_PROB):
         self.stages = stages
         self.holds_centroids = holds_centroids
         self.stage_seconds = stage_seconds if stage_seconds is not None else zero_stage_seconds(stages)
+        self.context = context
+        self.max_false_match_prob = max_false_match_prob
 
     @property
     def needs_truth(self) -> bool:
@@ -127,6 +148,8 @@ class StagePipeline:
         try:
             start = time.perf_counter()
             frame = stage.process(frame)
+            if isinstance(stage, Identifier) and self.context is not None:
+                frame = verify_identification(frame, self.context, self.max_false_match_prob)
             released = stage.release() if stage.defers_output else []
             self.stage_seconds[f"{i}:{stage.name}"] += time.perf_counter() - start
         except UserError:
@@ -137,6 +160,45 @@ class StagePipeline:
         return frame, released
 
 
+def verify_identification(frame: FrameData, context: SensorContext, bound: float) -> FrameData:
+    """``frame`` with its identification check; its identified stars withdrawn when the check fails
+    (see the module docstring)."""
+    check = check_identification(frame.stars, frame.unmatched, frame_camera(frame, context), context.catalog, bound)
+    frame = frame.evolve(identification=check)
+    if check.passed or check.n_matched < 2:
+        return frame
+    stars = frame.stars
+    keep = ~stars.identified
+    unmatched = stars.take(stars.identified).with_columns(
+        catalog_id=np.full(check.n_matched, -1), ref_icrs=np.full((check.n_matched, 3), np.nan))
+    if frame.unmatched is not None:
+        unmatched = concat_tables(frame.unmatched, unmatched)
+    return frame.evolve(stars=stars.take(keep), unmatched=unmatched,
+                        flags=frame.flags + (f"identification_rejected:{check.reason}",))
+
+
+def concat_tables(a, b):
+    """The rows of two star tables, ``a``'s first."""
+    return type(a)(**{name: np.concatenate([getattr(a, name), getattr(b, name)]) for name in a.__dataclass_fields__})
+
+
+def _checked_attitudes(frame: FrameData) -> FrameData:
+    """The frame's attitudes as its identification check allows: invalid with its reason when it
+    failed, covariances scaled when the stars' scatter contradicts their covariances (module docstring)."""
+    check = frame.identification
+    if check is None or check.n_matched < 2 or not any(a.valid for a in frame.attitudes):
+        return frame
+    if not check.passed:
+        reason = f"identification_rejected:{check.reason}"
+        return frame.evolve(attitudes=tuple(
+            AttitudeEstimate.invalid(a.t_ns, a.n_stars, reason) if a.valid else a for a in frame.attitudes))
+    if not inconsistent(check):
+        return frame
+    scaled = tuple(replace(a, covariance_rad2=np.asarray(a.covariance_rad2) * check.chi2_dof)
+                   if a.valid and a.covariance_rad2 is not None else a for a in frame.attitudes)
+    return frame.evolve(attitudes=scaled).flagged(f"covariance_scaled:{check.chi2_dof:.3g}")
+
+
 def finish_frame(frame: FrameData) -> FrameData:
     """Frame flags that need every stage's output.
 
@@ -144,8 +206,12 @@ def finish_frame(frame: FrameData) -> FrameData:
     - ``saturated_stars:N``: N detections (identified or not) reached the saturation level;
     - ``attitude_degraded:all_stars_saturated``: a valid attitude made from saturated stars only
       (it is kept: the centroider's ``sigma_px`` of clipped spots, and so the covariance, is inflated
-      for them, but the user should know the frame is not a normal one).
+      for them, but the user should know the frame is not a normal one);
+    - a valid attitude on a frame whose identification check failed is made invalid with its reason;
+      ``covariance_scaled:<factor>`` when the check found the stars' scatter inconsistent with
+      their covariances (the attitudes' covariances are scaled by that factor).
     """
+    frame = _checked_attitudes(frame)
     if frame.stars is not None and frame.stars.identified.sum() < 2 and not any(a.valid for a in frame.attitudes):
         frame = frame.flagged("too_few_stars")
     if frame.stars is not None:

@@ -1,4 +1,5 @@
-"""Pinhole camera: projection of camera-frame directions to pixels and back (he2021b eq 2)."""
+"""Camera model: pinhole projection of camera-frame directions to pixels and back (he2021b eq 2),
+with optional Brown-Conrady radial distortion."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -17,6 +18,12 @@ class PinholeCamera:
         w = [-(x - cx) p, -(y - cy) p, f] / norm(...)
 
     so a star imaged to the right of the principal point has a negative camera x component.
+
+    Radial distortion (``k1``, ``k2``, default 0: an ideal pinhole) maps the ideal pinhole pixel to
+    the observed one about the principal point, in normalised coordinates ``r^2 = ((x - cx)^2 +
+    (y - cy)^2) / f^2``: ``x' = cx + (x - cx)(1 + k1 r^2 + k2 r^4)`` (same for y), the convention of
+    :class:`rollingstar.sensors.effects.radial_distortion.RadialDistortion`. ``project`` returns
+    observed pixels and ``unproject`` takes them; ``k1 < 0`` is barrel distortion.
     """
 
     focal_length_m: float
@@ -25,6 +32,8 @@ class PinholeCamera:
     height: int
     cx: float | None = None
     cy: float | None = None
+    k1: float = 0.0
+    k2: float = 0.0
 
     def __post_init__(self):
         if self.cx is None:
@@ -53,8 +62,26 @@ class PinholeCamera:
         )
 
     @property
+    def distorted(self) -> bool:
+        """True when the camera has radial distortion."""
+        return self.k1 != 0.0 or self.k2 != 0.0
+
+    def distort(self, x, y) -> tuple[np.ndarray, np.ndarray]:
+        """Ideal pinhole pixels -> observed pixels."""
+        return radial_distort(x, y, self.cx, self.cy, self.focal_px, self.k1, self.k2)
+
+    def undistort(self, x, y) -> tuple[np.ndarray, np.ndarray]:
+        """Observed pixels -> ideal pinhole pixels (NaN where the radial map folds over)."""
+        return radial_undistort(x, y, self.cx, self.cy, self.focal_px, self.k1, self.k2)
+
+    @property
     def half_diagonal_rad(self) -> float:
         """Angle from the boresight to the farthest detector corner (rad)."""
+        if self.distorted:  # the corners' own directions (barrel distortion widens the field)
+            corners = self.unproject([-0.5, self.width - 0.5, -0.5, self.width - 0.5],
+                                     [-0.5, -0.5, self.height - 0.5, self.height - 0.5])
+            if np.all(np.isfinite(corners)):
+                return float(np.arccos(np.clip(corners[:, 2], -1.0, 1.0)).max())
         dx = max(self.cx + 0.5, self.width - 0.5 - self.cx)
         dy = max(self.cy + 0.5, self.height - 0.5 - self.cy)
         return float(np.arctan(np.hypot(dx, dy) / self.focal_px))
@@ -71,12 +98,16 @@ class PinholeCamera:
             inv = np.where(in_front, 1.0 / wz, np.nan)
         x = self.cx - self.focal_px * w[..., 0] * inv
         y = self.cy - self.focal_px * w[..., 1] * inv
+        if self.distorted:
+            x, y = self.distort(x, y)
         return x, y, in_front
 
     def unproject(self, x, y) -> np.ndarray:
         """Pixel coordinates to unit camera-frame directions (..., 3), he2021b eq (2)."""
         x = np.asarray(x, dtype=float)
         y = np.asarray(y, dtype=float)
+        if self.distorted:
+            x, y = self.undistort(x, y)
         w = np.stack([-(x - self.cx), -(y - self.cy), np.full(np.broadcast(x, y).shape, self.focal_px)], axis=-1)
         return w / np.linalg.norm(w, axis=-1, keepdims=True)
 
@@ -88,7 +119,16 @@ class PinholeCamera:
         zero = np.zeros_like(wz)
         row_x = np.stack([-f / wz, zero, f * wx / wz**2], axis=-1)
         row_y = np.stack([zero, -f / wz, f * wy / wz**2], axis=-1)
-        return np.stack([row_x, row_y], axis=-2)
+        jac = np.stack([row_x, row_y], axis=-2)
+        if self.distorted:  # chain rule through the radial map at the ideal pixel
+            xn, yn = -wx / wz, -wy / wz
+            r2 = xn * xn + yn * yn
+            s = 1.0 + r2 * (self.k1 + self.k2 * r2)
+            ds = 2.0 * (self.k1 + 2.0 * self.k2 * r2)  # d s / d(r^2) * 2
+            d = np.stack([np.stack([s + ds * xn * xn, ds * xn * yn], -1),
+                          np.stack([ds * xn * yn, s + ds * yn * yn], -1)], -2)
+            jac = d @ jac
+        return jac
 
     def contains(self, x, y, margin_px: float = 0.0) -> np.ndarray:
         """True where (x, y) lies on the detector, at least ``margin_px`` inside its edge."""
@@ -96,3 +136,34 @@ class PinholeCamera:
         y = np.asarray(y, dtype=float)
         lo = -0.5 + margin_px
         return (x >= lo) & (y >= lo) & (x <= self.width - 0.5 - margin_px) & (y <= self.height - 0.5 - margin_px)
+
+
+def radial_distort(x, y, cx: float, cy: float, focal_px: float, k1: float, k2: float) -> tuple[np.ndarray, np.ndarray]:
+    """Ideal pinhole pixels -> distorted pixels, Brown-Conrady radial terms (:class:`PinholeCamera`)."""
+    dx, dy = np.asarray(x, dtype=float) - cx, np.asarray(y, dtype=float) - cy
+    r2 = (dx * dx + dy * dy) / focal_px**2
+    s = 1.0 + r2 * (k1 + k2 * r2)
+    return cx + dx * s, cy + dy * s
+
+
+def radial_undistort(x, y, cx: float, cy: float, focal_px: float, k1: float, k2: float,
+                     iterations: int = 30) -> tuple[np.ndarray, np.ndarray]:
+    """Distorted pixels -> ideal pinhole pixels: Newton on the radius ``rho (1 + k1 rho^2 + k2 rho^4) = r_d``.
+
+    Hand-written because it is one scalar equation per star, vectorised (OpenCV's
+    ``undistortPoints`` is not a dependency; tetra3rs' takes one point per call). Where the radial
+    map stops being monotonic (``d r_d / d rho <= 0``, far outside any real field) the result is NaN.
+    """
+    dx, dy = np.asarray(x, dtype=float) - cx, np.asarray(y, dtype=float) - cy
+    rd = np.hypot(dx, dy) / focal_px
+    rho = rd.copy()
+    for _ in range(iterations):
+        g = rho * (1.0 + k1 * rho**2 + k2 * rho**4) - rd
+        dg = 1.0 + 3.0 * k1 * rho**2 + 5.0 * k2 * rho**4
+        step = g / np.where(dg > 0, dg, np.nan)
+        rho = rho - step
+        if np.all(~np.isfinite(step) | (np.abs(step) < 1e-13)):
+            break
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = np.where(rd > 0, rho / rd, 1.0)
+    return cx + dx * s, cy + dy * s

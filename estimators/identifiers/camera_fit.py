@@ -25,6 +25,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from rollingstar.sensors.camera import radial_distort, radial_undistort
 from rollingstar.sensors.so3 import skew
 
 INTRINSICS = ("focal_px", "k1", "k2", "cx", "cy")
@@ -48,33 +49,18 @@ class RadialCamera:
         """``camera`` (a :class:`rollingstar.sensors.camera.PinholeCamera`) with this focal length and principal point."""
         return replace(camera, focal_length_m=self.focal_px * camera.pixel_size_m, cx=self.cx, cy=self.cy)
 
+    def camera(self, camera):
+        """``camera`` with this model's focal length, principal point and distortion: the one camera
+        model every later stage uses (``FrameData.camera``)."""
+        return replace(self.pinhole(camera), k1=self.k1, k2=self.k2)
+
     def distort(self, x, y) -> tuple[np.ndarray, np.ndarray]:
         """Ideal pinhole pixels -> observed (distorted) pixels."""
-        dx, dy = np.asarray(x, dtype=float) - self.cx, np.asarray(y, dtype=float) - self.cy
-        r2 = (dx * dx + dy * dy) / self.focal_px**2
-        s = 1.0 + r2 * (self.k1 + self.k2 * r2)
-        return self.cx + dx * s, self.cy + dy * s
+        return radial_distort(x, y, self.cx, self.cy, self.focal_px, self.k1, self.k2)
 
-    def undistort(self, x, y, iterations: int = 30) -> tuple[np.ndarray, np.ndarray]:
-        """Observed pixels -> ideal pinhole pixels: Newton on the radius ``rho (1 + k1 rho^2 + k2 rho^4) = r_d``.
-
-        Hand-written because it is one scalar equation per star, vectorised (tetra3rs'
-        ``RadialDistortion.undistort`` takes one point per call). Where the radial map stops being
-        monotonic (``d r_d / d rho <= 0``, far outside any real field) the result is NaN.
-        """
-        dx, dy = np.asarray(x, dtype=float) - self.cx, np.asarray(y, dtype=float) - self.cy
-        rd = np.hypot(dx, dy) / self.focal_px
-        rho = rd.copy()
-        for _ in range(iterations):
-            g = rho * (1.0 + self.k1 * rho**2 + self.k2 * rho**4) - rd
-            dg = 1.0 + 3.0 * self.k1 * rho**2 + 5.0 * self.k2 * rho**4
-            step = g / np.where(dg > 0, dg, np.nan)
-            rho = rho - step
-            if np.all(~np.isfinite(step) | (np.abs(step) < 1e-13)):
-                break
-        with np.errstate(invalid="ignore", divide="ignore"):
-            s = np.where(rd > 0, rho / rd, 1.0)
-        return self.cx + dx * s, self.cy + dy * s
+    def undistort(self, x, y) -> tuple[np.ndarray, np.ndarray]:
+        """Observed pixels -> ideal pinhole pixels (:func:`rollingstar.sensors.camera.radial_undistort`)."""
+        return radial_undistort(x, y, self.cx, self.cy, self.focal_px, self.k1, self.k2)
 
     def project(self, w_cam) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Camera-frame directions (n, 3) -> observed pixels ``(x, y, in_front)``."""

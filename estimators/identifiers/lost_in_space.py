@@ -13,6 +13,7 @@ from scipy.stats import binom
 from rollingstar.estimators.data import FrameData
 from rollingstar.estimators.identifiers.base import Identifier
 from rollingstar.estimators.identifiers.camera_fit import RadialCamera, fit_camera
+from rollingstar.estimators.identifiers.integrity import check_identification
 from rollingstar.estimators.identifiers.tetra3_database import solver_database
 from rollingstar.estimators.identifiers.tracking import (
     TrackingIdentifier,
@@ -35,14 +36,23 @@ class LostInSpaceParams(BaseModel):
     max_patterns_checked: int = Field(default=2_000_000, ge=1,
                                       description="Work bound of the pattern search (deterministic, unlike a timeout).")
     min_matches: int = Field(default=4, ge=3, description="Fewest identified stars an identification is accepted with.")
-    max_residual_px: float = Field(default=2.0, gt=0, description="Largest RMS residual (px) of the verified attitude fit.")
+    max_residual_px: float = Field(default=2.0, gt=0, description="RMS residual (px) of the verified attitude fit "
+                                   "accepted whatever the residuals' spread (see residual_spread).")
+    residual_spread: float = Field(default=0.0, ge=0, description="Also accept an RMS residual up to this many times "
+                                   "the fit's robust scatter (1.4826 x median |r|): residuals that are uniformly large "
+                                   "(a lens model off by pixels everywhere) rather than a few large ones (mismatches); "
+                                   "the false-match bound still applies. 0: the fixed max_residual_px only.")
     max_false_match_prob: float = Field(default=1e-9, gt=0, lt=1,
                                         description="Largest chance probability of the match count (binomial test, see docstring).")
     gate_px: float = Field(default=10.0, gt=0, description="Match gate (px) of the catalogue re-matching after the pattern solve.")
     solved_scale: bool = Field(default=True, description="Re-match, verify and track with the focal length of the field of view "
                                                          "tetra3rs solved (within fov_tolerance) instead of the camera's nominal one.")
     track: bool = Field(default=True, description="After an accepted identification, identify the next frames by tracking; "
-                                                  "fall back to lost-in-space when tracking keeps fewer than min_matches.")
+                                                  "fall back to lost-in-space when tracking keeps fewer than min_matches "
+                                                  "or its matches fail the false-match bound.")
+    start_from_prior: bool = Field(default=True, description="With track, when the sensor context declares an initial "
+                                   "attitude, track from it on the first frame (verified as every tracked frame) "
+                                   "instead of a pattern search.")
     tracking: TrackingParams = Field(default_factory=TrackingParams, description="Parameters of the tracking identifier used after.")
     pattern_match_max_error: float | None = Field(
         default=None, gt=0, lt=0.5, description="tetra3rs' largest edge-ratio error of a 4-star pattern match; None: the "
@@ -52,10 +62,13 @@ class LostInSpaceParams(BaseModel):
                       "the pattern search, and it starts the fit with fit_distortion='radial'.")
     k2: float = Field(default=0.0, ge=-1e3, le=1e3, description="Known radial distortion k2 (as k1; a narrow field constrains it "
                       "poorly, so fitted values can be large while k2 r^4 stays small).")
-    fit_distortion: Literal["none", "radial"] = Field(
+    fit_distortion: Literal["none", "radial", "auto"] = Field(
         default="none", description="'radial': after the pattern match fit focal length and radial distortion (k1, and k2 "
         "with distortion_terms=2) jointly with the attitude to the matched stars, re-match with the fitted model and "
-        "verify with it (see the class docstring). 'none': pinhole with the known k1, k2.")
+        "verify with it (see the class docstring); every later stage then uses the fitted camera. 'none': pinhole with "
+        "the known k1, k2. 'auto': 'radial' for fields wider than auto_distortion_fov_deg, else 'none'.")
+    auto_distortion_fov_deg: float = Field(default=20.0, gt=0, description="Horizontal field (deg) above which "
+                                           "fit_distortion='auto' fits the distortion.")
     distortion_terms: Literal[1, 2] = Field(default=2, description="Radial terms fitted: 1 (k1) or 2 (k1, k2).")
     fit_principal_point: bool = Field(default=False, description="With fit_distortion='radial', also fit the principal point.")
     distortion_min_matches: int = Field(default=8, ge=4, description="Fewest matches the distortion is fitted with; below, "
@@ -124,7 +137,14 @@ class LostInSpaceIdentifier(Identifier):
     4. With ``track`` the next frames are identified by an internal ``tracking`` identifier whose
        prior is the verified attitude, then (via :meth:`update_prior`, called by the runner) the
        pipeline's attitude estimates; a frame where tracking keeps fewer than ``min_matches``
-       stars is flagged ``track_lost`` and identified lost-in-space again.
+       stars, or whose matches fail the false-match bound
+       (:func:`rollingstar.estimators.identifiers.integrity.check_identification`), is flagged
+       ``track_lost`` and identified lost-in-space again. With ``start_from_prior`` and a sensor
+       context that declares an initial attitude, the first frame is tracked from it, verified the
+       same way.
+    5. The camera: when the intrinsics were fitted (``fit_distortion``), the identified frames carry
+       the fitted model in ``frame.camera`` (focal length, principal point, k1, k2), and every later
+       stage (correction, attitude, smoother) projects with it.
 
     Output: as every identifier, ``frame.stars`` = identified detections with ``catalog_id`` and
     ``ref_icrs``, ``frame.unmatched`` = the rest. :attr:`last_solution` holds the diagnostics of
@@ -162,6 +182,12 @@ class LostInSpaceIdentifier(Identifier):
             "initial_attitude": None, "gate_px": self.params.gate_px, "extrapolate": False, "refine": True,
             "magnitude_limit": self.params.magnitude_limit})
         self._tracker: TrackingIdentifier | None = None
+        self._track_model = RadialCamera.from_pinhole(cam, self.params.k1, self.params.k2)
+        self._fitting = self.params.fit_distortion == "radial" or (
+            self.params.fit_distortion == "auto" and self._fov_deg > self.params.auto_distortion_fov_deg)
+        if self.params.track and self.params.start_from_prior and context.initial_attitude is not None:
+            self._tracker = self._tracking_identifier(context.initial_attitude, self.params.tracking,
+                                                      self._track_model.camera(cam))
         self.last_solution: LostInSpaceSolution | None = None
         self.last_mode = ""
 
@@ -183,10 +209,10 @@ class LostInSpaceIdentifier(Identifier):
                              "the 'lost-in-space' identifier needs a centroider or centroid-level recording before it")
         flags = frame.flags
         if self._tracker is not None:
-            out = self._track(frame)
-            if out.stars.n >= self.params.min_matches:
+            out = self._tracker.process(frame)
+            if out.stars.n >= self.params.min_matches and self._verified(out):
                 self.last_mode = "tracking"
-                return out
+                return self._with_camera(out)
             self._tracker = None
             flags = flags + ("track_lost",)
         self.last_mode = "lost-in-space"
@@ -194,25 +220,20 @@ class LostInSpaceIdentifier(Identifier):
         self.last_solution = sol
         if sol.accepted and self.params.track:
             self._track_model = sol.camera
-            self._tracker = self._tracking_identifier(sol.attitude, self.params.tracking, sol.camera.pinhole(self.context.camera))
-        return out
+            self._tracker = self._tracking_identifier(sol.attitude, self.params.tracking, sol.camera.camera(self.context.camera))
+        return self._with_camera(out) if sol.accepted else out
 
-    def _track(self, frame: FrameData) -> FrameData:
-        """The tracker on the detections undistorted with the accepted camera model; the output keeps
-        the observed positions (rows found back by their undistorted coordinates, copied unchanged)."""
-        model = self._track_model
-        if model.k1 == 0.0 and model.k2 == 0.0:
-            return self._tracker.process(frame)
-        det = frame.stars
-        xu, yu = model.undistort(det.x, det.y)
-        out = self._tracker.process(frame.evolve(stars=det.with_columns(x=xu, y=yu)))
-        key = xu + 1j * yu  # complex keys sort by x then y: find each output row's input row
-        order = np.argsort(key, kind="stable")
-        rows = order[np.searchsorted(key[order], out.stars.x + 1j * out.stars.y)]
-        rest = np.ones(det.n, dtype=bool)
-        rest[rows] = False
-        stars = det.take(rows).with_columns(catalog_id=out.stars.catalog_id, ref_icrs=out.stars.ref_icrs)
-        return out.evolve(stars=stars, unmatched=det.take(rest))
+    def _verified(self, out: FrameData) -> bool:
+        """True when the tracked matches pass the false-match bound (integrity.py) on the tracking camera."""
+        check = check_identification(out.stars, out.unmatched, self._track_model.camera(self.context.camera),
+                                     self.context.catalog, self.params.max_false_match_prob)
+        return check.passed
+
+    def _with_camera(self, out: FrameData) -> FrameData:
+        """``out`` carrying the fitted camera model when the intrinsics were fitted (class docstring, 5)."""
+        if not self._fitting:
+            return out
+        return out.evolve(camera=self._track_model.camera(self.context.camera))
 
     def _reject(self, frame: FrameData, reason: str, **diag) -> tuple[FrameData, LostInSpaceSolution]:
         det = frame.stars
@@ -291,7 +312,7 @@ class LostInSpaceIdentifier(Identifier):
         R, _ = Rotation.align_vectors(self._catalog.unit_icrs[cat_idx[ok]], model.unproject(det.x[det_idx[ok]], det.y[det_idx[ok]]))
         # re-match every detection against our catalogue and camera model; with fit_distortion the
         # intrinsics are refitted to the matches and the matching repeated until the set is stable
-        fitting = self.params.fit_distortion == "radial"
+        fitting = self._fitting
         names = ("focal_px", "k1", "k2")[:1 + self.params.distortion_terms] + (("cx", "cy") if self.params.fit_principal_point else ())
         sigma: dict = {}
         previous = None
@@ -322,8 +343,9 @@ class LostInSpaceIdentifier(Identifier):
         diag.update(n_matched=k, residual_rms_px=rms, false_match_prob=p_false)
         if k < self.params.min_matches:
             return self._reject(frame, f"too_few_matches({k}<{self.params.min_matches})", **diag)
-        if not rms <= self.params.max_residual_px:
-            return self._reject(frame, f"residual({rms:.2f}px>{self.params.max_residual_px}px)", **diag)
+        bound = max(self.params.max_residual_px, self.params.residual_spread * 1.4826 * float(np.median(r)))
+        if not rms <= bound:
+            return self._reject(frame, f"residual({rms:.2f}px>{bound:.2f}px)", **diag)
         if not p_false <= self.params.max_false_match_prob:
             return self._reject(frame, f"false_match_probability({p_false:.1e}>{self.params.max_false_match_prob:.0e})", **diag)
         sol = LostInSpaceSolution(accepted=True, reason="", attitude=R, n_detections=n, focal_px=model.focal_px,

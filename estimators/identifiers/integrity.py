@@ -1,0 +1,146 @@
+"""Identification integrity: how likely a frame's matches are chance coincidences, for any identifier.
+
+A frame's identified stars are checked against the catalogue with no knowledge of how they were
+found (pattern search, tracking from a prior, a third-party identifier):
+
+1. Fit. The attitude that best fits the ``k`` identified stars (Wahba's problem, SVD,
+   ``Rotation.align_vectors``); with at least :data:`RATE_FIT_MIN_MATCHES` stars whose times
+   differ (raw rolling-shutter centroids, each at its own row time) also a constant body rate,
+   ``R(t) = R0 Exp(omega (t - t_mid))``, one linearised least-squares step (the rolling shutter's
+   row-to-row motion would otherwise read as residual).
+2. Gate. ``g`` = the largest pixel residual of the ``k`` stars under that fit, at least
+   ``max(min_gate_px, 3 * median star sigma)``: the distance within which every match was found.
+3. Chance. With ``N`` catalogue stars predicted on the ``W x H`` detector by the fit, one random
+   detection falls within ``g`` of one of them with probability ``p = min(1, N pi g^2 / (W H))``;
+   the probability that ``k`` or more of the ``n`` detections do so by chance is the binomial
+   tail ``P = sum_{i>=k} C(n, i) p^i (1 - p)^(n - i)`` (``scipy.stats.binom.sf(k - 1, n, p)``).
+   Overlapping discs make the true ``p`` smaller, so ``P`` is conservative. This is the test the
+   ``lost-in-space`` identifier applies to its pattern hypotheses (tetra3's verification), made
+   independent of the identifier: a tracker whose prior points at an unrelated part of the sky, a
+   mirrored or shuffled star field, random spots, all leave large residuals or few matches, hence
+   a large ``P``.
+
+The frame is accepted when ``P <= bound`` (default :data:`DEFAULT_MAX_FALSE_MATCH_PROB`); with
+fewer than two identified stars no attitude can be made and the check does not apply (``P = 1``,
+``passed`` False, no flag).
+
+4. Consistency. The same fit's ``chi^2 = sum_i r_i^T C_i^-1 r_i`` with each star's stated 2 x 2
+   position covariance ``C_i`` (``StarTable.position_covariance``), over ``2 k - 3`` degrees of
+   freedom (``2 k - 6`` with the rate). A chance-free identification whose positions scatter far
+   more than their covariances say (a displaced or blended star, an unmodelled lens) makes every
+   covariance computed from those stars too small: with fewer than :data:`MIN_REDUNDANT_MATCHES`
+   stars the identification is rejected (``inconsistent_residuals``: too few stars to tell the
+   displaced one), otherwise the stage mechanics scale the frame's attitude covariances by
+   ``chi^2 / dof`` (:func:`inconsistent`).
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+from scipy.stats import binom, chi2
+
+from rollingstar.estimators.data import DEFAULT_CENTROID_SIGMA_PX, IdentificationCheck, StarTable
+from rollingstar.sensors.conventions import S_PER_NS
+from rollingstar.sensors.so3 import skew
+
+#: Largest accepted chance probability of a frame's matches (one frame's hypothesis; a pattern
+#: search that tests ~1e4 hypotheses still leaves ~1e-5 per frame).
+DEFAULT_MAX_FALSE_MATCH_PROB = 1e-9
+#: Fewest identified stars (with distinct times) a body rate is fitted with.
+RATE_FIT_MIN_MATCHES = 8
+#: Smallest gate (px) the chance probability is computed with.
+MIN_GATE_PX = 0.5
+#: Chi-square tail probability below which a fit's residuals contradict the stated covariances.
+INCONSISTENT_P = 1e-6
+#: Fewest matches whose inconsistent residuals still leave a usable attitude (with fewer, the
+#: displaced star cannot be told from the others: the identification is rejected).
+MIN_REDUNDANT_MATCHES = 5
+
+
+def check_identification(stars: StarTable | None, unmatched: StarTable | None, camera, catalog,
+                         bound: float = DEFAULT_MAX_FALSE_MATCH_PROB, min_gate_px: float = MIN_GATE_PX) -> IdentificationCheck:
+    """The integrity check of one frame's identification (module docstring).
+
+    ``stars`` holds the identified stars (unidentified rows are counted as detections), ``unmatched``
+    the other detections; ``camera`` the frame's camera model; ``catalog`` the catalogue the
+    identifications refer to.
+    """
+    stars = stars if stars is not None else StarTable.empty()
+    n = _finite_count(stars) + (_finite_count(unmatched) if unmatched is not None else 0)
+    ident = stars.take(stars.identified & np.isfinite(stars.x) & np.isfinite(stars.y)
+                       & np.isfinite(stars.ref_icrs).all(axis=1))
+    k = ident.n
+    if k < 2:
+        return IdentificationCheck(1.0, n, k, 0, float("nan"), float(bound), False, f"too_few_matches({k}<2)")
+    resid, attitude, dx = fit_residuals(ident, camera)
+    sigma = np.nanmedian(np.where(ident.sigma_px > 0, ident.sigma_px, np.nan)) if np.isfinite(ident.sigma_px).any() else np.nan
+    floor = max(min_gate_px, 3.0 * (sigma if np.isfinite(sigma) else DEFAULT_CENTROID_SIGMA_PX))
+    gate = max(float(np.max(resid)), floor) if np.all(np.isfinite(resid)) else float("inf")
+    n_pred = predicted_count(attitude, camera, catalog)
+    p = min(1.0, max(n_pred, k) * np.pi * gate**2 / (camera.width * camera.height))
+    prob = float(binom.sf(k - 1, max(n, k), p))
+    dof = 2 * k - (6 if rate_fitted(ident) else 3)
+    info = np.linalg.inv(ident.position_covariance(sigma if np.isfinite(sigma) else DEFAULT_CENTROID_SIGMA_PX))
+    chi2_dof = float(np.einsum("ni,nij,nj->", dx, info, dx) / dof) if dof > 0 and np.all(np.isfinite(dx)) else float("nan")
+    check = IdentificationCheck(prob, max(n, k), k, n_pred, gate, float(bound), True, "", chi2_dof, max(dof, 0))
+    if prob > bound:
+        return replace(check, passed=False, reason=f"false_match_probability({prob:.1e}>{bound:.0e})")
+    if k < MIN_REDUNDANT_MATCHES and inconsistent(check):
+        return replace(check, passed=False, reason=f"inconsistent_residuals(chi2/dof={chi2_dof:.3g},{k}<{MIN_REDUNDANT_MATCHES} stars)")
+    return check
+
+
+def inconsistent(check: IdentificationCheck) -> bool:
+    """True when the fit's chi-square contradicts the stars' stated covariances (``p < INCONSISTENT_P``)."""
+    return check.dof > 0 and np.isfinite(check.chi2_dof) and chi2.sf(check.chi2_dof * check.dof, check.dof) < INCONSISTENT_P
+
+
+def rate_fitted(ident: StarTable) -> bool:
+    """True when the fit includes a body rate (enough stars at distinct times)."""
+    return ident.n >= RATE_FIT_MIN_MATCHES and np.ptp(ident.t_ns) > 0
+
+
+def fit_residuals(ident: StarTable, camera) -> tuple[np.ndarray, Rotation, np.ndarray]:
+    """Pixel residual distances of the identified stars under the best-fit attitude (and body rate,
+    see the module docstring), the attitude at the stars' middle time, and the residual vectors (n, 2)."""
+    body = camera.unproject(ident.x, ident.y)
+    ref = ident.ref_icrs / np.linalg.norm(ident.ref_icrs, axis=1, keepdims=True)
+    R, _ = Rotation.align_vectors(ref, body)
+    t = ident.t_ns.astype(np.int64)
+    dt = (t - int(np.median(t))) * S_PER_NS
+    phi = np.zeros((ident.n, 3))
+    if rate_fitted(ident):
+        for _ in range(2):  # the second step removes the first's linearisation error
+            phi = _rate_step(R, body, ref, dt, phi)
+    # predicted camera vectors: w_i = (R Exp(phi_i))^T r_i
+    w = (R * Rotation.from_rotvec(phi)).inv().apply(ref) if ident.n else np.zeros((0, 3))
+    px, py, front = camera.project(w)
+    dx = np.column_stack([ident.x - px, ident.y - py])
+    resid = np.where(front, np.hypot(dx[:, 0], dx[:, 1]), np.inf)
+    return resid, R, dx
+
+
+def _rate_step(R: Rotation, body: np.ndarray, ref: np.ndarray, dt: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """Per-star rotation vectors ``phi_i = delta + omega dt_i`` after one linearised least-squares
+    step of the attitude-and-rate fit from ``phi``: ``b_i - w_i = [w_i]x (d delta + d omega dt_i)``
+    with ``w_i = (R Exp(phi_i))^T r_i``."""
+    w = (R * Rotation.from_rotvec(phi)).inv().apply(ref)
+    S = skew(w)  # (n, 3, 3)
+    A = np.concatenate([S, S * dt[:, None, None]], axis=2).reshape(-1, 6)
+    sol, *_ = np.linalg.lstsq(A, (body - w).reshape(-1), rcond=None)
+    return phi + sol[:3][None, :] + dt[:, None] * sol[3:][None, :]
+
+
+def predicted_count(attitude: Rotation, camera, catalog) -> int:
+    """Catalogue stars the camera sees on its detector at ``attitude``."""
+    idx = np.asarray(catalog.cone(attitude.apply([0.0, 0.0, 1.0]), camera.half_diagonal_rad), dtype=np.intp)
+    if idx.size == 0:
+        return 0
+    x, y, front = camera.project(attitude.inv().apply(catalog.unit_icrs[idx]))
+    return int(np.count_nonzero(front & camera.contains(x, y)))
+
+
+def _finite_count(table: StarTable) -> int:
+    return int(np.count_nonzero(np.isfinite(table.x) & np.isfinite(table.y)))
