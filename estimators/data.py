@@ -212,7 +212,8 @@ class IdentificationCheck:
     ``false_match_prob``: the probability that ``n_matched`` or more of ``n_detections`` random
     detections would fall within ``gate_px`` of one of the ``n_predicted`` catalogue stars on the
     detector; ``bound`` the largest accepted; ``passed`` whether it was accepted; ``reason`` why
-    not ("" when passed).
+    not ("" when passed); ``chi2_dof`` the fit's normalised residual (chi^2 per degree of freedom
+    with the stars' stated position covariances, ``dof`` degrees of freedom; NaN without them).
     """
 
     false_match_prob: float
@@ -223,6 +224,8 @@ class IdentificationCheck:
     bound: float
     passed: bool
     reason: str = ""
+    chi2_dof: float = float("nan")
+    dof: int = 0
 
 
 @dataclass(frozen=True)
@@ -268,7 +271,8 @@ class SensorContext:
 
     Built by the runner from the recording's declared sensor model (metadata). ``catalog`` is a
     :class:`rollingstar.sensors.catalog.StarCatalog`; ``initial_attitude`` a prior (camera-to-ICRS) when the
-    recording or config declares one.
+    recording or config declares one. ``gain_e_per_adu``: the detector's conversion gain (electrons
+    per ADU) when the sensor model states it (the centroiders' shot-noise term), else None.
     """
 
     camera: Any  # rollingstar.sensors.camera.PinholeCamera
@@ -277,6 +281,7 @@ class SensorContext:
     initial_attitude: Rotation | None = None
     centroid_sigma_px: float | None = None
     bit_depth: int | None = None
+    gain_e_per_adu: float | None = None
 
     @classmethod
     def from_scenario(cls, cfg, catalog=None) -> SensorContext:
@@ -291,6 +296,7 @@ class SensorContext:
             initial_attitude=build.initial_attitude(cfg),
             centroid_sigma_px=cfg.noise.centroid_sigma_px if cfg.level == "centroid" else None,
             bit_depth=cfg.image.bit_depth if cfg.level == "image" else None,
+            gain_e_per_adu=cfg.image.gain_e_per_adu if cfg.level == "image" else None,
         )
 
 
