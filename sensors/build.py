@@ -121,9 +121,9 @@ def build_effects(cfg: ScenarioConfig) -> list:
 def build_zenith(cfg: ScenarioConfig) -> np.ndarray | None:
     """ICRS zenith of a ground-based scenario (``environment.elevation_deg``), else None.
 
-    At the initial attitude the boresight has elevation ``e`` and the zenith lies towards image
-    up (camera -y): ``zenith_cam = (0, -cos e, sin e)``. It is held fixed in ICRS (the sky's
-    diurnal rotation, 15 arcsec/s, is neglected over a recording).
+    At the initial attitude the boresight has elevation ``e`` and the zenith lies towards camera
+    -y (increasing row, docs/conventions.md): ``zenith_cam = (0, -cos e, sin e)``. It is held
+    fixed in ICRS (the sky's diurnal rotation, 15 arcsec/s, is neglected over a recording).
     """
     e = cfg.environment.elevation_deg
     att = initial_attitude(cfg)

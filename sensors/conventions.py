@@ -7,9 +7,10 @@
   the rotation that takes camera-frame vectors to ICRS vectors (the camera's orientation in ICRS,
   as in ``foxglove.PoseInFrame``): ``v_icrs = R.apply(w_cam)``. The seeds' attitude matrix ``A``
   (``w = A v``, he2021b eq 3) is therefore ``R.as_matrix().T``.
-- Camera frame: +z is the boresight. Pixel ``(x, y) = (column, row)``, pixel centres at integer
-  coordinates. The direction of pixel (x, y) is he2021b eq (2):
-  ``w ~ [-(x - cx) p, -(y - cy) p, f]``.
+- Camera frame: +z is the boresight; +x points towards decreasing column and +y towards
+  decreasing row (the OpenCV camera frame turned 180 deg about the boresight). Pixel
+  ``(x, y) = (column, row)``, pixel centres at integer coordinates. The direction of pixel (x, y)
+  is he2021b eq (2): ``w ~ [-(x - cx) p, -(y - cy) p, f]``.
 - Attitude errors are the rotation from truth to estimate expressed in the camera (body) frame,
   per axis in arcseconds: x, y cross-boresight, z about the boresight.
 """
@@ -57,8 +58,9 @@ def unit_to_radec(unit) -> tuple[np.ndarray, np.ndarray]:
 def attitude_from_radec_roll(ra_deg: float, dec_deg: float, roll_deg: float = 0.0) -> Rotation:
     """Camera-to-ICRS attitude whose boresight (+z) points at (ra, dec).
 
-    With roll 0 the camera's -y axis (image "up", decreasing row) points towards celestial north
-    where defined; roll rotates the camera about its boresight by ``roll_deg`` (right-handed).
+    With roll 0 the camera's -y axis points towards celestial north where defined (north images
+    below the principal point, at increasing row); roll rotates the camera about its boresight by
+    ``roll_deg`` (right-handed): ``R(ra, dec, roll) = R(ra, dec, 0) * Rz(roll)``.
     """
     ra, dec, roll = np.radians([ra_deg, dec_deg, roll_deg])
     z = radec_to_unit(ra, dec)

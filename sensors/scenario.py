@@ -185,7 +185,7 @@ class EnvironmentConfig(Strict):
 
     elevation_deg: float | None = Field(
         None, ge=0.0, le=90.0,
-        description="ground-based: boresight elevation at the initial attitude, zenith towards image up (-y); "
+        description="ground-based: boresight elevation at the initial attitude, zenith towards camera -y (increasing row); "
                     "None in space (refraction needs it)")
     covariates: dict[str, CovariateConfig] = Field(
         {}, description="covariates by name (e.g. temperature_c for thermal_focal_drift)")
