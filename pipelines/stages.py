@@ -163,7 +163,10 @@ class StagePipeline:
 def verify_identification(frame: FrameData, context: SensorContext, bound: float) -> FrameData:
     """``frame`` with its identification check; its identified stars withdrawn when the check fails
     (see the module docstring)."""
-    check = check_identification(frame.stars, frame.unmatched, frame_camera(frame, context), context.catalog, bound)
+    gyro = frame.gyro.omega_rad_s
+    omega = gyro.mean(axis=0) if len(gyro) else None
+    check = check_identification(frame.stars, frame.unmatched, frame_camera(frame, context), context.catalog, bound,
+                                 omega_rad_s=omega)
     frame = frame.evolve(identification=check)
     if check.passed or check.n_matched < 2:
         return frame

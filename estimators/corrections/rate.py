@@ -21,7 +21,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from rollingstar.estimators.corrections.base import Correction
-from rollingstar.estimators.data import FrameData, RateEstimate
+from rollingstar.estimators.data import FrameData, RateEstimate, frame_camera
 from rollingstar.estimators.rates.base import RateEstimator, Reference, reference_time_ns
 from rollingstar.estimators.rates.pso import PsoRateEstimator, corrected_positions
 from rollingstar.sensors.conventions import S_PER_NS
@@ -96,7 +96,9 @@ class RateCorrection(Correction):
     each. With ``estimator``, frames without such a rate (or every frame, ``reuse_rate: false``) get
     ``frame.rate`` from that estimator first (with ``estimator_params``). A frame whose rate is
     missing or invalid, or that has no star table, is returned uncorrected (each star keeps its own
-    ``t_ns``) with flag ``rate_invalid``.
+    ``t_ns``) with flag ``rate_invalid``. Pixels are moved with the frame's camera
+    (:func:`~rollingstar.estimators.data.frame_camera`); ``sigma_px`` and the 2 x 2 ``cov_*`` are kept
+    (the map is a near-rigid shift over one frame; the rate's uncertainty is not added).
     """
 
     name = "rate-correction"
@@ -119,7 +121,7 @@ class RateCorrection(Correction):
         omega = np.asarray(frame.rate.omega_rad_s, dtype=float)
         t_ref = reference_time_ns(p.reference, frame.t0_ns, self.context.timing)
         dt = (stars.t_ns - np.int64(t_ref)).astype(float) * S_PER_NS
-        cam = self.context.camera
+        cam = frame_camera(frame, self.context)
         if p.model == "linear":
             x, y = corrected_positions(cam, omega, stars.x, stars.y, dt)
         else:

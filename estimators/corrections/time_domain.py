@@ -28,7 +28,8 @@ per-star time, rounded to the ns, so that downstream stages and the evaluation k
 Stars without a finite velocity (``vx`` or ``vy`` NaN, e.g. a track's first frame) are left
 unchanged, keep their own ``t_ns``, and the frame gets flag ``"time_domain_no_velocity:<n>"``.
 ``row_time_ns`` is left as measured (the exposure start of the star's measured centroid row) and
-``sigma_px`` unchanged (velocity uncertainty times the extrapolation interval is not added).
+``sigma_px`` and the 2 x 2 covariance ``cov_*`` unchanged (velocity uncertainty times the
+extrapolation interval is not added).
 """
 from __future__ import annotations
 

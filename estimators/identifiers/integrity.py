@@ -6,8 +6,9 @@ found (pattern search, tracking from a prior, a third-party identifier):
 1. Fit. The attitude that best fits the ``k`` identified stars (Wahba's problem, SVD,
    ``Rotation.align_vectors``); with at least :data:`RATE_FIT_MIN_MATCHES` stars whose times
    differ (raw rolling-shutter centroids, each at its own row time) also a constant body rate,
-   ``R(t) = R0 Exp(omega (t - t_mid))``, one linearised least-squares step (the rolling shutter's
-   row-to-row motion would otherwise read as residual).
+   ``R(t) = R0 Exp(omega (t - t_mid))``, two linearised least-squares steps (the rolling shutter's
+   row-to-row motion would otherwise read as residual). With fewer stars the rate is the frame's
+   gyro rate when it has gyro samples, else zero (a static frame, as the pattern search assumes).
 2. Gate. ``g`` = the largest pixel residual of the ``k`` stars under that fit, at least
    ``max(min_gate_px, 3 * median star sigma)``: the distance within which every match was found.
 3. Chance. With ``N`` catalogue stars predicted on the ``W x H`` detector by the fit, one random
@@ -49,7 +50,7 @@ from rollingstar.sensors.so3 import skew
 #: search that tests ~1e4 hypotheses still leaves ~1e-5 per frame).
 DEFAULT_MAX_FALSE_MATCH_PROB = 1e-9
 #: Fewest identified stars (with distinct times) a body rate is fitted with.
-RATE_FIT_MIN_MATCHES = 8
+RATE_FIT_MIN_MATCHES = 5
 #: Smallest gate (px) the chance probability is computed with.
 MIN_GATE_PX = 0.5
 #: Chi-square tail probability below which a fit's residuals contradict the stated covariances.
@@ -60,12 +61,13 @@ MIN_REDUNDANT_MATCHES = 5
 
 
 def check_identification(stars: StarTable | None, unmatched: StarTable | None, camera, catalog,
-                         bound: float = DEFAULT_MAX_FALSE_MATCH_PROB, min_gate_px: float = MIN_GATE_PX) -> IdentificationCheck:
+                         bound: float = DEFAULT_MAX_FALSE_MATCH_PROB, min_gate_px: float = MIN_GATE_PX,
+                         omega_rad_s=None) -> IdentificationCheck:
     """The integrity check of one frame's identification (module docstring).
 
     ``stars`` holds the identified stars (unidentified rows are counted as detections), ``unmatched``
     the other detections; ``camera`` the frame's camera model; ``catalog`` the catalogue the
-    identifications refer to.
+    identifications refer to; ``omega_rad_s`` the body rate (camera frame) when a gyro measured it.
     """
     stars = stars if stars is not None else StarTable.empty()
     n = _finite_count(stars) + (_finite_count(unmatched) if unmatched is not None else 0)
@@ -74,7 +76,7 @@ def check_identification(stars: StarTable | None, unmatched: StarTable | None, c
     k = ident.n
     if k < 2:
         return IdentificationCheck(1.0, n, k, 0, float("nan"), float(bound), False, f"too_few_matches({k}<2)")
-    resid, attitude, dx = fit_residuals(ident, camera)
+    resid, attitude, dx = fit_residuals(ident, camera, omega_rad_s)
     sigma = np.nanmedian(np.where(ident.sigma_px > 0, ident.sigma_px, np.nan)) if np.isfinite(ident.sigma_px).any() else np.nan
     floor = max(min_gate_px, 3.0 * (sigma if np.isfinite(sigma) else DEFAULT_CENTROID_SIGMA_PX))
     gate = max(float(np.max(resid)), floor) if np.all(np.isfinite(resid)) else float("inf")
@@ -102,15 +104,18 @@ def rate_fitted(ident: StarTable) -> bool:
     return ident.n >= RATE_FIT_MIN_MATCHES and np.ptp(ident.t_ns) > 0
 
 
-def fit_residuals(ident: StarTable, camera) -> tuple[np.ndarray, Rotation, np.ndarray]:
+def fit_residuals(ident: StarTable, camera, omega_rad_s=None) -> tuple[np.ndarray, Rotation, np.ndarray]:
     """Pixel residual distances of the identified stars under the best-fit attitude (and body rate,
     see the module docstring), the attitude at the stars' middle time, and the residual vectors (n, 2)."""
     body = camera.unproject(ident.x, ident.y)
     ref = ident.ref_icrs / np.linalg.norm(ident.ref_icrs, axis=1, keepdims=True)
-    R, _ = Rotation.align_vectors(ref, body)
     t = ident.t_ns.astype(np.int64)
     dt = (t - int(np.median(t))) * S_PER_NS
     phi = np.zeros((ident.n, 3))
+    if omega_rad_s is not None and not rate_fitted(ident):
+        phi = dt[:, None] * np.asarray(omega_rad_s, dtype=float)[None, :]
+    # R^T r_i = Exp(phi_i) b_i: the stars referred to the middle time, then Wahba's problem
+    R, _ = Rotation.align_vectors(ref, Rotation.from_rotvec(phi).apply(body))
     if rate_fitted(ident):
         for _ in range(2):  # the second step removes the first's linearisation error
             phi = _rate_step(R, body, ref, dt, phi)

@@ -50,6 +50,9 @@ class LostInSpaceParams(BaseModel):
     track: bool = Field(default=True, description="After an accepted identification, identify the next frames by tracking; "
                                                   "fall back to lost-in-space when tracking keeps fewer than min_matches "
                                                   "or its matches fail the false-match bound.")
+    track_min_matches: int | None = Field(default=None, ge=2, description="Fewest stars a tracked frame keeps before "
+                                          "lost-in-space is tried again; None: min_matches. Every tracked frame is "
+                                          "also verified against the false-match bound.")
     start_from_prior: bool = Field(default=True, description="With track, when the sensor context declares an initial "
                                    "attitude, track from it on the first frame (verified as every tracked frame) "
                                    "instead of a pattern search.")
@@ -136,8 +139,8 @@ class LostInSpaceIdentifier(Identifier):
          default bound 1e-9 leaves room for the ~1e4 hypotheses a search may test.
     4. With ``track`` the next frames are identified by an internal ``tracking`` identifier whose
        prior is the verified attitude, then (via :meth:`update_prior`, called by the runner) the
-       pipeline's attitude estimates; a frame where tracking keeps fewer than ``min_matches``
-       stars, or whose matches fail the false-match bound
+       pipeline's attitude estimates; a frame where tracking keeps fewer than ``track_min_matches``
+       (default ``min_matches``) stars, or whose matches fail the false-match bound
        (:func:`rollingstar.estimators.identifiers.integrity.check_identification`), is flagged
        ``track_lost`` and identified lost-in-space again. With ``start_from_prior`` and a sensor
        context that declares an initial attitude, the first frame is tracked from it, verified the
@@ -210,7 +213,8 @@ class LostInSpaceIdentifier(Identifier):
         flags = frame.flags
         if self._tracker is not None:
             out = self._tracker.process(frame)
-            if out.stars.n >= self.params.min_matches and self._verified(out):
+            least = self.params.track_min_matches or self.params.min_matches
+            if out.stars.n >= least and self._verified(out):
                 self.last_mode = "tracking"
                 return self._with_camera(out)
             self._tracker = None
@@ -225,8 +229,10 @@ class LostInSpaceIdentifier(Identifier):
 
     def _verified(self, out: FrameData) -> bool:
         """True when the tracked matches pass the false-match bound (integrity.py) on the tracking camera."""
+        gyro = out.gyro.omega_rad_s
         check = check_identification(out.stars, out.unmatched, self._track_model.camera(self.context.camera),
-                                     self.context.catalog, self.params.max_false_match_prob)
+                                     self.context.catalog, self.params.max_false_match_prob,
+                                     omega_rad_s=gyro.mean(axis=0) if len(gyro) else None)
         return check.passed
 
     def _with_camera(self, out: FrameData) -> FrameData:
