@@ -122,6 +122,17 @@ class _BoundedLoader(yaml.SafeLoader):
             seen[key] = key_node.start_mark.line + 1
         return super().construct_mapping(node, deep)
 
+    def construct_yaml_timestamp(self, node):
+        """A date the YAML grammar accepts but the calendar does not (2019-02-30) is an error naming its line."""
+        try:
+            return super().construct_yaml_timestamp(node)
+        except ValueError as exc:
+            raise ConfigError(f"{self.name}: line {node.start_mark.line + 1}: {excerpt(node.value)} is not a valid "
+                              f"date or time ({exc})") from None
+
+
+_BoundedLoader.add_constructor("tag:yaml.org,2002:timestamp", _BoundedLoader.construct_yaml_timestamp)
+
 
 def _node_children(node) -> list:
     if isinstance(node, yaml.MappingNode):

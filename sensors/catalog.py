@@ -21,9 +21,12 @@ without caching. :meth:`StarCatalog.from_hipparcos` is memoised per (epoch, magn
 from __future__ import annotations
 
 import functools
+import math
 import os
 import tempfile
 import zipfile
+from dataclasses import dataclass
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +36,16 @@ from rollingstar.sensors.conventions import radec_to_unit
 
 HIPPARCOS_EPOCH_YEAR = 1991.25
 MAS_TO_RAD = np.pi / (180.0 * 3600.0 * 1000.0)
+J2000 = datetime(2000, 1, 1, 12, 0, 0, tzinfo=timezone.utc)
+"""Julian epoch J2000.0 (2000-01-01 12:00 TT), here taken on the UTC clock (see :func:`julian_year`)."""
+JULIAN_YEAR_S = 365.25 * 86400.0
+HIPPARCOS_COMPLETE_HP = 9.0
+"""Hp to which Hipparcos-2 is treated as complete (the survey is complete to V 7.3-9.0; fainter,
+star counts per field reflect the mission's selection, not the sky)."""
+FIELD_DEPTH_MIN_HP = 6.0
+"""The shallowest limit :func:`magnitude_limit_for_field` chooses (the scenario default)."""
+STARS_PER_FIELD_TARGET = 20.0
+"""Reference stars a field should hold on average (:func:`magnitude_limit_for_field`)."""
 
 # 0-based column positions in hip2.dat (I/311 ReadMe: HIP Sn So Nc RArad DErad Plx pmRA pmDE
 # e_RArad e_DErad e_Plx e_pmRA e_pmDE Ntr F2 F1 var ic Hpmag ...; 41 columns in total).
@@ -268,3 +281,75 @@ def _hipparcos_cached(epoch_year: float, magnitude_limit: float) -> StarCatalog:
     pm = proper_motion_vector(cols["ra_rad"][keep], cols["dec_rad"][keep], cols["pmra_mas_yr"][keep],
                               cols["pmdec_mas_yr"][keep])
     return StarCatalog(cols["hip"][keep], unit, cols["hpmag"][keep], epoch_year, pm)
+
+
+def julian_year(when: datetime) -> float:
+    """The Julian epoch of a time zone-aware ``datetime``: ``2000.0 + (t - J2000) / 365.25 d``.
+
+    This is the year of the catalogue's epochs and proper motions (J1991.25, mas per Julian year).
+    UTC stands in for TT: their 64-69 s difference is 2e-6 yr, a micro-arcsecond of proper motion.
+    """
+    if when.tzinfo is None or when.utcoffset() is None:
+        raise ValueError(f"{when.isoformat()}: a time without a zone is ambiguous; give it in UTC")
+    return 2000.0 + (when - J2000).total_seconds() / JULIAN_YEAR_S
+
+
+def field_solid_angle_sr(hfov_deg: float, vfov_deg: float) -> float:
+    """Solid angle (sr) of a rectangular pinhole field of full angles ``hfov`` x ``vfov``:
+    ``4 asin(sin(hfov / 2) sin(vfov / 2))`` (a right rectangular pyramid)."""
+    a, b = math.radians(hfov_deg) / 2.0, math.radians(vfov_deg) / 2.0
+    if not (0.0 < a <= math.pi / 2 and 0.0 < b <= math.pi / 2):
+        raise ValueError(f"field of view {hfov_deg} x {vfov_deg} deg: expected angles in (0, 180] deg")
+    return 4.0 * math.asin(math.sin(a) * math.sin(b))
+
+
+def hipparcos_stars_per_sr(magnitude_limit: float) -> float:
+    """Mean number of Hipparcos-2 stars with ``Hp <= magnitude_limit`` per steradian, whole sky."""
+    return float(np.searchsorted(_sorted_hpmag(), magnitude_limit, side="right")) / (4.0 * math.pi)
+
+
+@functools.lru_cache(maxsize=1)
+def _sorted_hpmag() -> np.ndarray:
+    return np.sort(load_hipparcos_columns()["hpmag"])
+
+
+@dataclass(frozen=True)
+class FieldDepth:
+    """The catalogue depth :func:`magnitude_limit_for_field` chose, and why."""
+
+    magnitude_limit: float
+    stars_per_field: float  # mean Hipparcos-2 stars to that limit in one field
+    target_per_field: float  # the mean it aimed for
+    reached: bool  # False: even HIPPARCOS_COMPLETE_HP holds fewer than the target
+    solid_angle_sr: float
+
+    def describe(self) -> str:
+        how = "the first limit" if self.reached else "the completeness limit; no limit"
+        return (f"Hp {self.magnitude_limit:g}: {how} whose mean star count in a field of {self.solid_angle_sr:.4g} sr "
+                f"({self.stars_per_field:.1f}) reaches {self.target_per_field:g}")
+
+
+def magnitude_limit_for_field(hfov_deg: float, vfov_deg: float, *, target_per_field: float = STARS_PER_FIELD_TARGET,
+                              detections_per_frame: float | None = None, step: float = 0.5) -> FieldDepth:
+    """The shallowest Hipparcos limit whose stars fill a camera field with enough references.
+
+    Candidates ``FIELD_DEPTH_MIN_HP, + step, ...`` up to :data:`HIPPARCOS_COMPLETE_HP`; the first
+    whose mean count per field (whole-sky density x :func:`field_solid_angle_sr`) reaches the
+    target is chosen. The target is ``target_per_field``, or the mean number of detections per
+    frame when that is smaller: a reference star helps only if a detection can match it, and
+    every predicted star that none matches raises the chance that a random spot matches one
+    (the false-match bound of the identifiers). The density is an all-sky mean: on Hipparcos-2 to
+    Hp 6-9, fields within 10 deg of the galactic plane hold 1.4-1.6 times as many stars, fields
+    beyond 60 deg galactic latitude 0.65-0.75 times as many.
+    """
+    omega = field_solid_angle_sr(hfov_deg, vfov_deg)
+    target = float(target_per_field)
+    if detections_per_frame is not None:
+        target = min(target, float(detections_per_frame))
+    limits = np.arange(FIELD_DEPTH_MIN_HP, HIPPARCOS_COMPLETE_HP + step / 2, step)
+    count = 0.0
+    for limit in limits:
+        count = hipparcos_stars_per_sr(limit) * omega
+        if count >= target:
+            return FieldDepth(float(limit), count, target, True, omega)
+    return FieldDepth(float(limits[-1]), count, target, False, omega)

@@ -1,7 +1,8 @@
 """Import a centroid table (CSV: frame, time, x, y, flux, ...) as a centroid-level recording.
 
 One row per star detection. Required columns: ``frame`` (integer, non-decreasing, the rows of one
-frame contiguous), ``t_ns`` (integer ns) or ``time_s`` (seconds), the frame's time ``t0`` (exposure
+frame contiguous), ``t_ns`` (integer ns) or ``time_s`` (seconds), or ``t_unix_ns``/``time_unix_s``
+for times stated to be Unix time, the frame's time ``t0`` (exposure
 start of row 0: the same on every row of a frame and strictly increasing from frame to frame),
 ``x``, ``y`` (px, column and row, pixel centres at integers with (0, 0) the first pixel), ``flux``
 (ADU above background; an empty cell means unknown). Optional: ``sigma_px``, ``snr``, ``peak``
@@ -16,13 +17,17 @@ centroids. Frames whose stars all carry a catalogue id are treated as already id
 """
 from __future__ import annotations
 
+from datetime import datetime
 from pathlib import Path
 
 import numpy as np
 import yaml
+from pydantic import ValidationError
 
-from rollingstar.config import to_yaml
+from rollingstar.config import format_validation_error, to_yaml
 from rollingstar.logs.importers.common import (
+    TIME_COLUMNS,
+    UNIX_TIME_COLUMNS,
     ImportDataError,
     WarningLog,
     bool_column,
@@ -34,7 +39,15 @@ from rollingstar.logs.importers.common import (
     read_csv,
     time_column,
 )
-from rollingstar.logs.importers.sidecar import CameraSpec, load_camera, scenario_for
+from rollingstar.logs.importers.observation import (
+    NO_OBSERVATION,
+    Observation,
+    catalog_for,
+    from_unix_ns,
+    mean_per_frame,
+    unix_looking,
+)
+from rollingstar.logs.importers.sidecar import CameraSpec, ObservationSpec, load_camera, scenario_for
 from rollingstar.logs.records import arrays_to_stars
 from rollingstar.logs.topics import TOPIC_CENTROIDS
 from rollingstar.logs.writer import LogWriter
@@ -49,7 +62,7 @@ OPTIONAL = ("sigma_px", "snr", "peak", "npix", "saturated", "catalog_id", "ra_de
 def read_centroid_table(path: str | Path, camera: CameraSpec, log: WarningLog | None = None) -> dict[str, np.ndarray]:
     """Validated columns of a centroid CSV (see module docstring); errors name file, line and column."""
     log = log or WarningLog()
-    table = read_csv(path, required=REQUIRED, optional=OPTIONAL, one_of=[("t_ns", "time_s")], log=log)
+    table = read_csv(path, required=REQUIRED, optional=OPTIONAL, one_of=[TIME_COLUMNS + UNIX_TIME_COLUMNS], log=log)
     if table.n == 0:
         raise ImportDataError(f"{table.path}: no data rows after the header")
     frame = int_column(table, "frame")
@@ -72,7 +85,7 @@ def read_centroid_table(path: str | Path, camera: CameraSpec, log: WarningLog | 
             raise ImportDataError(f"{table.where(int(b), tname)}: frame {frame[b]} at {t[b]} ns is not after frame "
                                   f"{frame[a]} at {t[a]} ns (line {int(table.lines[a])}); frame times must increase "
                                   "strictly")
-    cols: dict[str, np.ndarray] = {"frame": frame, "t0_ns": t,
+    cols: dict[str, np.ndarray] = {"frame": frame, "t0_ns": t, "time_column": np.asarray(tname),
                                    "x": float_column(table, "x"), "y": float_column(table, "y"),
                                    "flux": float_column(table, "flux", required=False)}
     w, h = camera.width_px, camera.height_px
@@ -127,13 +140,21 @@ def read_centroid_table(path: str | Path, camera: CameraSpec, log: WarningLog | 
     return cols
 
 
-def import_centroids(csv: str | Path, out: str | Path, camera: CameraSpec | str | Path) -> Path:
-    """Import the centroid table ``csv`` into the recording ``out`` with ``camera``; returns ``out``."""
+def import_centroids(csv: str | Path, out: str | Path, camera: CameraSpec | str | Path,
+                     observation_time: datetime | str | None = None, catalog: dict | None = None) -> Path:
+    """Import the centroid table ``csv`` into the recording ``out`` with ``camera``; returns ``out``.
+
+    ``observation_time`` (ISO 8601 with its zone) and ``catalog`` (``{epoch_year, magnitude_limit}``)
+    play the part of the image sidecar's keys of those names; without them the observation time
+    comes from a Unix-time column (``t_unix_ns``, ``time_unix_s``), the catalogue depth from the
+    camera's field and the detections per frame (:mod:`rollingstar.logs.importers.observation`).
+    """
     csv = Path(csv)
     out = output_path(out)
     if camera is None:
         raise ImportDataError(f"{csv}: a camera is needed (--camera camera.yaml)")
     cam = camera if isinstance(camera, CameraSpec) else load_camera(camera)
+    spec = _observation_spec(observation_time, catalog)
     log = WarningLog()
     cols = read_centroid_table(csv, cam, log)
     frame = cols["frame"]
@@ -141,11 +162,17 @@ def import_centroids(csv: str | Path, out: str | Path, camera: CameraSpec | str 
     ends = np.r_[starts[1:], frame.size]
     t0s = cols["t0_ns"][starts]
     period = float(np.median(np.diff(t0s))) * 1e-6 if t0s.size > 1 else None
+    column = str(cols.pop("time_column"))
+    observation = (Observation(spec.observation_time, "observation_time") if spec.observation_time is not None
+                   else from_unix_ns(int(t0s[0]), column, str(csv)) if column in UNIX_TIME_COLUMNS else NO_OBSERVATION)
+    catalog_cfg, catalog_details = catalog_for(
+        cam, spec, observation, log, source=str(csv), detections_per_frame=mean_per_frame(ends - starts),
+        unix_hint=unix_looking(t0s) if observation.time is None else None)
     scenario = scenario_for(cam, name=f"import:{csv.stem}", description=f"centroids imported from {csv}",
-                            level="centroid", frames=starts.size, frame_period_ms=period)
+                            level="centroid", frames=starts.size, frame_period_ms=period, catalog=catalog_cfg)
     timing = build_timing(scenario)
     details = {"frames": int(starts.size), "stars": int(frame.size), "camera": cam.model_dump(mode="json"),
-               "focal_px": cam.focal_px,
+               "focal_px": cam.focal_px, "time_column": column, "catalog": catalog_details,
                "columns": sorted(k for k in cols if k not in ("t0_ns",))}
     metadata = {"scenario": {"yaml": to_yaml(scenario)},
                 "sensor": {"yaml": yaml.safe_dump(cam.model_dump(mode="json"), sort_keys=False)},
@@ -161,3 +188,11 @@ def import_centroids(csv: str | Path, out: str | Path, camera: CameraSpec | str 
                 int(frame[a]), t0, x=cols["x"][a:b], y=y, t_ns=timing.row_mid_exposure_ns(t0, y),
                 row_time_ns=timing.row_start_ns(t0, y), **{k: cols[k][a:b] for k in star_cols}), t0)
     return out
+
+
+def _observation_spec(observation_time, catalog) -> ObservationSpec:
+    """The ``observation_time`` and ``catalog`` arguments, checked as the sidecar keys of those names."""
+    try:
+        return ObservationSpec.model_validate({"observation_time": observation_time, "catalog": catalog or {}})
+    except ValidationError as err:
+        raise ImportDataError(format_validation_error("import_centroids", err)) from None

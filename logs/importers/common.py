@@ -174,13 +174,20 @@ def bool_column(table: CsvTable, name: str) -> np.ndarray:
     return out
 
 
+TIME_COLUMNS = ("t_ns", "time_s")
+"""A time column: integer nanoseconds or seconds, on the recording's own clock."""
+UNIX_TIME_COLUMNS = ("t_unix_ns", "time_unix_s")
+"""The same stated to be Unix time (UTC, since 1970-01-01T00:00:00Z): frame times that also give the observation time."""
+
+
 def time_column(table: CsvTable) -> tuple[np.ndarray, str]:
-    """Integer ns from ``t_ns`` or ``time_s`` (whichever is present); negative times are rejected."""
-    if "t_ns" in table.columns:
-        name, t = "t_ns", int_column(table, "t_ns")
+    """Integer ns from whichever time column is present (``*_ns`` integer ns, ``time_*s`` seconds;
+    :data:`TIME_COLUMNS`, :data:`UNIX_TIME_COLUMNS`); negative times are rejected."""
+    name = next(c for c in (*TIME_COLUMNS, *UNIX_TIME_COLUMNS) if c in table.columns)
+    if name.endswith("_ns"):
+        t = int_column(table, name)
     else:
-        name = "time_s"
-        seconds = float_column(table, "time_s")
+        seconds = float_column(table, name)
         beyond = np.flatnonzero(np.abs(seconds) >= INT64_MAX / NS_PER_S)
         if beyond.size:
             i = int(beyond[0])

@@ -41,9 +41,11 @@ from rollingstar.logs.importers.common import (
     import_metadata,
     output_path,
 )
+from rollingstar.logs.importers.observation import NO_OBSERVATION, catalog_for, mean_per_frame
 from rollingstar.logs.importers.sidecar import (
     NOMINAL_PIXEL_SIZE_UM,
     CameraSpec,
+    ObservationSpec,
     scenario_for,
 )
 from rollingstar.logs.reader import LogReader
@@ -59,6 +61,8 @@ FRAME_SPACING_NS = 1_000_000_000
 FOV_TOLERANCE = 0.01
 """Largest relative spread of log.json fields of view within one recording (one camera)."""
 REQUIRED_COLUMNS = ("field_x", "field_y", "index_ra", "index_dec")
+EPOCH_REASON = ("the scenario default: log.json's dates are not read (local wall-clock time of no stated zone, "
+                "day and month order not stated), and the stars carry astrometry.net's catalogue directions")
 
 
 class _Size(BaseModel):
@@ -354,14 +358,19 @@ def import_corr(folder: str | Path, out: str | Path) -> Path:
         sigma = None
     first = frames[0].meta.center
     prior = AttitudeConfig(ra_deg=first.ra_degrees, dec_deg=first.dec_degrees, roll_deg=0.0)
+    catalog, catalog_details = catalog_for(cam, ObservationSpec(), NO_OBSERVATION, log, source=str(root),
+                                           detections_per_frame=mean_per_frame([f.x.size for f in frames]),
+                                           warn_default=False)
+    catalog_details["epoch_reason"] = EPOCH_REASON
     scenario = scenario_for(cam, name=f"import:{root.name}", level="centroid", frames=len(frames),
                             description=f"astrometry.net corr tables imported from {root}",
-                            centroid_sigma_px=sigma, initial_attitude=prior, frame_period_ms=FRAME_SPACING_NS * 1e-6)
+                            centroid_sigma_px=sigma, initial_attitude=prior, frame_period_ms=FRAME_SPACING_NS * 1e-6,
+                            catalog=catalog)
     timing = build_timing(scenario)
     details = {
         "focal_px": cam.focal_px, "fov_deg": fov, "fov_rule": "focal_px = hypot(W, H) / radians(fov_deg)",
         "centroid_sigma_px": sigma, "centroid_sigma_rule": "RMS per axis of field_xy - index_xy over all stars",
-        "frame_spacing_ns": FRAME_SPACING_NS,
+        "frame_spacing_ns": FRAME_SPACING_NS, "catalog": catalog_details,
         "frames": [{
             "frame": k, "t0_ns": k * FRAME_SPACING_NS,
             "folder": f.folder.relative_to(root).as_posix() if f.folder != root else ".",

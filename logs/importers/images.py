@@ -4,7 +4,9 @@
 :mod:`rollingstar.logs.importers.sidecar`; optional when ``camera`` is given), writes every image as a
 ``foxglove.RawImage`` on ``/camera/image`` at its frame time ``t0``, the sidecar's gyro CSV on
 ``/gyro`` and its truth CSV on ``/truth/attitude``, and declares the sensor model (metadata
-``scenario``) so that ``rollingstar run`` works on the result like on a simulated recording.
+``scenario``, with the reference catalogue: epoch from the observation time, depth from the
+camera's field, :mod:`rollingstar.logs.importers.observation`) so that ``rollingstar run`` works
+on the result like on a simulated recording.
 Images are read with Pillow (8-bit ``L``, 16-bit ``I;16``; colour images are converted to
 luminance with a warning). Pixel values are stored unchanged (raw ADU).
 """
@@ -19,6 +21,8 @@ from PIL import Image
 
 from rollingstar.config import to_yaml
 from rollingstar.logs.importers.common import (
+    TIME_COLUMNS,
+    UNIX_TIME_COLUMNS,
     ImportDataError,
     WarningLog,
     check_non_decreasing,
@@ -28,6 +32,13 @@ from rollingstar.logs.importers.common import (
     read_csv,
     time_column,
     warn,
+)
+from rollingstar.logs.importers.observation import (
+    Observation,
+    catalog_for,
+    exif_observation,
+    from_unix_ns,
+    unix_looking,
 )
 from rollingstar.logs.importers.sidecar import (
     DEFAULT_FRAME_RATE_HZ,
@@ -141,8 +152,8 @@ def _frame_times(sidecar: RecordingSidecar, files: list[Path], base: Path, sourc
         t0 = np.asarray(ts.t0_ns, dtype=np.int64)
         how = {"source": "t0_ns"}
     elif ts.csv is not None:
-        table = read_csv(base / ts.csv, required=["file"], one_of=[("t_ns", "time_s")], log=log)
-        times, _ = time_column(table)
+        table = read_csv(base / ts.csv, required=["file"], one_of=[TIME_COLUMNS + UNIX_TIME_COLUMNS], log=log)
+        times, column = time_column(table)
         by_name = {}
         for i, name in enumerate(table.columns["file"]):
             if name in by_name:
@@ -153,7 +164,7 @@ def _frame_times(sidecar: RecordingSidecar, files: list[Path], base: Path, sourc
             raise ImportDataError(f"{table.path}: no time for image(s) {', '.join(missing[:5])}"
                                   f"{' ...' if len(missing) > 5 else ''}")
         t0 = np.array([by_name[f.name] for f in files], dtype=np.int64)
-        how = {"source": "csv", "csv": str(table.path)}
+        how = {"source": "csv", "csv": str(table.path), "column": column}
     else:
         rate = ts.frame_rate_hz
         if rate is None:
@@ -237,7 +248,9 @@ def import_images(folder: str | Path, out: str | Path, camera: CameraSpec | str 
     ``camera``: a :class:`CameraSpec` or the path of a camera.yaml; overrides the sidecar's camera.
     ``sidecar``: a recording.yaml kept elsewhere (e.g. for a read-only folder); default
     ``folder/recording.yaml`` when present. Paths inside a sidecar are relative to its own folder,
-    except ``files``, which are relative to ``folder``.
+    except ``files``, which are relative to ``folder``. The declared catalogue's epoch and depth
+    follow the observation time and the camera's field
+    (:mod:`rollingstar.logs.importers.observation`).
     Imperfect but recoverable input emits :class:`~rollingstar.logs.importers.common.ImportDataWarning` (also
     kept in the log's ``import.warnings`` metadata); unusable input raises ImportDataError.
     """
@@ -254,6 +267,42 @@ def import_images(folder: str | Path, out: str | Path, camera: CameraSpec | str 
     source = str(sidecar_path or folder)
     cam = resolve_camera(camera, side if sidecar_path else None, sidecar_path, log, folder)
     files = _list_files(folder, side.files, source)
+    container_bits, bit_depth = _bit_depths(files, cam, folder)
+    t0, timing = _frame_times(side, files, base, source, log)
+    gyro = _read_gyro(base / side.gyro_csv, log) if side.gyro_csv else None
+    truth = _read_truth(base / side.truth_csv, log) if side.truth_csv else None
+    observation = _observation(side, files, t0, timing, log)
+    catalog, catalog_details = catalog_for(cam, side, observation, log, source=source,
+                                           unix_hint=unix_looking(t0) if observation.time is None else None)
+    period = float(np.median(np.diff(t0))) * 1e-6 if len(t0) > 1 else None
+    scenario = scenario_for(cam, name=f"import:{folder.name}", description=f"images imported from {folder}",
+                            level="image", frames=len(files), bit_depth=bit_depth,
+                            initial_attitude=side.initial_attitude, frame_period_ms=period, catalog=catalog)
+    details = {
+        "files": [f.name for f in files], "t0_ns": t0.tolist(), "timestamps": timing,
+        "container_bits": container_bits, "bit_depth": bit_depth,
+        "camera": cam.model_dump(mode="json"), "focal_px": cam.focal_px,
+        "sidecar": str(sidecar_path) if sidecar_path else None,
+        "gyro_csv": side.gyro_csv, "truth_csv": side.truth_csv, "catalog": catalog_details,
+    }
+    metadata = {"scenario": {"yaml": to_yaml(scenario)},
+                "sensor": {"yaml": yaml.safe_dump(cam.model_dump(mode="json"), sort_keys=False)},
+                "import": import_metadata("images", folder, details, log)}
+    inputs = [folder, *(p for p in (sidecar_path, camera) if isinstance(p, (str, Path)))]
+    with safe_output(out, inputs) as tmp, LogWriter(tmp, kind="import", metadata=metadata) as writer, \
+            progress_bar(f"import {folder.name}", len(files), show_progress) as advance:
+        _write_samples(writer, t0, gyro, truth)
+        for f, t in zip(files, t0.tolist()):
+            image = read_image(f)
+            if image.itemsize * 8 != container_bits:  # header and pixels disagree (e.g. mode "I")
+                raise ImportDataError(f"{f}: decoded as {image.dtype}, expected {container_bits}-bit like the other images")
+            writer.write_image(TOPIC_IMAGE, image, t)
+            advance()
+    return out
+
+
+def _bit_depths(files: list[Path], cam: CameraSpec, folder: Path) -> tuple[int, int]:
+    """(container bits, ADC bit depth) of the images, which must all have the camera's size and one container."""
     headers = [_image_header(f) for f in files]
     for f, (w, h, _) in zip(files, headers):
         if (w, h) != (cam.width_px, cam.height_px):
@@ -269,42 +318,30 @@ def import_images(folder: str | Path, out: str | Path, camera: CameraSpec | str 
     bit_depth = cam.bit_depth if cam.bit_depth is not None else container_bits
     if bit_depth > container_bits:
         raise ImportDataError(f"camera bit_depth {bit_depth} exceeds the {container_bits}-bit images in {folder}")
-    t0, timing = _frame_times(side, files, base, source, log)
-    gyro = _read_gyro(base / side.gyro_csv, log) if side.gyro_csv else None
-    truth = _read_truth(base / side.truth_csv, log) if side.truth_csv else None
-    period = float(np.median(np.diff(t0))) * 1e-6 if len(t0) > 1 else None
-    scenario = scenario_for(cam, name=f"import:{folder.name}", description=f"images imported from {folder}",
-                            level="image", frames=len(files), bit_depth=bit_depth,
-                            initial_attitude=side.initial_attitude, frame_period_ms=period)
-    details = {
-        "files": [f.name for f in files], "t0_ns": t0.tolist(), "timestamps": timing,
-        "container_bits": container_bits, "bit_depth": bit_depth,
-        "camera": cam.model_dump(mode="json"), "focal_px": cam.focal_px,
-        "sidecar": str(sidecar_path) if sidecar_path else None,
-        "gyro_csv": side.gyro_csv, "truth_csv": side.truth_csv,
-    }
-    metadata = {"scenario": {"yaml": to_yaml(scenario)},
-                "sensor": {"yaml": yaml.safe_dump(cam.model_dump(mode="json"), sort_keys=False)},
-                "import": import_metadata("images", folder, details, log)}
-    inputs = [folder, *(p for p in (sidecar_path, camera) if isinstance(p, (str, Path)))]
-    with safe_output(out, inputs) as tmp, LogWriter(tmp, kind="import", metadata=metadata) as writer, \
-            progress_bar(f"import {folder.name}", len(files), show_progress) as advance:
-        if truth is not None:
-            tt, q, w = truth
-            for idx in batches_by_frame(tt, t0):
-                writer.write_json(TOPIC_TRUTH_ATTITUDE, AttitudeSamplesRecord(
-                    t_ns=tt[idx].tolist(), qx=q[idx, 0].tolist(), qy=q[idx, 1].tolist(), qz=q[idx, 2].tolist(),
-                    qw=q[idx, 3].tolist(), **({} if w is None else dict(
-                        wx=w[idx, 0].tolist(), wy=w[idx, 1].tolist(), wz=w[idx, 2].tolist()))))
-        if gyro is not None:
-            tg, wg = gyro
-            for idx in batches_by_frame(tg, t0, join_tail=False):
-                writer.write_json(TOPIC_GYRO, GyroSamplesRecord(
-                    t_ns=tg[idx].tolist(), x=wg[idx, 0].tolist(), y=wg[idx, 1].tolist(), z=wg[idx, 2].tolist()))
-        for f, t in zip(files, t0.tolist()):
-            image = read_image(f)
-            if image.itemsize * 8 != container_bits:  # header and pixels disagree (e.g. mode "I")
-                raise ImportDataError(f"{f}: decoded as {image.dtype}, expected {container_bits}-bit like the other images")
-            writer.write_image(TOPIC_IMAGE, image, t)
-            advance()
-    return out
+    return container_bits, bit_depth
+
+
+def _observation(side: RecordingSidecar, files: list[Path], t0: np.ndarray, timing: dict,
+                 log: WarningLog) -> Observation:
+    """The observation time: the sidecar's, else Unix-time frame times', else the first image's EXIF."""
+    if side.observation_time is not None:
+        return Observation(side.observation_time, "observation_time")
+    if timing.get("column") in UNIX_TIME_COLUMNS:
+        return from_unix_ns(int(t0[0]), timing["column"], timing["csv"])
+    return exif_observation(files[0], log)
+
+
+def _write_samples(writer: LogWriter, t0: np.ndarray, gyro, truth) -> None:
+    """The truth and gyro samples, batched per frame (:func:`batches_by_frame`)."""
+    if truth is not None:
+        tt, q, w = truth
+        for idx in batches_by_frame(tt, t0):
+            writer.write_json(TOPIC_TRUTH_ATTITUDE, AttitudeSamplesRecord(
+                t_ns=tt[idx].tolist(), qx=q[idx, 0].tolist(), qy=q[idx, 1].tolist(), qz=q[idx, 2].tolist(),
+                qw=q[idx, 3].tolist(), **({} if w is None else dict(
+                    wx=w[idx, 0].tolist(), wy=w[idx, 1].tolist(), wz=w[idx, 2].tolist()))))
+    if gyro is not None:
+        tg, wg = gyro
+        for idx in batches_by_frame(tg, t0, join_tail=False):
+            writer.write_json(TOPIC_GYRO, GyroSamplesRecord(
+                t_ns=tg[idx].tolist(), x=wg[idx, 0].tolist(), y=wg[idx, 1].tolist(), z=wg[idx, 2].tolist()))

@@ -11,6 +11,7 @@ declare (metadata ``scenario``) so that ``rollingstar run`` builds the sensor co
 from __future__ import annotations
 
 import math
+from datetime import date, datetime
 from pathlib import Path
 from typing import Literal
 
@@ -23,6 +24,7 @@ from pydantic import (
     PositiveFloat,
     PositiveInt,
     ValidationError,
+    field_validator,
     model_validator,
 )
 
@@ -31,6 +33,7 @@ from rollingstar.errors import ConfigError
 from rollingstar.logs.importers.common import ImportDataError
 from rollingstar.sensors.scenario import (
     AttitudeConfig,
+    CatalogConfig,
     ImageConfig,
     MotionConfig,
     NoiseConfig,
@@ -47,6 +50,11 @@ NOMINAL_PIXEL_SIZE_UM = 1.0
 """Pixel pitch written when only the field of view is known: only focal / pixel matters."""
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")
+EPOCH_YEARS = (1900.0, 2100.0)
+"""Catalogue epochs and observation years accepted: a century either side of the Hipparcos epoch
+J1991.25, over which the catalogue's linear space motion is meant to be used (3000 is a typo)."""
+MAX_MAGNITUDE_LIMIT = 12.0
+"""Faintest catalogue limit accepted: 99.5 % of the Hipparcos-2 stars are brighter (it is complete to about Hp 9)."""
 
 
 class _Strict(BaseModel):
@@ -107,6 +115,11 @@ class CameraSpec(_Strict):
              "diagonal": math.hypot(self.width_px, self.height_px)}[self.fov_axis]
         return (n / 2.0) / math.tan(math.radians(self.fov_deg) / 2.0)
 
+    @property
+    def field_deg(self) -> tuple[float, float]:
+        """Full angles (horizontal, vertical) of the detector seen through the pinhole, deg."""
+        return tuple(2.0 * math.degrees(math.atan(n / 2.0 / self.focal_px)) for n in (self.width_px, self.height_px))
+
     def sensor_config(self) -> SensorConfig:
         """The scenario sensor block (focal length and pixel size whose ratio is ``focal_px``)."""
         pixel_um = self.pixel_size_um if self.pixel_size_um is not None else NOMINAL_PIXEL_SIZE_UM
@@ -121,6 +134,8 @@ class TimestampsSpec(_Strict):
     - ``frame_rate_hz``: ``t0_k = start_ns + round(k * 1e9 / frame_rate_hz)``;
     - ``t0_ns``: one integer per image, in file order, strictly increasing;
     - ``csv``: a file with columns ``file`` and ``t_ns`` (or ``time_s``), one row per image.
+    - ``csv`` with ``t_unix_ns`` (or ``time_unix_s``) instead: the same, stated to be Unix time
+      (UTC, since 1970-01-01T00:00:00Z), which also gives the observation time.
     Default: ``frame_rate_hz: 1.0`` from ``start_ns: 0``.
     """
 
@@ -137,7 +152,49 @@ class TimestampsSpec(_Strict):
         return self
 
 
-class RecordingSidecar(_Strict):
+class CatalogSpec(_Strict):
+    """The reference catalogue a recording declares; an unset key is chosen by the importer."""
+
+    epoch_year: float | None = Field(
+        None, ge=EPOCH_YEARS[0], le=EPOCH_YEARS[1],
+        description="Julian year the star positions are propagated to; default the observation time's")
+    magnitude_limit: float | None = Field(
+        None, gt=0.0, le=MAX_MAGNITUDE_LIMIT,
+        description="faintest Hp magnitude; default from the camera's field (magnitude_limit_for_field)")
+
+
+class ObservationSpec(_Strict):
+    """When the recording was made and which catalogue it is identified against."""
+
+    observation_time: datetime | None = Field(
+        None, description="UTC time of the first frame, ISO 8601 with its zone (2019-07-29T20:47:26Z); "
+                          "default from Unix-time frame times, else the first image's EXIF time")
+    catalog: CatalogSpec = CatalogSpec()
+
+    @field_validator("observation_time", mode="before")
+    @classmethod
+    def _iso_time_with_zone(cls, value):
+        if value is None:
+            return None
+        if isinstance(value, str):
+            try:
+                value = datetime.fromisoformat(value.strip())
+            except ValueError:
+                raise ValueError("not an ISO 8601 time; write e.g. 2019-07-29T20:47:26Z") from None
+        if not isinstance(value, datetime):
+            what = ("a date without a time of day" if isinstance(value, date) else
+                    "a number (seconds or milliseconds, since when?)" if isinstance(value, (int, float)) else
+                    f"not a time ({type(value).__name__})")
+            raise ValueError(f"{what}; write an ISO 8601 time with its zone, e.g. 2019-07-29T20:47:26Z")
+        if value.utcoffset() is None:
+            raise ValueError(f"{value.isoformat()} has no time zone; write it in UTC with a trailing Z "
+                             "(2019-07-29T20:47:26Z) or with its offset (2019-07-29T22:47:26+02:00)")
+        if not EPOCH_YEARS[0] <= value.year <= EPOCH_YEARS[1]:
+            raise ValueError(f"year {value.year} is outside {EPOCH_YEARS[0]:.0f}-{EPOCH_YEARS[1]:.0f}")
+        return value
+
+
+class RecordingSidecar(ObservationSpec):
     """``recording.yaml`` beside a folder of images (paths relative to the sidecar's folder, ``files`` to the images')."""
 
     camera: CameraSpec | None = Field(None, description="the camera, inline; None: camera_file or --camera")
@@ -180,22 +237,24 @@ def load_sidecar(path: str | Path) -> RecordingSidecar:
 
 def scenario_for(camera: CameraSpec, *, name: str, description: str, level: Literal["image", "centroid"],
                  frames: int, bit_depth: int = 16, centroid_sigma_px: float | None = None,
-                 initial_attitude: AttitudeConfig | None = None, frame_period_ms: float | None = None) -> ScenarioConfig:
+                 initial_attitude: AttitudeConfig | None = None, frame_period_ms: float | None = None,
+                 catalog: CatalogConfig | None = None) -> ScenarioConfig:
     """The scenario (sensor model) an imported log declares in its ``scenario`` metadata.
 
-    Only the sensor, shutter, bit depth, centroid noise and an optional prior attitude carry
-    information; the motion has no rates (the truth, if any, is in the log's truth topics).
+    Only the sensor, shutter, bit depth, centroid noise, the reference catalogue and an optional
+    prior attitude carry information; the motion has no rates (the truth, if any, is in the log's
+    truth topics).
     """
     try:
         return _scenario(camera, name, description, level, frames, bit_depth, centroid_sigma_px, initial_attitude,
-                         frame_period_ms)
+                         frame_period_ms, catalog or CatalogConfig())
     except ValidationError as exc:  # a value derived from the data that the sensor model cannot hold
         raise ImportDataError(f"the sensor model derived from the imported data is invalid:\n"
                               f"{format_validation_error(description, exc)}") from None
 
 
 def _scenario(camera, name, description, level, frames, bit_depth, centroid_sigma_px, initial_attitude,
-              frame_period_ms) -> ScenarioConfig:
+              frame_period_ms, catalog) -> ScenarioConfig:
     sh = camera.shutter
     if frame_period_ms is not None and "shutter" not in camera.model_fields_set and sh.exposure_ms > frame_period_ms:
         # no shutter given: the default exposure cannot be longer than the frames' spacing
@@ -205,5 +264,5 @@ def _scenario(camera, name, description, level, frames, bit_depth, centroid_sigm
     noise = NoiseConfig() if centroid_sigma_px is None else NoiseConfig(centroid_sigma_px=centroid_sigma_px)
     return ScenarioConfig(
         name=name, description=description, level=level, sensor=camera.sensor_config(), shutter=shutter,
-        motion=MotionConfig(initial_attitude=initial_attitude), noise=noise,
+        catalog=catalog, motion=MotionConfig(initial_attitude=initial_attitude), noise=noise,
         image=ImageConfig(bit_depth=bit_depth), frames=max(1, int(frames)))

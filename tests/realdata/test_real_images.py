@@ -88,7 +88,8 @@ def test_pipeline_over_imported_tetra3_recording(real_data_dir, tmp_path):
     summary = run_pipeline(rec, load_pipeline(rd.ROOT / "configs" / "pipelines" / "real_images.yaml"), out, show_progress=False)
     assert summary.frames == 8 and summary.valid_estimates == 8
     status = [m.data for m in LogReader(out).messages("/estimate/frame")]
-    assert all(s["n_identified"] >= 4 for s in status)  # the recording declares Hipparcos to Hp 6 only
+    # the import declares Hipparcos-2 to Hp 7 for this field (docs/log-format.md); measured 15-56 stars a frame
+    assert all(s["n_identified"] >= 4 for s in status)
     assert sum("track_lost" in s["flags"] for s in status) == 7
 
 
