@@ -26,7 +26,8 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from rollingstar.estimators.data import FrameData
+from rollingstar.estimators.attitude.star_covariance import is_isotropic
+from rollingstar.estimators.data import FrameData, frame_camera
 from rollingstar.estimators.filters.base import StarMotionFilter
 from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.gyro import GyroIntegrator
@@ -65,6 +66,9 @@ class GyroKfParams(BaseModel):
                     "smeared spot); 'instant': the position at the spot's t_ns.")
     gate_sigma: float = Field(default=6.0, gt=0, description="Innovation gate (Mahalanobis sigmas): beyond it the track restarts.")
     max_gap_s: float = Field(default=1.0, gt=0, description="A track not updated for longer restarts.")
+    star_covariance: bool = Field(
+        default=True, description="Measurement noise of a spot that carries a 2 x 2 position covariance that is not "
+        "isotropic (cov_xx, cov_xy, cov_yy): that covariance (+ model_sigma_px^2 I); False: its sigma_px.")
 
 
 class GyroKalmanFilter(StarMotionFilter):
@@ -82,14 +86,19 @@ class GyroKalmanFilter(StarMotionFilter):
       (the gyro's angle random walk mapped to pixels, plus a model-error term; the paper gives no Q);
     - eq (15): ``K = P- (P- + R)^-1`` (the paper writes the matrix inverse as a fraction),
       ``R = sigma^2 I`` (``measurement_sigma_px``, else the spot's ``sigma_px`` with
-      ``model_sigma_px`` added in quadrature);
+      ``model_sigma_px`` added in quadrature); a spot that carries a 2 x 2 position covariance ``C``
+      that is not isotropic (``star_covariance``, and no ``measurement_sigma_px``) gets
+      ``R = C + model_sigma_px^2 I`` (a smeared spot: long along the smear);
     - eq (16): ``x = x- + K (z - x-)``;
     - eq (17), Joseph form: ``P = (I - K) P- (I - K)^T + K R K^T`` (symmetric PSD by construction).
 
     New tracks (and tracks whose innovation exceeds ``gate_sigma`` or that were not updated within
     ``max_gap_s``) start at the measurement with ``P = R``. Output: ``x, y`` the filtered position,
-    ``sigma_px = sqrt(trace(P) / 2)``, ``vx, vy = J omega`` the image velocity from the held gyro
-    rate at ``t_ns`` (px/s). ``t_ns`` and ``row_time_ns`` are unchanged.
+    ``sigma_px = sqrt(trace(P) / 2)`` (and for the spots measured with their own 2 x 2 covariance
+    ``cov_xx, cov_xy, cov_yy`` = ``P``; the others keep theirs, their ``P`` differs from isotropic only
+    by the gyro term), ``vx, vy = J omega`` the image velocity from the held gyro rate at ``t_ns``
+    (px/s). ``t_ns`` and ``row_time_ns`` are unchanged. ``J`` uses the frame's camera
+    (:func:`~rollingstar.estimators.data.frame_camera`).
     """
 
     name = "gyro-kf"
@@ -108,12 +117,22 @@ class GyroKalmanFilter(StarMotionFilter):
         self._t = np.zeros(0, dtype=np.int64)  # reference instant (t_ns) of the estimate
         self._row = np.zeros(0, dtype=np.int64)  # exposure start of the estimate's row
 
-    def _measurement_sigma(self, stars) -> np.ndarray:
-        if self.params.measurement_sigma_px is not None:
-            return np.full(stars.n, self.params.measurement_sigma_px)
-        fallback = getattr(self.context, "centroid_sigma_px", None) or 0.1
-        s = np.where(np.isfinite(stars.sigma_px) & (stars.sigma_px > 0), stars.sigma_px, fallback)
-        return np.hypot(s, self.params.model_sigma_px)
+    def _measurement_noise(self, stars) -> tuple[np.ndarray, np.ndarray]:
+        """Each spot's measurement covariance (n, 2, 2) px^2, and which spots use their own 2 x 2 one."""
+        p = self.params
+        own = np.zeros(stars.n, dtype=bool)
+        if p.measurement_sigma_px is not None:
+            sig = np.full(stars.n, p.measurement_sigma_px)
+        else:
+            fallback = getattr(self.context, "centroid_sigma_px", None) or 0.1
+            s = np.where(np.isfinite(stars.sigma_px) & (stars.sigma_px > 0), stars.sigma_px, fallback)
+            sig = np.hypot(s, p.model_sigma_px)
+        R = (sig**2)[:, None, None] * np.eye(2)
+        if p.measurement_sigma_px is None and p.star_covariance and stars.n:
+            cov = stars.position_covariance(fallback)
+            own = ~is_isotropic(cov)  # the fallbacks are isotropic: these are the spots' own
+            R[own] = cov[own] + p.model_sigma_px**2 * np.eye(2)
+        return R, own
 
     def process(self, frame: FrameData) -> FrameData:
         self._gyro.add(frame.gyro)
@@ -121,14 +140,14 @@ class GyroKalmanFilter(StarMotionFilter):
         if stars is None or stars.n == 0:
             return frame.evolve()
         p = self.params
-        cam = self.context.camera
+        cam = frame_camera(frame, self.context)
         sel = np.flatnonzero(stars.catalog_id >= 0)
         ids = stars.catalog_id[sel]
         z = np.column_stack([stars.x[sel], stars.y[sel]])
         t_now = stars.t_ns[sel]
         row_now = stars.row_time_ns[sel]
-        sig = self._measurement_sigma(stars)[sel]
-        R = (sig**2)[:, None, None] * np.eye(2)
+        R, own = self._measurement_noise(stars)
+        R, own = R[sel], own[sel]
 
         pos = np.searchsorted(self._ids, ids)
         pos_c = np.minimum(pos, max(self._ids.size - 1, 0))
@@ -188,7 +207,10 @@ class GyroKalmanFilter(StarMotionFilter):
         x[sel], y[sel] = x_new[:, 0], x_new[:, 1]
         sigma[sel] = np.sqrt(0.5 * np.trace(P_new, axis1=1, axis2=2))
         vx[sel], vy[sel] = vel[:, 0], vel[:, 1]
-        return frame.evolve(stars=stars.with_columns(x=x, y=y, sigma_px=sigma, vx=vx, vy=vy))
+        cov = {k: getattr(stars, k).copy() for k in ("cov_xx", "cov_xy", "cov_yy")}
+        for key, (i, j) in zip(cov, ((0, 0), (0, 1), (1, 1))):
+            cov[key][sel[own]] = P_new[own, i, j]
+        return frame.evolve(stars=stars.with_columns(x=x, y=y, sigma_px=sigma, vx=vx, vy=vy, **cov))
 
     def covariance(self, catalog_id: int) -> np.ndarray:
         """The current 2x2 covariance (px^2) of a track (for tests and diagnostics)."""

@@ -20,6 +20,14 @@ Initialisation (eq 6): a track's first measurement is stored; at its second, ``x
 measurement and ``vx, vy`` = frame difference / ``dt``. The seed gives no initial covariance; we use
 the exact covariance of that differencing initialiser per axis, ``[[r, r/dt], [r/dt, 2 r/dt^2]]``.
 
+2 x 2 measurement noise: a star that carries its own position covariance ``C`` (``cov_xx, cov_xy,
+cov_yy``) that is not isotropic (a smeared spot: long along the smear) is filtered with ``V ~ C``
+instead of ``r I`` (``star_covariance``; the x and y axes are then coupled), and its initialiser's
+covariance is the exact one of the difference of two measurements of covariances ``C_prev``,
+``C``: position ``C``, position-velocity ``C / dt``, velocity ``(C + C_prev) / dt^2``. The other
+stars keep the seed's ``r I``. The filters are per star, so the choice of one star never changes
+another's estimate.
+
 Recursion (eq 11): predict ``X = F X``, ``P = F P F^T + Q``; update with gain
 ``K = P H^T (H P H^T + r I)^-1``. The covariance update uses the Joseph form
 ``(I - K H) P (I - K H)^T + K r K^T`` (equal to eq 11's ``(I - K H) P`` for the optimal gain,
@@ -39,10 +47,12 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from rollingstar.estimators.data import FrameData
+from rollingstar.estimators.attitude.star_covariance import is_isotropic
+from rollingstar.estimators.data import FrameData, StarTable
 from rollingstar.estimators.filters.base import StarMotionFilter
 from rollingstar.estimators.filters.kf_cv_kernel import (
     kf_cv_batch_kernel,
+    kf_cv_step_cov_kernel,
     kf_cv_step_kernel,
 )
 from rollingstar.sensors.conventions import S_PER_NS
@@ -86,6 +96,20 @@ def kf_cv_init(z_prev: np.ndarray, z: np.ndarray, dt, r: float) -> tuple[np.ndar
     return X, P
 
 
+def kf_cv_init_cov(z_prev: np.ndarray, z: np.ndarray, dt, R_prev: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`kf_cv_init` with 2 x 2 measurement covariances ``R_prev``, ``R`` (n, 2, 2) px^2 of the two
+    measurements: position covariance ``R``, position-velocity ``R / dt``, velocity ``(R + R_prev) / dt^2``."""
+    X, _ = kf_cv_init(z_prev, z, dt, 1.0)
+    dt = np.broadcast_to(np.asarray(dt, dtype=float), (X.shape[0],))
+    P = np.zeros((X.shape[0], 4, 4))
+    for a, pa in enumerate((0, 2)):  # state index of axis a's position (pa) and velocity (pa + 1)
+        for b, pb in enumerate((0, 2)):
+            P[:, pa, pb] = R[:, a, b]
+            P[:, pa, pb + 1] = P[:, pb + 1, pa] = R[:, a, b] / dt
+            P[:, pa + 1, pb + 1] = (R[:, a, b] + R_prev[:, a, b]) / dt**2
+    return X, P
+
+
 def kf_cv_predict(X: np.ndarray, P: np.ndarray, dt, q: float) -> tuple[np.ndarray, np.ndarray]:
     """Eq (11) prediction for all stars at once: ``X = F X``, ``P = F P F^T + Q``.
 
@@ -113,8 +137,11 @@ def kf_cv_predict(X: np.ndarray, P: np.ndarray, dt, q: float) -> tuple[np.ndarra
     return Xp, Pp
 
 
-def kf_cv_update(X: np.ndarray, P: np.ndarray, z: np.ndarray, r: float) -> tuple[np.ndarray, np.ndarray]:
+def kf_cv_update(X: np.ndarray, P: np.ndarray, z: np.ndarray, r) -> tuple[np.ndarray, np.ndarray]:
     """Eq (11) update for all stars at once (Joseph-form covariance, see the module docstring).
+
+    ``r``: the measurement variance per axis (px^2), or (n, 2, 2) each star's measurement
+    covariance (then the general form ``S = H P H^T + R``, ``+ K R K^T``).
 
     ``H`` selects state components 0 and 2, so ``P H^T``, ``H P`` and ``H P H^T`` are slices, and
     the Joseph form ``(I - K H) P (I - K H)^T + r K K^T`` is evaluated as ``A = P - K (H P)``,
@@ -125,6 +152,12 @@ def kf_cv_update(X: np.ndarray, P: np.ndarray, z: np.ndarray, r: float) -> tuple
     X = np.asarray(X, dtype=float)
     P = np.asarray(P, dtype=float)
     n = X.shape[0]
+    if np.ndim(r) == 3:
+        S = P[:, ::2, ::2] + r
+        K = np.swapaxes(np.linalg.solve(S, P[:, ::2, :]), 1, 2)  # P H^T S^-1 (S symmetric)
+        Xu = X + (K @ (np.asarray(z, dtype=float).reshape(n, 2) - X[:, ::2])[:, :, None])[:, :, 0]
+        IKH = np.eye(4) - K @ H
+        return Xu, IKH @ P @ np.swapaxes(IKH, 1, 2) + K @ r @ np.swapaxes(K, 1, 2)
     PHt = P[:, :, ::2]  # P H^T (n, 4, 2)
     HP = P[:, ::2, :]  # H P (n, 2, 4)
     a, b, c, d = HP[:, 0, 0] + r, HP[:, 0, 2], HP[:, 1, 0], HP[:, 1, 2] + r  # S = H P H^T + r I
@@ -184,6 +217,9 @@ class KfCvParams(BaseModel):
     r: float = Field(default=0.05, gt=0, description="Centroid measurement-noise variance per axis (px^2), the seed's R (eq 9).")
     dt_source: Literal["star_time", "frame_start"] = Field(
         default="star_time", description="Step between measurements: each star's t_ns difference (exact) or the frames' t0 difference (eq 5).")
+    star_covariance: bool = Field(
+        default=True, description="Filter a star that carries a 2 x 2 position covariance that is not isotropic "
+        "(cov_xx, cov_xy, cov_yy) with it as measurement noise; False (and every other star): r I.")
 
 
 class KfCvFilter(StarMotionFilter):
@@ -199,8 +235,8 @@ class KfCvFilter(StarMotionFilter):
     - second: eq (6) initialisation, position = measurement, velocity = difference / dt;
     - later: eq (11) filtered ``x, y, vx, vy``.
 
-    ``sigma_px`` = ``sqrt((P_xx + P_yy) / 2)`` of the filtered state (unchanged on first sighting);
-    ``t_ns`` unchanged: the filtered state refers to the time of the star's current measurement.
+    ``sigma_px`` = ``sqrt((P_xx + P_yy) / 2)`` and ``cov_xx, cov_xy, cov_yy`` the position block of the
+    filtered state's covariance (unchanged on first sighting); ``t_ns`` unchanged: the filtered state refers to the time of the star's current measurement.
     Frames get flag ``"kf_cv_nonpositive_dt:<n>"`` when ``n`` tracks saw a step <= 0 (restarted).
     """
 
@@ -214,6 +250,8 @@ class KfCvFilter(StarMotionFilter):
         self._P = np.zeros((0, 4, 4))
         self._t = np.zeros(0, dtype=np.int64)  # time of the last measurement (ns)
         self._stage = np.zeros(0, dtype=np.int8)  # 1: one measurement stored, 2: filtering
+        self._R = np.zeros((0, 2, 2))  # measurement covariance of each track's last measurement (px^2)
+        self._own = np.zeros(0, dtype=bool)  # that measurement had its own 2 x 2 covariance
         self._kf: dict[int, object] = {}  # filterpy backend: catalog_id -> KalmanFilter
 
     def process(self, frame: FrameData) -> FrameData:
@@ -230,6 +268,7 @@ class KfCvFilter(StarMotionFilter):
         sid = ids[rows]
         z = np.column_stack([stars.x[rows], stars.y[rows]])
         t = stars.t_ns[rows] if p.dt_source == "star_time" else np.full(rows.size, frame.t0_ns, dtype=np.int64)
+        R, own = self._measurement_noise(stars.take(rows))
 
         # match to existing tracks (sorted ids), retire the absent ones
         pos = np.searchsorted(self._ids, sid)
@@ -248,44 +287,62 @@ class KfCvFilter(StarMotionFilter):
         init = k & (self._stage[np.where(k, old, 0)] == 1) if sid.size and self._stage.size else np.zeros(sid.size, bool)
         step = k & ~init
         if init.any():
-            zp = np.column_stack([self._X[old[init], 0], self._X[old[init], 2]])
-            X[init], P[init] = kf_cv_init(zp, z[init], dt[init], p.r)
+            X[init], P[init] = self._initialise(old[init], z[init], dt[init], R[init], own[init])
             stage[init] = 2
         if step.any():
-            if p.backend == "batched":
-                Xs, Ps = np.empty((int(step.sum()), 4)), np.empty((int(step.sum()), 4, 4))
-                kf_cv_step_kernel(self._X[old[step]], self._P[old[step]], z[step], dt[step], float(p.q), float(p.r),
-                                  Xs, Ps)
-                X[step], P[step] = Xs, Ps
-            else:
-                X[step], P[step] = self._filterpy_steps(sid[step], dt[step], z[step])
+            X[step], P[step] = self._steps(old[step], sid[step], z[step], dt[step], R[step], own[step])
             stage[step] = 2
         if p.backend == "filterpy":
             self._filterpy_sync(sid, X, P, stage)
 
         order = np.argsort(sid, kind="stable")
         self._ids, self._X, self._P, self._t, self._stage = sid[order], X[order], P[order], t[order], stage[order]
-
-        out_x, out_y = stars.x.copy(), stars.y.copy()
-        vx, vy = stars.vx.copy(), stars.vy.copy()
-        sigma = stars.sigma_px.copy()
-        f = stage == 2
-        r_f = rows[f]
-        out_x[r_f], out_y[r_f] = X[f, 0], X[f, 2]
-        vx[r_f], vy[r_f] = X[f, 1], X[f, 3]
-        sigma[r_f] = np.sqrt(0.5 * (P[f, 0, 0] + P[f, 2, 2]))
-        r1 = rows[~f]
-        vx[r1] = vy[r1] = np.nan
+        self._R, self._own = R[order], own[order]
         flags = frame.flags + ((f"kf_cv_nonpositive_dt:{int(bad_dt.sum())}",) if bad_dt.any() else ())
-        new = stars.with_columns(x=out_x, y=out_y, vx=vx, vy=vy, sigma_px=sigma)
-        return frame.evolve(stars=new, flags=flags)
+        return frame.evolve(stars=_filtered_table(stars, rows, X, P, stage == 2, own), flags=flags)
+
+    def _measurement_noise(self, sel: StarTable) -> tuple[np.ndarray, np.ndarray]:
+        """Each star's measurement covariance (n, 2, 2) px^2 and which stars use their own 2 x 2 one
+        (``star_covariance``: a valid covariance that is not isotropic; the fallbacks of
+        :meth:`StarTable.position_covariance` are isotropic); the others get ``r I``."""
+        R = np.broadcast_to(self.params.r * np.eye(2), (sel.n, 2, 2)).copy()
+        own = np.zeros(sel.n, dtype=bool)
+        if self.params.star_covariance and sel.n:
+            cov = sel.position_covariance(np.sqrt(self.params.r), use_star_sigma=True)
+            own = ~is_isotropic(cov)
+            R[own] = cov[own]
+        return R, own
+
+    def _initialise(self, old, z, dt, R, own) -> tuple[np.ndarray, np.ndarray]:
+        """Eq (6) for tracks at their second measurement (the 2 x 2 form where either measurement has its own)."""
+        zp = np.column_stack([self._X[old, 0], self._X[old, 2]])
+        X, P = kf_cv_init(zp, z, dt, self.params.r)
+        full = own | self._own[old]
+        if full.any():
+            X[full], P[full] = kf_cv_init_cov(zp[full], z[full], dt[full], self._R[old[full]], R[full])
+        return X, P
+
+    def _steps(self, old, sid, z, dt, R, own) -> tuple[np.ndarray, np.ndarray]:
+        """Eq (11) predict + update of the tracks past their initialisation."""
+        p = self.params
+        if p.backend == "filterpy":
+            return self._filterpy_steps(sid, dt, z, R)
+        n = old.size
+        X, P = np.empty((n, 4)), np.empty((n, 4, 4))
+        kf_cv_step_kernel(self._X[old], self._P[old], z, dt, float(p.q), float(p.r), X, P)
+        if own.any():
+            Xo, Po = np.empty((int(own.sum()), 4)), np.empty((int(own.sum()), 4, 4))
+            kf_cv_step_cov_kernel(self._X[old[own]], self._P[old[own]], np.ascontiguousarray(z[own]), dt[own],
+                                  float(p.q), np.ascontiguousarray(R[own]), Xo, Po)
+            X[own], P[own] = Xo, Po
+        return X, P
 
     def setup_empty(self) -> None:
         """Retire every track (a frame without stars)."""
         self.setup(self.context)
 
     # filterpy reference backend: one KalmanFilter per track, stepped in a loop over tracks
-    def _filterpy_steps(self, ids, dt, z):
+    def _filterpy_steps(self, ids, dt, z, R):
         from filterpy.kalman import KalmanFilter
 
         X = np.zeros((ids.size, 4))
@@ -296,7 +353,7 @@ class KfCvFilter(StarMotionFilter):
             kf.F = F[0]
             kf.Q = cv_process_noise([h], self.params.q)[0]
             kf.predict()
-            kf.update(zi.reshape(2, 1))
+            kf.update(zi.reshape(2, 1), R=R[i])
             X[i], P[i] = kf.x.reshape(4), kf.P
         return X, P
 
@@ -316,3 +373,23 @@ class KfCvFilter(StarMotionFilter):
                 kf.P = cov.copy()
             kept[cid] = kf
         self._kf = kept
+
+
+def _filtered_table(stars: StarTable, rows, X, P, filtered, own) -> StarTable:
+    """``stars`` with the filtered positions, velocities and sigmas of ``rows`` (``filtered``: past
+    the first sighting; the others get NaN velocities); stars filtered with their own 2 x 2
+    covariance (``own``) also get the filtered one, the position block of ``P``."""
+    out_x, out_y = stars.x.copy(), stars.y.copy()
+    vx, vy = stars.vx.copy(), stars.vy.copy()
+    sigma = stars.sigma_px.copy()
+    cov = {k: getattr(stars, k).copy() for k in ("cov_xx", "cov_xy", "cov_yy")}
+    r_f = rows[filtered]
+    out_x[r_f], out_y[r_f] = X[filtered, 0], X[filtered, 2]
+    vx[r_f], vy[r_f] = X[filtered, 1], X[filtered, 3]
+    sigma[r_f] = np.sqrt(0.5 * (P[filtered, 0, 0] + P[filtered, 2, 2]))
+    c = filtered & own
+    for key, (i, j) in zip(cov, ((0, 0), (0, 2), (2, 2))):
+        cov[key][rows[c]] = P[c, i, j]
+    r1 = rows[~filtered]
+    vx[r1] = vy[r1] = np.nan
+    return stars.with_columns(x=out_x, y=out_y, vx=vx, vy=vy, sigma_px=sigma, **cov)

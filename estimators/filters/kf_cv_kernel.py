@@ -78,3 +78,55 @@ def kf_cv_batch_kernel(z, dts, q, r, states, covs):  # pragma: no cover (compile
     (T, n), starting from ``states[1]``, ``covs[1]``; fills ``states[t]``, ``covs[t]`` in place."""
     for t in range(2, z.shape[0]):
         kf_cv_step_kernel(states[t - 1], covs[t - 1], z[t], dts[t], q, r, states[t], covs[t])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def kf_cv_step_cov_kernel(X, P, z, dt, q, R, X_out, P_out):  # pragma: no cover (compiled)
+    """:func:`kf_cv_step_kernel` with a 2 x 2 measurement covariance per track, ``R`` (n, 2, 2) px^2
+    (a smeared spot's centroid covariance, long along the smear): ``S = H P H^T + R_s`` and the
+    Joseph term ``K R_s K^T``. A kernel of its own so that the tracks with the scalar ``r`` keep
+    :func:`kf_cv_step_kernel`'s arithmetic exactly."""
+    n = X.shape[0]
+    x = np.empty(4)
+    Pp = np.empty((4, 4))
+    K = np.empty((4, 2))
+    A = np.empty((4, 4))
+    KR = np.empty((4, 2))
+    for s in range(n):
+        h = dt[s]
+        x[0] = X[s, 0] + h * X[s, 1]
+        x[1] = X[s, 1]
+        x[2] = X[s, 2] + h * X[s, 3]
+        x[3] = X[s, 3]
+        for j in range(4):
+            Pp[0, j] = P[s, 0, j] + h * P[s, 1, j]
+            Pp[1, j] = P[s, 1, j]
+            Pp[2, j] = P[s, 2, j] + h * P[s, 3, j]
+            Pp[3, j] = P[s, 3, j]
+        for i in range(4):
+            Pp[i, 0] += h * Pp[i, 1]
+            Pp[i, 2] += h * Pp[i, 3]
+        q11, q12, q22 = q * h**4 / 4.0, q * h**3 / 2.0, q * h**2
+        for a in (0, 2):
+            Pp[a, a] += q11
+            Pp[a, a + 1] += q12
+            Pp[a + 1, a] += q12
+            Pp[a + 1, a + 1] += q22
+        sa, sb, sc, sd = Pp[0, 0] + R[s, 0, 0], Pp[0, 2] + R[s, 0, 1], Pp[2, 0] + R[s, 1, 0], Pp[2, 2] + R[s, 1, 1]
+        det = sa * sd - sb * sc
+        i00, i01, i10, i11 = sd / det, -sb / det, -sc / det, sa / det
+        for i in range(4):
+            K[i, 0] = Pp[i, 0] * i00 + Pp[i, 2] * i10
+            K[i, 1] = Pp[i, 0] * i01 + Pp[i, 2] * i11
+            KR[i, 0] = K[i, 0] * R[s, 0, 0] + K[i, 1] * R[s, 1, 0]
+            KR[i, 1] = K[i, 0] * R[s, 0, 1] + K[i, 1] * R[s, 1, 1]
+        y0, y1 = z[s, 0] - x[0], z[s, 1] - x[2]
+        for i in range(4):
+            X_out[s, i] = x[i] + K[i, 0] * y0 + K[i, 1] * y1
+        for i in range(4):
+            for j in range(4):
+                A[i, j] = Pp[i, j] - (K[i, 0] * Pp[0, j] + K[i, 1] * Pp[2, j])
+        for i in range(4):
+            for j in range(4):
+                P_out[s, i, j] = (A[i, j] - (A[i, 0] * K[j, 0] + A[i, 2] * K[j, 1])
+                                  + (KR[i, 0] * K[j, 0] + KR[i, 1] * K[j, 1]))

@@ -40,7 +40,11 @@ changes none). With isotropic centroid noise ``sigma_i`` the first-order residua
 at ``w_i`` towards ``w_j``). From the thin SVD ``G S^(1/2) = U D V^T`` the residuals are whitened by
 ``D^-1 U^T`` (the pseudo-inverse of C, generalised least squares), so all pairs are used without
 double counting; the covariance of the estimate is ``(J_w^T J_w)^-1`` with the whitened Jacobian
-``J_w``. To first order this is the maximum-likelihood estimate of the rate with the attitude as a
+``J_w``. Stars with a 2 x 2 position covariance ``C_i`` (anisotropic: a smeared spot) enter the same
+way with ``S = blockdiag(C_i)`` and ``S^(1/2)`` its Cholesky factors (``sigma_px`` is then an
+(n, 2, 2) array of covariances instead of (n,) sigmas). The weighting's first-order model is the
+pinhole's (``d theta / d(x, y)`` with the focal length; a radial distortion of the frame's camera
+changes the weights by ``O(k1 r^2)``, the directions themselves come from its ``unproject``). To first order this is the maximum-likelihood estimate of the rate with the attitude as a
 nuisance, i.e. it attains the single-frame Cramér-Rao bound of :func:`rollingstar.pipelines.truth.rate_crb_rad2`.
 
 Hand-written parts: the residual/Jacobian (the model is ours), the whitening, and the solver: a
@@ -69,7 +73,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.linalg import lapack
 from scipy.optimize import least_squares
 
-from rollingstar.estimators.data import DEFAULT_CENTROID_SIGMA_PX, FrameData, RateEstimate, StarTable
+from rollingstar.estimators.attitude.star_covariance import anisotropic_covariance
+from rollingstar.estimators.data import DEFAULT_CENTROID_SIGMA_PX, FrameData, RateEstimate, StarTable, frame_camera
 from rollingstar.estimators.rates.base import RateEstimator, Reference, reference_time_ns
 from rollingstar.estimators.rates.ls_rate_kernel import (
     pair_setup_kernel,
@@ -163,8 +168,19 @@ def pixel_sensitivity(camera, w: np.ndarray, i: np.ndarray, j: np.ndarray) -> np
     return G.reshape(m, 2 * n_stars)
 
 
-def whitening(G: np.ndarray, sigma_px: np.ndarray, rtol: float = 1e-10) -> np.ndarray:
-    """``D^-1 U^T`` for the thin SVD ``B = G diag(sigma) = U D V^T``: the pseudo-inverse square root of
+def _scaled(G: np.ndarray, sigma_px) -> np.ndarray:
+    """``B = G S^(1/2)``: columns scaled by each star's sigma (``sigma_px`` (n,)), or each star's
+    column pair multiplied by the Cholesky factor of its 2 x 2 covariance (``sigma_px`` (n, 2, 2))."""
+    sigma_px = np.asarray(sigma_px, dtype=float)
+    if sigma_px.ndim == 1:
+        return G * np.repeat(sigma_px, 2)[None, :]
+    L = np.linalg.cholesky(sigma_px)  # (n, 2, 2)
+    return np.einsum("mnj,njk->mnk", G.reshape(G.shape[0], -1, 2), L).reshape(G.shape)
+
+
+def whitening(G: np.ndarray, sigma_px, rtol: float = 1e-10) -> np.ndarray:
+    """``D^-1 U^T`` for the thin SVD ``B = G S^(1/2) = U D V^T`` (``S^(1/2) = diag(sigma)``, or the
+    stars' 2 x 2 Cholesky factors, :func:`_scaled`): the pseudo-inverse square root of
     ``C = G S G^T`` (so ``|Wh r|^2 = r^T C^+ r``). Computed from the small Gram matrix
     ``B^T B = V D^2 V^T`` (2n x 2n instead of an m x 2n SVD; 3x cheaper):
     ``D^-1 U^T = D^-2 V^T B^T``. ``B`` has the 3 null directions of a common rotation; eigenvalues
@@ -173,15 +189,16 @@ def whitening(G: np.ndarray, sigma_px: np.ndarray, rtol: float = 1e-10) -> np.nd
     The reference form (any null space); :func:`whitening_rotation_null` is the fast form the solver
     uses when the null space is exactly the common rotation (always, for >= 3 stars not on one great circle).
     """
-    B = G * np.repeat(np.asarray(sigma_px, dtype=float), 2)[None, :]
+    B = _scaled(G, sigma_px)
     d2, V = np.linalg.eigh(B.T @ B)
     keep = d2 > d2[-1] * rtol
     return (V[:, keep] / d2[keep][None, :]).T @ B.T
 
 
-def rotation_null_space(w: np.ndarray, sigma_px: np.ndarray) -> np.ndarray:
-    """Basis (2n, 3) of the null space of ``B = G diag(sigma)``: the pixel displacements of the stars
-    under a common infinitesimal rotation (which changes no angle), divided by ``sigma``.
+def rotation_null_space(w: np.ndarray, sigma_px) -> np.ndarray:
+    """Basis (2n, 3) of the null space of ``B = G S^(1/2)``: the pixel displacements of the stars
+    under a common infinitesimal rotation (which changes no angle), divided by ``sigma`` (or
+    multiplied by the inverse Cholesky factor of each star's 2 x 2 covariance).
 
     A rotation ``dphi = e_k`` moves ``w`` by ``e_k x w``; through ``x = cx - F w_x / w_z``,
     ``y = cy - F w_y / w_z`` that is, with ``a = w_x / w_z``, ``b = w_y / w_z`` and up to the common
@@ -194,11 +211,15 @@ def rotation_null_space(w: np.ndarray, sigma_px: np.ndarray) -> np.ndarray:
     U[:, 0, 0], U[:, 1, 0] = ab, 1.0 + b * b
     U[:, 0, 1], U[:, 1, 1] = -(1.0 + a * a), -ab
     U[:, 0, 2], U[:, 1, 2] = b, -a
-    U /= np.asarray(sigma_px, dtype=float)[:, None, None]
+    sigma_px = np.asarray(sigma_px, dtype=float)
+    if sigma_px.ndim == 1:
+        U /= sigma_px[:, None, None]
+    else:
+        U = np.linalg.solve(np.linalg.cholesky(sigma_px), U)
     return U.reshape(-1, 3)
 
 
-def whitening_rotation_null(G: np.ndarray, sigma_px: np.ndarray, U: np.ndarray, rtol: float = 1e-10) -> np.ndarray | None:
+def whitening_rotation_null(G: np.ndarray, sigma_px, U: np.ndarray, rtol: float = 1e-10) -> np.ndarray | None:
     """A whitening ``Wh`` (2n, m) with ``Wh^T Wh = C^+`` (as :func:`whitening`), without an eigensolver.
 
     With ``M = B^T B``, ``U`` a basis of its null space (:func:`rotation_null_space`) and the
@@ -212,7 +233,7 @@ def whitening_rotation_null(G: np.ndarray, sigma_px: np.ndarray, U: np.ndarray, 
     spread by more than ``1/rtol`` (a geometry with more null directions than a common rotation,
     e.g. all stars on one great circle): the caller then uses :func:`whitening`, which drops them.
     """
-    B = G * np.repeat(np.asarray(sigma_px, dtype=float), 2)[None, :]
+    B = _scaled(G, sigma_px)
     M = B.T @ B
     # any positive semi-definite term whose range is the null space works; unit columns keep M~'s scale
     U = U / np.sqrt(np.sum(U * U, axis=0))[None, :]
@@ -371,7 +392,8 @@ def solve_rate(camera, x, y, dt_s, ref_icrs, sigma_px, estimate_z: bool = True, 
                x0: np.ndarray | None = None, max_condition: float = 1e12, step_tol: float = 1e-6) -> LsRateResult:
     """Least-squares rate (rad/s, camera frame) from ``n >= 3`` identified stars (eqs 1-3, GLS weighted).
 
-    ``dt_s``: each star's time minus the reference time (s); ``sigma_px`` (n,) centroid sigma per axis.
+    ``dt_s``: each star's time minus the reference time (s); ``sigma_px`` (n,) centroid sigma per axis,
+    or (n, 2, 2) the stars' position covariances (px^2).
     ``estimate_z=False`` fixes ``omega_z = 0`` (fu2022's assumption). ``x0``: starting rate (default
     0). ``step_tol``: convergence threshold on the Gauss-Newton step in standard deviations of the
     estimate (:func:`_levenberg_marquardt`). Raises ``ValueError`` with a reason when the rate is not
@@ -455,6 +477,9 @@ class LsRateParams(BaseModel):
     min_sigma_px: float = Field(
         default=1e-3, gt=0, description="Floor on the centroid sigma used for weighting (noise-free recordings state 0).")
     max_condition: float = Field(default=1e12, gt=1, description="Normal-matrix condition number above which the rate is flagged unobservable.")
+    star_covariance: bool = Field(
+        default=True, description="Weight by the stars' 2 x 2 position covariances (cov_xx, cov_xy, cov_yy) when a "
+        "star of the frame carries one that is not isotropic; False: by the scalar sigma_px alone.")
     solver: Literal["gauss-newton", "least_squares"] = Field(
         default="gauss-newton",
         description="'gauss-newton': the hand-written damped Gauss-Newton (solve_rate, ~4x faster); "
@@ -474,17 +499,27 @@ class LsRateEstimator(RateEstimator):
 
     Centroid sigma of a star without its own: the sensor context's ``centroid_sigma_px`` when the
     context states one (also 0, for noise-free recordings), else ``default_sigma_px``; floored at
-    ``min_sigma_px``.
+    ``min_sigma_px``. When a star of the frame carries a 2 x 2 position covariance that is not
+    isotropic (``star_covariance``), every star is weighted by its 2 x 2 covariance
+    (:meth:`StarTable.position_covariance` with that fallback; eigenvalues floored at
+    ``min_sigma_px^2``). Directions come from the frame's camera
+    (:func:`~rollingstar.estimators.data.frame_camera`).
     """
 
     name = "ls-rate"
     Params = LsRateParams
 
-    def _sigma(self, sigma_px: np.ndarray) -> np.ndarray:
+    def _sigma(self, stars: StarTable) -> np.ndarray:
+        """Each star's sigma (n,) px, or its 2 x 2 covariance (n, 2, 2) px^2 when the frame's stars
+        carry anisotropic ones (class docstring)."""
         p = self.params
         fallback = getattr(self.context, "centroid_sigma_px", None)
         fallback = p.default_sigma_px if fallback is None else float(fallback)
-        s = np.where(np.isfinite(sigma_px), sigma_px, fallback)
+        cov = anisotropic_covariance(stars, max(fallback, p.min_sigma_px), True, p.star_covariance)
+        if cov is not None:
+            ev, V = np.linalg.eigh(cov)
+            return (V * np.maximum(ev, p.min_sigma_px**2)[:, None, :]) @ np.swapaxes(V, -1, -2)
+        s = np.where(np.isfinite(stars.sigma_px), stars.sigma_px, fallback)
         return np.maximum(s, p.min_sigma_px)
 
     def estimate(self, frame: FrameData) -> RateEstimate:
@@ -497,8 +532,8 @@ class LsRateEstimator(RateEstimator):
         dt = (stars.t_ns[ident] - np.int64(t_ref)).astype(float) * S_PER_NS
         try:
             solve = solve_rate if p.solver == "gauss-newton" else solve_rate_least_squares
-            res = solve(self.context.camera, stars.x[ident], stars.y[ident], dt, stars.ref_icrs[ident],
-                        self._sigma(stars.sigma_px[ident]), p.estimate_z, p.max_nfev, max_condition=p.max_condition)
+            res = solve(frame_camera(frame, self.context), stars.x[ident], stars.y[ident], dt, stars.ref_icrs[ident],
+                        self._sigma(stars.take(ident)), p.estimate_z, p.max_nfev, max_condition=p.max_condition)
         except ValueError as exc:
             return RateEstimate(t_ns=t_ref, omega_rad_s=np.full(3, np.nan), valid=False, reason=str(exc))
         if not np.all(np.isfinite(res.omega)):

@@ -51,7 +51,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from rollingstar.estimators.data import FrameData, RateEstimate, StarTable
+from rollingstar.estimators.data import FrameData, RateEstimate, StarTable, frame_camera
 from rollingstar.estimators.rates.base import RateEstimator, Reference, reference_time_ns
 from rollingstar.sensors.conventions import DEG_TO_RAD, S_PER_NS
 from rollingstar.sensors.so3 import rotate_by_rotvec
@@ -301,7 +301,7 @@ class PsoRateEstimator(RateEstimator):
         p = self.params
         t_ref = reference_time_ns(p.reference, frame.t0_ns, self.context.timing)
         stars = frame.stars if frame.stars is not None else StarTable.empty()
-        cam = self.context.camera
+        cam = frame_camera(frame, self.context)
         dt_all = (stars.t_ns - np.int64(t_ref)).astype(float) * S_PER_NS
         sel = select_stars(stars, p.n_stars, cam, p.selection, dt_all)
         if sel.size < 3:
