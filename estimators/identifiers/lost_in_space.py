@@ -222,8 +222,9 @@ class LostInSpaceIdentifier(Identifier):
         self.last_mode = "lost-in-space"
         out, sol = self._lost_in_space(frame.evolve(flags=flags))
         self.last_solution = sol
-        if sol.accepted and self.params.track:
+        if sol.accepted:
             self._track_model = sol.camera
+        if sol.accepted and self.params.track:
             self._tracker = self._tracking_identifier(sol.attitude, self.params.tracking, sol.camera.camera(self.context.camera))
         return self._with_camera(out) if sol.accepted else out
 

@@ -557,13 +557,22 @@ def test_real_creusot_corr_end_to_end(real_data_dir, tmp_path):
     assert (nunki["ra_deg"], nunki["dec_deg"]) == (284.811, -28.299)
 
 
-def test_run_on_imported_images_without_prior_names_the_stage(tmp_path):
-    """No prior attitude is invented for real images: `tracking` refuses clearly (exit 2), naming the stage."""
+def test_run_on_imported_images_without_prior(tmp_path):
+    """No prior attitude is invented for real images: the baseline starts lost in space (an empty
+    frame is rejected with its reason, no valid attitude), and a pipeline whose identifier can
+    only track refuses clearly (exit 2), naming the stage."""
     folder = tmp_path / "imgs"
     folder.mkdir()
     Image.fromarray(np.zeros((30, 40), dtype=np.uint8)).save(folder / "a.png")
     rec = import_images(folder, tmp_path / "r.mcap", camera=small_camera())
-    assert_clean_error(cli("run", BASELINE, rec, "-o", tmp_path / "o.mcap", "-q"),
+    proc = cli("run", BASELINE, rec, "-o", tmp_path / "o.mcap", "-q")
+    assert proc.returncode == 0, proc.stderr
+    status = [m.data for m in LogReader(tmp_path / "o.mcap").messages(["/estimate/frame"])]
+    assert any(f.startswith("lost_in_space_rejected:") for f in status[0]["flags"])
+    assert not any(m.data["valid"] for m in LogReader(tmp_path / "o.mcap").messages(["/estimate/attitude"]))
+    tracking_only = tmp_path / "tracking.yaml"
+    tracking_only.write_text("stages:\n  - {kind: cog}\n  - {kind: tracking}\n  - {kind: quest}\n")
+    assert_clean_error(cli("run", tracking_only, rec, "-o", tmp_path / "o2.mcap", "-q"),
                        "stages[1] ('tracking')", "prior attitude", "lost-in-space")
 
 
