@@ -15,6 +15,17 @@ from pydantic import BaseModel, ConfigDict
 
 from rollingstar.estimators.data import FrameData, SensorContext
 
+#: What a stage may need or provide (:attr:`Plugin.needs`, :attr:`Plugin.provides`): word -> meaning.
+FRAME_CONTENTS: dict[str, str] = {
+    "image": "the frame's image",
+    "spots": "detected stars",
+    "identified": "stars with catalogue ids",
+    "velocities": "per-star image velocities",
+    "common_time": "stars referred to one time",
+    "rate": "a body-rate estimate",
+    "attitude": "an attitude estimate",
+}
+
 
 class NoParams(BaseModel):
     """Parameters of a plugin that takes none."""
@@ -38,7 +49,12 @@ class Plugin:
     - ``needs_truth``: read before the first frame; when a stage of the pipeline declares it True,
       every frame carries ``frame.truth`` (the recording's truth attitude samples of that frame;
       oracle baselines on simulated recordings only). Default False; a subclass may set it as a
-      class attribute or compute it from its parameters as a property.
+      class attribute or compute it from its parameters as a property;
+    - ``needs`` and ``provides``: what the stage reads from a frame and what it adds, in the words
+      of :data:`FRAME_CONTENTS`. The pipeline checks the order of its stages with them when it is
+      built and again against the recording before the first frame. Each role's base class
+      declares its role's contract; a plugin that needs or provides something else overrides
+      them, as a class attribute or as a property computed from its parameters. Default: nothing.
     """
 
     role: ClassVar[str] = ""
@@ -49,6 +65,10 @@ class Plugin:
     defers_output: ClassVar[bool] = False
     #: True for oracle stages that read ``frame.truth`` (see the class docstring).
     needs_truth: bool = False
+    #: What the stage reads from a frame (words of :data:`FRAME_CONTENTS`); see the class docstring.
+    needs: ClassVar[frozenset[str]] = frozenset()
+    #: What the stage adds to a frame (words of :data:`FRAME_CONTENTS`).
+    provides: ClassVar[frozenset[str]] = frozenset()
 
     def __init__(self, **params):
         self.params = self.Params(**params)

@@ -28,6 +28,7 @@ from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import register_schema
 
 from rollingstar.errors import UserError
+from rollingstar.sensors.conventions import pixel_to_foxglove
 
 from .digest import MessageDigest
 from .errors import LogWriteError
@@ -289,10 +290,13 @@ class LogWriter:
                           diameter_px: float = 12.0) -> None:
         """Write a ``foxglove.ImageAnnotations``: a circle at every (x, y) and its label beside it.
 
-        Points with a NaN coordinate are skipped; a ``None`` or empty label draws no text.
+        ``x, y`` are pixels in the project's convention (pixel centres at integers), written in
+        Foxglove's (origin at the top-left corner of the top-left pixel) by
+        :func:`~rollingstar.sensors.conventions.pixel_to_foxglove`. Points with a NaN coordinate
+        are skipped; a ``None`` or empty label draws no text. No points give an empty message,
+        which clears the previous frame's overlay in Foxglove.
         """
-        xs = np.asarray(x, dtype=float).reshape(-1)
-        ys = np.asarray(y, dtype=float).reshape(-1)
+        xs, ys = pixel_to_foxglove(np.asarray(x, dtype=float).reshape(-1), np.asarray(y, dtype=float).reshape(-1))
         if xs.shape != ys.shape:
             raise ValueError(f"{topic}: x and y differ in length ({xs.size} vs {ys.size})")
         if labels is not None and len(labels) != xs.size:

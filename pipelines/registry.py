@@ -10,14 +10,26 @@ role base class from ``estimators`` and is validated exactly like a built-in.
 
 :data:`ALIASES` are further kind names, each standing for a built-in kind with some of its
 parameters set (:func:`stage_params`); a config may use either name.
+
+:func:`check_stage_order` checks a pipeline's stages against each other when they are built, and
+:func:`check_stages_on_recording` against a recording before the first frame, with what each
+stage declares it needs and provides (:attr:`~rollingstar.estimators.plugin.Plugin.needs`).
 """
 from __future__ import annotations
 
 import importlib
+from collections.abc import Sequence
 from functools import lru_cache
 from importlib.metadata import entry_points
 
-from rollingstar.estimators.plugin import Plugin
+from rollingstar.errors import ConfigError, PipelineError
+from rollingstar.estimators.attitude.base import AttitudeSolver
+from rollingstar.estimators.centroiders.base import Centroider
+from rollingstar.estimators.corrections.base import Correction
+from rollingstar.estimators.filters.base import StarMotionFilter
+from rollingstar.estimators.identifiers.base import Identifier
+from rollingstar.estimators.plugin import FRAME_CONTENTS, Plugin
+from rollingstar.estimators.rates.base import RateEstimator
 
 ENTRY_POINT_GROUP = "rollingstar.plugins"
 ROLES = ("centroider", "identifier", "filter", "correction", "attitude", "rate")
@@ -116,3 +128,83 @@ def plugins_by_role() -> dict[str, list[type[Plugin]]]:
         cls = get_plugin_class(kind)
         out[cls.role].append(cls)
     return out
+
+
+# ------------------------------------------------------------------ the order of a pipeline's stages
+#: What a recording can hold in place of a stage's output: images, centroids (``spots``), or
+#: centroids already identified (imported astrometry.net tables).
+RECORDING_CAN_PROVIDE = frozenset({"image", "spots", "identified"})
+VALID_ORDER = ("centroider -> identifier -> [star-motion filter] -> [rolling-shutter correction] -> attitude solver; "
+               "rate estimators after identification")
+ROLE_LABELS = {"centroider": "centroider", "identifier": "identifier", "filter": "star-motion filter",
+               "correction": "rolling-shutter correction", "attitude": "attitude solver", "rate": "rate estimator"}
+#: word -> the role whose base class provides it (what to add when nothing does).
+PROVIDER_ROLE = {word: ROLE_LABELS[base.role] for base in
+                 (Centroider, Identifier, StarMotionFilter, Correction, RateEstimator, AttitudeSolver)
+                 for word in base.provides}
+
+
+def _declared(stage: Plugin, attribute: str) -> frozenset[str]:
+    return frozenset(getattr(stage, attribute, ()) or ())
+
+
+def _describe(i: int, stage: Plugin, kinds: Sequence[str] | None) -> str:
+    kind = kinds[i] if kinds is not None else stage.name
+    return f"stages[{i}] ({kind!r}, {ROLE_LABELS.get(stage.role, stage.role)})"
+
+
+def _need(word: str) -> str:
+    return f"{word!r} ({FRAME_CONTENTS[word]})" if word in FRAME_CONTENTS else repr(word)
+
+
+def _remedy(word: str) -> str:
+    if word == "image":
+        return "run it on an image recording"
+    role = PROVIDER_ROLE.get(word)
+    return f"add a {role} before it" if role else "add a stage that provides it before it"
+
+
+def _first_problem(stages: Sequence[Plugin], kinds: Sequence[str] | None, from_recording: frozenset[str],
+                   recording: str | None, skip_centroiders: bool) -> str | None:
+    """The first stage whose needs neither an earlier stage nor the recording meet, said in one
+    sentence; None when every stage has what it needs. ``from_recording``: what the recording holds
+    (``recording`` None: what any recording could hold)."""
+    active = [(i, s) for i, s in enumerate(stages) if not (skip_centroiders and isinstance(s, Centroider))]
+    available: set[str] = set()
+    for n, (i, stage) in enumerate(active):
+        for word in sorted(_declared(stage, "needs") - available):
+            where = f"{_describe(i, stage, kinds)} needs {_need(word)}"
+            later = next((j for j, s in active[n + 1:] if word in _declared(s, "provides")), None)
+            if later is not None:
+                return (f"{where}, which only the later {_describe(later, stages[later], kinds)} provides: "
+                        f"reorder the stages (valid order: {VALID_ORDER})")
+            if word in from_recording:
+                continue
+            source = ("no recording holds" if recording is None else
+                      f"the recording {recording} does not hold (it holds {', '.join(map(repr, sorted(from_recording)))})")
+            return (f"{where}, which no stage before it provides and {source}: {_remedy(word)} "
+                    f"(valid order: {VALID_ORDER})")
+        available |= _declared(stage, "needs") | _declared(stage, "provides")
+    return None
+
+
+def check_stage_order(stages: Sequence[Plugin], source: str = "<pipeline>", kinds: Sequence[str] | None = None) -> None:
+    """Check that every stage gets what it needs (:attr:`Plugin.needs`) from a stage before it or from
+    a recording (:data:`RECORDING_CAN_PROVIDE`); :class:`ConfigError` naming the pipeline ``source``,
+    the stage (index and ``kinds[i]``, the config's names) and what it misses, with a valid order.
+
+    A need that only a later stage provides is an order error, even where a recording could hold it.
+    """
+    problem = _first_problem(stages, kinds, RECORDING_CAN_PROVIDE, None, skip_centroiders=False)
+    if problem:
+        raise ConfigError(f"{source}: {problem}")
+
+
+def check_stages_on_recording(stages: Sequence[Plugin], provided: frozenset[str], recording: str,
+                              source: str = "<pipeline>", kinds: Sequence[str] | None = None) -> None:
+    """:func:`check_stage_order` with what this recording holds (``provided``, a subset of
+    :data:`RECORDING_CAN_PROVIDE`); :class:`PipelineError`. A recording without images skips the
+    centroiders (the run does), so they neither need nor provide anything on it."""
+    problem = _first_problem(stages, kinds, frozenset(provided), recording, skip_centroiders="image" not in provided)
+    if problem:
+        raise PipelineError(f"{source}: {problem}")

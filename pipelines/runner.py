@@ -38,7 +38,13 @@ from rollingstar.pipelines.checkpoint import (
 from rollingstar.pipelines.config import PipelineConfig
 from rollingstar.pipelines.frame_checks import FrameChecker
 from rollingstar.pipelines.interrupt import Interrupted, StopFlag, stop_on_sigint
-from rollingstar.pipelines.registry import UnknownPluginError, get_plugin_class, stage_params
+from rollingstar.pipelines.registry import (
+    UnknownPluginError,
+    check_stage_order,
+    check_stages_on_recording,
+    get_plugin_class,
+    stage_params,
+)
 from rollingstar.pipelines.resume import IDENTITY_RECORD, ResumePoint, find_resume_point, leftovers
 from rollingstar.pipelines.sink import EstimateSink, new_counts
 from rollingstar.pipelines.source import FrameSource, Recording, open_recording
@@ -58,7 +64,8 @@ class RunSummary:
 
 
 def build_stages(config: PipelineConfig, source: str = "<pipeline>") -> list[Plugin]:
-    """Instantiate every stage; unknown kinds and bad params name the stage's key path."""
+    """Instantiate every stage; unknown kinds and bad params name the stage's key path, a stage that
+    lacks what it needs the stage and the missing input (:func:`check_stage_order`)."""
     stages = []
     for i, stage in enumerate(config.stages):
         try:
@@ -69,6 +76,7 @@ def build_stages(config: PipelineConfig, source: str = "<pipeline>") -> list[Plu
             stages.append(cls(**stage_params(stage.kind, stage.params)))
         except ValidationError as err:
             raise ConfigError(format_validation_error(source, err, prefix=("stages", i, "params"))) from None
+    check_stage_order(stages, source, [stage.kind for stage in config.stages])
     return stages
 
 
@@ -90,6 +98,7 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
     check_checkpoint_dir(output)
     stages = build_stages(pipeline, pipeline_source)
     rec = open_recording(recording)
+    check_stages_on_recording(stages, rec.provides, str(recording), pipeline_source, [s.kind for s in pipeline.stages])
     setup_stages(stages, rec.context, pipeline_source, recording)
     pipeline_yaml = to_yaml(pipeline)
     identity = RunIdentity.of(recording, rec.scenario.get("yaml", ""), pipeline_yaml)

@@ -65,9 +65,8 @@ def write_frame(writer: LogWriter, frame: FrameData) -> None:
         frame.index, t0, x=stars.x, y=stars.y, t_ns=stars.t_ns, row_time_ns=stars.row_time_ns, flux=stars.flux,
         peak=stars.peak, npix=stars.npix, saturated=stars.saturated, snr=stars.snr, sigma_px=stars.sigma_px,
         vx=stars.vx, vy=stars.vy, catalog_id=stars.catalog_id, ref_icrs=stars.ref_icrs), t0)
-    if stars.n:
-        labels = [str(int(c)) if c >= 0 else "?" for c in stars.catalog_id]
-        writer.write_annotations(TOPIC_EST_SPOTS, t0, stars.x, stars.y, labels)
+    labels = [str(int(c)) if c >= 0 else "?" for c in stars.catalog_id]
+    writer.write_annotations(TOPIC_EST_SPOTS, t0, stars.x, stars.y, labels)  # none: clears the last overlay
     for est in frame.attitudes:
         cov = None if est.covariance_rad2 is None else np.asarray(est.covariance_rad2, dtype=float).reshape(-1).tolist()
         writer.write_json(TOPIC_EST_ATTITUDE, AttitudeRecord(

@@ -54,6 +54,29 @@ class Recording:
         """True for a centroid-level recording: the centroiders of a pipeline have nothing to do."""
         return self.frame_topic == TOPIC_CENTROIDS
 
+    @property
+    def provides(self) -> frozenset[str]:
+        """What the recording holds in place of a stage's output (``Plugin.needs`` words): ``image``; or
+        ``spots``, with ``identified`` when its stars arrive identified (:meth:`arrives_identified`)."""
+        if not self.holds_centroids:
+            return frozenset({"image"})
+        return frozenset({"spots", "identified"} if self.arrives_identified() else {"spots"})
+
+    def arrives_identified(self) -> bool:
+        """True for an import of astrometry.net tables, and for a recording whose first frame's stars
+        all carry a catalogue id and direction (the run then skips the identifiers on such frames).
+        A first frame that cannot be read counts as identified: the run itself reports it."""
+        if self.reader.metadata().get("import", {}).get("format") == "corr":
+            return True
+        try:
+            first = next(iter(self.reader.messages(topics=[TOPIC_CENTROIDS])), None)
+            stars = None if first is None else stars_to_arrays(first.data)
+        except ValueError:  # LogFormatError, or a record the reader let through
+            return True
+        if stars is None or "catalog_id" not in stars or "ref_icrs" not in stars or stars["x"].size == 0:
+            return False
+        return bool((stars["catalog_id"] >= 0).all() and np.isfinite(stars["ref_icrs"]).all())
+
 
 def open_recording(path: str | Path) -> Recording:
     """Open ``path``; a :class:`UserError` when it declares no sensor model (or holds no frames)."""

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from rollingstar import __version__
@@ -93,7 +94,7 @@ def _guarded(fn):
         except Exception as exc:
             if _state["debug"]:
                 raise
-            err.print(f"[bold red]error:[/] {_error_message(exc)}", highlight=False, soft_wrap=True)
+            err.print(f"[bold red]error:[/] {escape(_error_message(exc))}", highlight=False, soft_wrap=True)
             raise typer.Exit(2) from None
 
     return wrapper

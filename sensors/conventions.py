@@ -36,6 +36,15 @@ def seconds_to_ns(seconds) -> np.ndarray | int:
     return int(out) if out.ndim == 0 else out
 
 
+def pixel_to_foxglove(x, y):
+    """Pixel ``(x, y)`` (pixel centres at integers) to Foxglove image-annotation coordinates.
+
+    Foxglove's ``ImageAnnotations`` points have their origin at the top-left corner of the
+    top-left pixel, so the centre of pixel (0, 0) is (0.5, 0.5) there. Scalars or arrays.
+    """
+    return np.asarray(x, dtype=float) + 0.5, np.asarray(y, dtype=float) + 0.5
+
+
 def radec_to_unit(ra_rad, dec_rad) -> np.ndarray:
     """Right ascension / declination (rad) to ICRS unit vectors ``[cos a cos d, sin a cos d, sin d]``.
 

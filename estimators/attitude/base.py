@@ -12,3 +12,5 @@ class AttitudeSolver(Plugin):
     """
 
     role = "attitude"
+    needs = frozenset({"identified"})
+    provides = frozenset({"attitude"})

@@ -125,6 +125,7 @@ class GtsamSmoother(AttitudeSolver):
     outputs; the star and motion factors are in :mod:`rollingstar.estimators.attitude.gtsam_graph`."""
 
     name = "gtsam"
+    provides = frozenset({"attitude", "rate"})
     Params = GtsamParams
     defers_output = True
 

@@ -136,6 +136,7 @@ class MekfFilter(AttitudeSolver):
 
     name = "mekf"
     Params = MekfParams
+    provides = frozenset({"attitude", "rate"})
 
     def setup(self, context) -> None:
         super().setup(context)

@@ -177,6 +177,11 @@ class RequestSolver(AttitudeSolver):
         """The runner passes ``frame.truth`` only to stages that need it (oracle ``rate_source``)."""
         return self.params.rate_source == "truth"
 
+    @property
+    def needs(self) -> frozenset[str]:
+        """Identified stars; with ``rate_source: estimate`` also a rate stage's ``frame.rate``."""
+        return AttitudeSolver.needs | ({"rate"} if self.params.rate_source == "estimate" else set())
+
     def setup(self, context) -> None:
         super().setup(context)
         p = self.params

@@ -13,3 +13,5 @@ class Centroider(Plugin):
     """
 
     role = "centroider"
+    needs = frozenset({"image"})
+    provides = frozenset({"spots"})

@@ -8,3 +8,5 @@ class Correction(Plugin):
     """Returns corrected ``x, y`` and sets ``t_ns`` to the time the corrected positions refer to."""
 
     role = "correction"
+    needs = frozenset({"spots"})
+    provides = frozenset({"common_time"})

@@ -14,6 +14,7 @@ class NoCorrection(Correction):
     """
 
     name = "none"
+    provides = frozenset()  # positions and times unchanged
 
     def process(self, frame: FrameData) -> FrameData:
         return frame.evolve()

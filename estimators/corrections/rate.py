@@ -104,6 +104,16 @@ class RateCorrection(Correction):
     name = "rate-correction"
     Params = RateCorrectionParams
 
+    @property
+    def needs(self) -> frozenset[str]:
+        """``frame.rate`` from an earlier rate stage; with ``estimator``, identified stars to estimate it from."""
+        return frozenset({"rate"} if self.params.estimator is None else {"identified"})
+
+    @property
+    def provides(self) -> frozenset[str]:
+        """Stars at one time; with ``estimator`` also ``frame.rate``."""
+        return Correction.provides | ({"rate"} if self.params.estimator is not None else set())
+
     def setup(self, context) -> None:
         super().setup(context)
         self._estimator = None

@@ -100,6 +100,7 @@ class TimeDomainCorrection(Correction):
 
     name = "time-domain"
     Params = TimeDomainParams
+    needs = frozenset({"velocities"})
 
     def process(self, frame: FrameData) -> FrameData:
         stars = frame.stars

@@ -8,3 +8,5 @@ class StarMotionFilter(Plugin):
     """Replaces ``x, y`` (and ``sigma_px``) with filtered values and fills ``vx, vy`` (px/s)."""
 
     role = "filter"
+    needs = frozenset({"identified"})  # tracks are keyed by catalogue id
+    provides = frozenset({"velocities"})

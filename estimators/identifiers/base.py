@@ -12,3 +12,5 @@ class Identifier(Plugin):
     """
 
     role = "identifier"
+    needs = frozenset({"spots"})
+    provides = frozenset({"identified"})

@@ -23,6 +23,8 @@ class RateEstimator(Plugin):
     ``rate_invalid`` when it is not valid."""
 
     role = "rate"
+    needs = frozenset({"identified"})
+    provides = frozenset({"rate"})
 
     def estimate(self, frame: FrameData) -> RateEstimate:  # pragma: no cover - interface
         raise NotImplementedError
