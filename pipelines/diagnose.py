@@ -127,6 +127,7 @@ def build_observations(stars: dict, att: dict, scenario: ScenarioConfig, catalog
     with np.errstate(divide="ignore", invalid="ignore"):
         mag = np.where(np.isfinite(mag), mag, -2.5 * np.log10(flux))  # instrumental magnitude when uncatalogued
     sigma, source = _sigma_and_source(np.concatenate(cols["sigma"]), scenario)
+    cov, source = _position_covariance(np.concatenate(cols["cov"]), sigma, source)
     t0 = np.asarray(f_t0, dtype=np.int64)
     expo = np.asarray(f_exp, dtype=np.int64)
     # one exposure (rounding aside): the scenario's timing holds; mixed: carried per frame
@@ -137,7 +138,7 @@ def build_observations(stars: dict, att: dict, scenario: ScenarioConfig, catalog
         sigma=sigma, t_ns=np.concatenate(cols["t_ns"]).astype(np.int64), u_icrs=u_all,
         magnitude=np.asarray(mag, dtype=float), catalog_id=cat_ids, flux=flux, frame_index=np.asarray(f_index),
         t0_ns=t0, t_ref_ns=frame_reference_times(t0, timing, expo), sigma_source=source,
-        pm_rad_yr=pm, exposure_ns=expo)
+        pm_rad_yr=pm, exposure_ns=expo, cov=cov)
     return obs, Rotation.from_quat(np.asarray(f_q))
 
 
@@ -148,7 +149,7 @@ def _frame_columns(stars: dict, att: dict, timing: DetectorTiming):
     with finite positions and catalogue directions.
     """
     frames = sorted(k for k in stars if k in att)
-    cols = {k: [] for k in ("frame", "x", "y", "sigma", "t_ns", "u", "cat", "flux")}
+    cols = {k: [] for k in ("frame", "x", "y", "sigma", "t_ns", "u", "cat", "flux", "cov")}
     f_index, f_t0, f_q, f_exp = [], [], [], []
     for k in frames:
         t0, c = stars[k]
@@ -171,6 +172,7 @@ def _frame_columns(stars: dict, att: dict, timing: DetectorTiming):
         cols["x"].append(c["x"][ok])
         cols["y"].append(c["y"][ok])
         cols["sigma"].append(c.get("sigma_px", np.full(len(c["x"]), np.nan))[ok])
+        cols["cov"].append(np.column_stack([c.get(k, np.full(len(c["x"]), np.nan))[ok] for k in ("cov_xx", "cov_xy", "cov_yy")]))
         cols["t_ns"].append(c["t_ns"][ok])
         cols["u"].append(ref[ok])
         cols["cat"].append(cat[ok])
@@ -206,6 +208,20 @@ def _sigma_and_source(sigma: np.ndarray, scenario: ScenarioConfig) -> tuple[np.n
             sigma = np.where(bad, np.nan, sigma)
             source = "estimated"
     return sigma, source
+
+
+def _position_covariance(cov3: np.ndarray, sigma: np.ndarray, source: str) -> tuple[np.ndarray | None, str]:
+    """The stars' 2 x 2 position covariances (n, 2, 2) px^2 from the recorded ``cov_xx, cov_xy, cov_yy``
+    rows ``cov3`` (n, 3), when some star carries one that is not isotropic and every star has a known
+    sigma (stars without a valid one get ``sigma^2 I``); else None (the diagnosis then whitens by sigma)."""
+    xx, xy, yy = cov3.T
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(cov3).all(axis=1) & (xx > 0) & (yy > 0) & (xx * yy - xy * xy > 0)
+    if not (valid & ((xy != 0) | (xx != yy))).any() or not np.all(np.isfinite(sigma)):
+        return None, source
+    cov = sigma[:, None, None] ** 2 * np.eye(2)
+    cov[valid] = np.stack([np.stack([xx, xy], -1), np.stack([xy, yy], -1)], -2)[valid]
+    return cov, source + "; 2 x 2 position covariances (cov_xx, cov_xy, cov_yy)"
 
 
 def read_gyro(recording: Path, scenario: ScenarioConfig) -> GyroData | None:

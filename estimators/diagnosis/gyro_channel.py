@@ -113,9 +113,14 @@ def gyro_signature(effect, gyro: GyroData, t_ref_ns: np.ndarray) -> np.ndarray:
     return -np.einsum("km,mip->kip", overlaps(gyro, t_ref_ns), jac)
 
 
-def attitude_covariances(frame: np.ndarray, n_frames: int, att_jac: np.ndarray, sigma: np.ndarray, mask) -> np.ndarray:
-    """``C_k``: inverse of each frame's attitude normal matrix over the stars in ``mask``, (F, 3, 3)."""
-    wts = np.where(mask, 1.0 / sigma**2, 0.0)
+def attitude_covariances(frame: np.ndarray, n_frames: int, att_jac: np.ndarray, sigma: np.ndarray, mask,
+                         cov: np.ndarray | None = None) -> np.ndarray:
+    """``C_k``: inverse of each frame's attitude normal matrix over the stars in ``mask``, (F, 3, 3),
+    with per-axis ``sigma`` or, given, the stars' 2 x 2 position covariances ``cov`` (n, 2, 2)."""
+    if cov is None:
+        wts = np.where(mask, 1.0 / sigma**2, 0.0)
+    else:
+        wts = np.where(np.asarray(mask, dtype=bool)[:, None, None], np.linalg.inv(cov), 0.0)
     a, _ = frame_normal(frame, n_frames, att_jac, wts, np.zeros((frame.size, 2, 1)))
     return np.linalg.pinv(a, hermitian=True)
 
@@ -175,7 +180,7 @@ def build_channel(gyro: GyroData | None, obs, pred, train_frames: np.ndarray, at
     pairs = np.flatnonzero(ok)
     if pairs.size == 0:
         return None
-    cov = attitude_covariances(obs.frame, obs.n_frames, pred.att_jac, obs.sigma, att_mask)
+    cov = attitude_covariances(obs.frame, obs.n_frames, pred.att_jac, obs.sigma, att_mask, obs.cov)
     return GyroChannel(gyro, pairs, whitener(cov, pairs, obs.t_ref_ns, gyro.arw_rad_sqrt_s))
 
 

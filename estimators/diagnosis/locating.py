@@ -24,6 +24,7 @@ from rollingstar.estimators.diagnosis.observations import (
     Observations,
     Prediction,
     fit_nuisance,
+    whitened_residuals,
 )
 from rollingstar.estimators.diagnosis.selection import LinearProblem
 from rollingstar.estimators.diagnosis.signatures import linear_problem
@@ -124,7 +125,10 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
         obs = estimate_sigma(obs, pred0)
         nuis0, pred0 = fit_nuisance(obs, attitudes, *fit, att_mask, sensor.moving)
     # gross outliers (misidentified stars: the tracking refine gate is 2 px = 40 sigma at 0.05 px)
-    far = np.hypot(obs.x - pred0.x, obs.y - pred0.y) > OUTLIER_SIGMA * obs.sigma
+    if obs.cov is None:
+        far = np.hypot(obs.x - pred0.x, obs.y - pred0.y) > OUTLIER_SIGMA * obs.sigma
+    else:  # Mahalanobis distance under the star's 2 x 2 covariance
+        far = np.linalg.norm(whitened_residuals(obs, pred0), axis=1) > OUTLIER_SIGMA
     n_rejected = int(far.sum())
     if n_rejected:
         obs = obs.take(~far)

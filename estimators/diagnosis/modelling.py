@@ -22,6 +22,7 @@ from rollingstar.estimators.diagnosis.observations import (
     Nuisance,
     Prediction,
     fit_nuisance,
+    whiten,
 )
 from rollingstar.estimators.diagnosis.signatures import whitened_residual
 from rollingstar.sensors.scenario import ScenarioConfig
@@ -74,10 +75,10 @@ def leftover_structure(data: Dataset, pred: Prediction, sensor: SensorModel,
     and, when the noise is known, a total chi-square beyond :data:`CHI2_Z_LIMIT` are evidence."""
     obs, train = data.obs, data.train
     bases = catchall.generic_bases(obs, pred, sensor.camera)
-    aj = pred.att_jac / obs.sigma[:, None, None]
+    aj = whiten(obs, pred.att_jac)
     gproj = {}
     for name, g in bases.items():
-        p = selection.project_frames(obs.frame, obs.n_frames, aj, g / obs.sigma[:, None, None])
+        p = selection.project_frames(obs.frame, obs.n_frames, aj, whiten(obs, g))
         gproj[name] = np.concatenate([p[train, 0, :], p[train, 1, :],
                                       np.zeros((obs.channel.rows if obs.channel is not None else 0, p.shape[2]))])
     left = catchall.residual_structure(whitened_residual(obs, pred, train), gproj)

@@ -24,6 +24,7 @@ from rollingstar.estimators.diagnosis.observations import (
     Prediction,
     fit_attitudes,
     fit_nuisance,
+    star_chi2,
 )
 from rollingstar.estimators.diagnosis.signatures import linear_problem
 
@@ -107,8 +108,7 @@ def refit_chi2(data: Dataset, sensor: SensorModel, nuis0: Nuisance, chosen: list
     fit = refit_mod.refit(obs, nuis0, sensor.camera, sensor.timing, sensor.effects, chosen, mask, theta0)
     if fit["cost"] is None:
         _, pred = fit_attitudes(obs, nuis0, sensor.camera, sensor.timing, sensor.effects, mask)
-        fit["cost"] = float(np.sum(((obs.x - pred.x)[mask] ** 2 + (obs.y - pred.y)[mask] ** 2) / obs.sigma[mask] ** 2)
-                            + np.sum(gyro_channel.channel_rows(obs, pred) ** 2))
+        fit["cost"] = float(np.sum(star_chi2(obs, pred)[mask]) + np.sum(gyro_channel.channel_rows(obs, pred) ** 2))
     return fit
 
 

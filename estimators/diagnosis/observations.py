@@ -3,6 +3,10 @@
 Every identified star ``i`` of frame ``k`` is one observation: measured pixel position
 ``(x_i, y_i)`` with 1-sigma ``sigma_i`` per axis, catalogue direction ``u_i`` (ICRS), the time its
 position refers to ``t_i`` (mid-exposure of its own row, see :mod:`rollingstar.sensors.centroid_sim`).
+When the recording's stars carry 2 x 2 position covariances ``C_i`` that are not all isotropic
+(a smeared spot's is long along the smear), every residual and Jacobian is whitened by ``C_i``
+instead of ``sigma_i`` (:func:`whiten`: ``L_i^-1 (dx, dy)`` with ``L_i L_i^T = C_i``), and the
+weights of the attitude fits are the information matrices ``C_i^-1`` (:func:`star_weights`).
 
 The *simulation model* predicts it from a per-frame attitude ``R_k`` at the frame reference time
 ``t_ref,k`` (mid-exposure of the middle row) and a per-frame body rate ``omega_k``::
@@ -70,6 +74,7 @@ class Observations:
     pm_rad_yr: np.ndarray | None = None  # (n, 3) catalogue proper motions (ICRS tangent, rad/yr) when known
     exposure_ns: np.ndarray | None = None  # (F,) per-frame exposure when the recording mixes exposure times
     channel: object = None  # gyro_channel.GyroChannel: attitude increments vs the gyro, when the recording has one
+    cov: np.ndarray | None = None  # (n, 2, 2) px^2 position covariances, when not all isotropic (module doc)
 
     def __post_init__(self):
         if self.heldout is None:
@@ -86,12 +91,47 @@ class Observations:
     def take(self, mask) -> "Observations":
         """The observations selected by ``mask`` (boolean over stars); frames are kept."""
         m = np.asarray(mask)
-        per_star = ("frame", "x", "y", "sigma", "t_ns", "u_icrs", "magnitude", "catalog_id", "flux", "heldout", "pm_rad_yr")
+        per_star = ("frame", "x", "y", "sigma", "t_ns", "u_icrs", "magnitude", "catalog_id", "flux", "heldout", "pm_rad_yr",
+                    "cov")
         return replace(self, **{k: getattr(self, k)[m] for k in per_star if getattr(self, k) is not None})
 
     def dt_s(self) -> np.ndarray:
         """Time of each star relative to its frame's reference time (s)."""
         return (self.t_ns - self.t_ref_ns[self.frame]).astype(float) / NS_PER_S
+
+
+def whiten(obs: Observations, v: np.ndarray, idx=None) -> np.ndarray:
+    """Pixel-space rows ``v`` (m, 2, ...) (x then y per star, of the stars ``idx``, default all) in
+    units of each star's noise: ``v / sigma``, or ``L^-1 v`` with ``L L^T`` the star's 2 x 2 covariance."""
+    v = np.asarray(v, dtype=float)
+    if obs.cov is None:
+        sig = obs.sigma if idx is None else obs.sigma[idx]
+        return v / sig.reshape((-1,) + (1,) * (v.ndim - 1))
+    cov = obs.cov if idx is None else obs.cov[idx]
+    return np.einsum("nij,nj...->ni...", np.linalg.inv(np.linalg.cholesky(cov)), v)
+
+
+def whitened_residuals(obs: Observations, pred, idx=None) -> np.ndarray:
+    """``(obs - pred)`` of the stars ``idx`` (default all) whitened by their noise (:func:`whiten`), (m, 2)."""
+    if idx is None:
+        return whiten(obs, np.stack([obs.x - pred.x, obs.y - pred.y], axis=-1))
+    return whiten(obs, np.stack([obs.x[idx] - pred.x[idx], obs.y[idx] - pred.y[idx]], axis=-1), idx)
+
+
+def star_chi2(obs: Observations, pred) -> np.ndarray:
+    """Each star's chi-square against ``pred`` (2 dof), ``|whitened residual|^2``, (n,)."""
+    if obs.cov is None:
+        return ((obs.x - pred.x) ** 2 + (obs.y - pred.y) ** 2) / obs.sigma**2
+    return np.sum(whitened_residuals(obs, pred) ** 2, axis=1)
+
+
+def star_weights(obs: Observations, use=None) -> np.ndarray:
+    """Weights of the stars in a weighted least-squares fit: ``1 / sigma^2`` (n,), or the information
+    matrices ``C^-1`` (n, 2, 2) when the stars carry 2 x 2 covariances; 0 outside ``use``."""
+    use = np.ones(obs.n, dtype=bool) if use is None else np.asarray(use, dtype=bool)
+    if obs.cov is None:
+        return np.where(use, 1.0 / obs.sigma**2, 0.0)
+    return np.where(use[:, None, None], np.linalg.inv(obs.cov), 0.0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -204,10 +244,11 @@ def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=()) 
 def frame_normal(obs_frame: np.ndarray, n_frames: int, jac: np.ndarray, wts: np.ndarray, rhs: np.ndarray):
     """Per-frame normal matrices ``sum J^T W J`` (F, 3, 3) and ``sum J^T W r`` (F, 3, m).
 
-    ``jac`` (n, 2, 3), ``wts`` (n,) inverse variances, ``rhs`` (n, 2, m). Vectorised with
-    ``np.add.at`` over stars (no per-frame Python loop).
+    ``jac`` (n, 2, 3), ``wts`` (n,) inverse variances or (n, 2, 2) information matrices
+    (:func:`star_weights`), ``rhs`` (n, 2, m). Vectorised with ``np.add.at`` over stars (no
+    per-frame Python loop).
     """
-    jw = jac * wts[:, None, None]
+    jw = jac * wts[:, None, None] if wts.ndim == 1 else wts @ jac
     a = np.einsum("nki,nkj->nij", jw, jac)
     b = np.einsum("nki,nkm->nim", jw, rhs)
     big_a = np.zeros((n_frames, 3, 3))
@@ -234,7 +275,7 @@ def fit_attitudes(obs: Observations, nuis: Nuisance, camera, timing=None, effect
     Only observations in ``mask`` (default: all) contribute; the prediction returned covers all.
     """
     use = np.ones(obs.n, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
-    wts = np.where(use, 1.0 / obs.sigma**2, 0.0)
+    wts = star_weights(obs, use)
     pred = predict(obs, nuis, camera, timing, effects)
     for _ in range(iterations):
         r = np.stack([obs.x - pred.x, obs.y - pred.y], axis=-1)[:, :, None]
@@ -269,7 +310,7 @@ def rates_from_attitudes(attitude: Rotation, t_ref_ns: np.ndarray) -> tuple[np.n
 def frame_chi2(obs: Observations, pred: Prediction, mask=None) -> np.ndarray:
     """Chi-square of every frame's observations (in ``mask``) against the prediction, (F,)."""
     use = np.ones(obs.n, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
-    c = ((obs.x - pred.x) ** 2 + (obs.y - pred.y) ** 2) / obs.sigma**2
+    c = star_chi2(obs, pred)
     return np.bincount(obs.frame[use], weights=c[use], minlength=obs.n_frames)
 
 

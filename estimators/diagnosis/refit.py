@@ -28,6 +28,8 @@ from rollingstar.estimators.diagnosis.observations import (
     fit_attitudes,
     predict,
     rates_from_attitudes,
+    whiten,
+    whitened_residuals,
 )
 from rollingstar.sensors.conventions import NS_PER_S
 
@@ -61,7 +63,6 @@ def refit(obs: Observations, nuis: Nuisance, camera, timing, base_effects, candi
     z0 = np.zeros(m) if theta0 is None else np.concatenate([(t - c.defaults) / c.scales for c, t in zip(candidates, theta0)])
     z0, lo, hi = _within_bounds(candidates, z0)
     state = {"nuis": nuis}
-    sig = obs.sigma[mask]
 
     def resid(z):
         effects = chain_with(base_effects, candidates, split_theta(candidates, z))
@@ -69,8 +70,8 @@ def refit(obs: Observations, nuis: Nuisance, camera, timing, base_effects, candi
         # hysteresis between evaluations, which finite differences and the trust region need)
         n2, pred = fit_attitudes(obs, nuis, camera, timing, effects, mask, iterations=4)
         state["nuis"] = n2
-        r = np.concatenate([(obs.x[mask] - pred.x[mask]) / sig, (obs.y[mask] - pred.y[mask]) / sig,
-                            channel_rows(obs, pred)])  # + the gyro increment channel, when present
+        w = whitened_residuals(obs, pred, mask)
+        r = np.concatenate([w[:, 0], w[:, 1], channel_rows(obs, pred)])  # + the gyro increment channel, when present
         return np.nan_to_num(r, nan=1e6)
 
     try:
@@ -212,7 +213,6 @@ class _JointProblem:
     c: np.ndarray | None  # :func:`rate_operator`, when tied
     cd: np.ndarray | None  # (F, F) d omega_k / d delta_j (times I3), when tied
     idx: np.ndarray  # the training observations
-    sig: np.ndarray
     dt_i: np.ndarray
     k_i: np.ndarray
     g_att: np.ndarray | None  # whitened d(increment rows)/d delta of the free frames, with a gyro
@@ -239,10 +239,10 @@ class _JointProblem:
 
     def fun(self, x):
         """Whitened training residuals (x, then y), then the gyro increment rows."""
-        obs, idx, sig = self.obs, self.idx, self.sig
+        obs, idx = self.obs, self.idx
         p = self.predict_at(*self.state(x))
-        return np.nan_to_num(np.concatenate([(obs.x[idx] - p.x[idx]) / sig, (obs.y[idx] - p.y[idx]) / sig,
-                                             channel_rows(obs, p)]), nan=1e6)
+        w = whitened_residuals(obs, p, idx)
+        return np.nan_to_num(np.concatenate([w[:, 0], w[:, 1], channel_rows(obs, p)]), nan=1e6)
 
     def jac(self, x):
         """Rows as :meth:`fun`; columns the free frames' rotations, then ``z`` (joint_refit doc)."""
@@ -259,7 +259,7 @@ class _JointProblem:
     def _attitude_columns(self, p: Prediction) -> np.ndarray:
         """d(whitened residual)/d delta of the free frames, (N, 2, 3 nf), with the tied rates' share."""
         idx, k_i, f = self.idx, self.k_i, self.obs.n_frames
-        aj = p.att_jac[idx] / self.sig[:, None, None]  # (N, 2, 3)
+        aj = whiten(self.obs, p.att_jac[idx], idx)  # (N, 2, 3)
         jd = np.zeros((idx.size, 2, f, 3))
         jd[np.arange(idx.size), :, k_i, :] = aj
         if self.tied:
@@ -268,7 +268,7 @@ class _JointProblem:
 
     def _effect_columns(self, x, n2: Nuisance) -> tuple[np.ndarray, np.ndarray]:
         """Central differences in ``z``: image columns (N, 2, m) and gyro increment columns (rows, m)."""
-        obs, idx, sig, m, nf = self.obs, self.idx, self.sig, self.m, self.nf
+        obs, idx, m, nf = self.obs, self.idx, self.m, self.nf
         chan = obs.channel
         jz = np.zeros((idx.size, 2, m))
         gz = np.zeros((0 if chan is None else chan.rows, m))
@@ -281,7 +281,7 @@ class _JointProblem:
                 pp = self.predict_at(n2, split_theta(self.candidates, zz))
                 out.append(np.stack([pp.x[idx], pp.y[idx]], axis=-1))
                 gout.append(channel_rows(obs, pp))
-            jz[:, :, j] = -(out[0] - out[1]) / (2 * h) / sig[:, None]
+            jz[:, :, j] = whiten(obs, -(out[0] - out[1]) / (2 * h), idx)
             if chan is not None:
                 gz[:, j] = (gout[0] - gout[1]) / (2 * h)
         return jz, gz
@@ -306,7 +306,7 @@ def _joint_problem(obs: Observations, nuis: Nuisance, camera, timing, base_effec
     chan = obs.channel
     g_att = None if chan is None else chan.attitude_rows(f).reshape(chan.rows, f, 3)[:, free, :].reshape(chan.rows, 3 * nf)
     return _JointProblem(obs, nuis, camera, timing, tuple(base_effects), candidates, free, tied, c, cd, idx,
-                         obs.sigma[mask], obs.dt_s()[idx], obs.frame[idx], g_att)
+                         obs.dt_s()[idx], obs.frame[idx], g_att)
 
 
 def _within_bounds(candidates: list[Candidate], z0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
+from rollingstar.estimators.diagnosis.observations import whitened_residuals
 from rollingstar.sensors.conventions import S_PER_NS
 
 N_BINS = 8
@@ -30,8 +31,8 @@ def z_from_sf(p: np.ndarray | float) -> np.ndarray | float:
 
 
 def normalised(obs, pred) -> np.ndarray:
-    """Residuals in units of their sigma, (n, 2)."""
-    return np.stack([(obs.x - pred.x) / obs.sigma, (obs.y - pred.y) / obs.sigma], axis=-1)
+    """Residuals in units of their sigma (whitened by their 2 x 2 covariance when the stars carry one), (n, 2)."""
+    return whitened_residuals(obs, pred)
 
 
 def chi2_stats(obs, pred, mask, n_params: int) -> dict:

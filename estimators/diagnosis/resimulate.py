@@ -32,19 +32,24 @@ from rollingstar.estimators.diagnosis.observations import (
     Observations,
     fit_nuisance,
     predict,
+    whitened_residuals,
 )
 
 
 def normalised_residuals(obs: Observations, pred) -> np.ndarray:
-    """``(obs - model) / sigma`` of every star, x then y, (2 n,)."""
-    return np.concatenate([(obs.x - pred.x) / obs.sigma, (obs.y - pred.y) / obs.sigma])
+    """``(obs - model) / sigma`` of every star (whitened by its 2 x 2 covariance when it carries one), x then y, (2 n,)."""
+    r = whitened_residuals(obs, pred)
+    return np.concatenate([r[:, 0], r[:, 1]])
 
 
 def resimulated(obs: Observations, nuis: Nuisance, camera, timing, effects, seed: int) -> Observations:
     """The recording's observations re-drawn from the model (module doc), fresh noise from ``seed``."""
     p = predict(obs, nuis, camera, timing, tuple(effects))
     rng = np.random.default_rng([seed, 1729])
-    return replace(obs, x=p.x + rng.normal(0.0, obs.sigma), y=p.y + rng.normal(0.0, obs.sigma))
+    if obs.cov is None:
+        return replace(obs, x=p.x + rng.normal(0.0, obs.sigma), y=p.y + rng.normal(0.0, obs.sigma))
+    d = np.einsum("nij,nj->ni", np.linalg.cholesky(obs.cov), rng.normal(size=(obs.n, 2)))
+    return replace(obs, x=p.x + d[:, 0], y=p.y + d[:, 1])
 
 
 def compare(a: np.ndarray, b: np.ndarray) -> dict:

@@ -11,7 +11,7 @@ import numpy as np
 
 from rollingstar.estimators.diagnosis import gyro_channel, selection
 from rollingstar.estimators.diagnosis.library import Candidate
-from rollingstar.estimators.diagnosis.observations import Observations, Prediction
+from rollingstar.estimators.diagnosis.observations import Observations, Prediction, whiten, whitened_residuals
 
 
 def candidate_signatures(obs: Observations, pred: Prediction, cands: dict[str, Candidate], base_effects, mask):
@@ -20,8 +20,7 @@ def candidate_signatures(obs: Observations, pred: Prediction, cands: dict[str, C
     Returns ``(projected, raw, untestable)``: name -> projected signature rows, name -> the same
     rows before the projection, and ``{"name", "reason"}`` of every candidate that cannot be tested.
     """
-    sig = obs.sigma
-    aj = pred.att_jac / sig[:, None, None]
+    aj = whiten(obs, pred.att_jac)
     groups, raw, untestable = {}, {}, []
     chan = obs.channel
     for name, c in cands.items():
@@ -34,7 +33,7 @@ def candidate_signatures(obs: Observations, pred: Prediction, cands: dict[str, C
         except (ValueError, TypeError, NotImplementedError) as exc:
             untestable.append({"name": name, "reason": f"signature not available: {exc}"})
             continue
-        j = j / sig[:, None, None] * c.scales[None, None, :]
+        j = whiten(obs, j) * c.scales[None, None, :]
         p = selection.project_frames(obs.frame, obs.n_frames, aj, j)
         groups[name] = np.concatenate([p[mask, 0, :], p[mask, 1, :]])  # rows: all x residuals, then all y
         raw[name] = np.concatenate([j[mask, 0, :], j[mask, 1, :]])
@@ -50,8 +49,8 @@ def candidate_signatures(obs: Observations, pred: Prediction, cands: dict[str, C
 
 def whitened_residual(obs: Observations, pred: Prediction, mask) -> np.ndarray:
     """The residual rows of ``pred`` on ``mask``, whitened, attitude projected out, gyro rows appended."""
-    aj = pred.att_jac / obs.sigma[:, None, None]
-    r = np.stack([(obs.x - pred.x) / obs.sigma, (obs.y - pred.y) / obs.sigma], axis=-1)[:, :, None]
+    aj = whiten(obs, pred.att_jac)
+    r = whitened_residuals(obs, pred)[:, :, None]
     p = selection.project_frames(obs.frame, obs.n_frames, aj, r)[:, :, 0]
     return np.concatenate([p[mask, 0], p[mask, 1], gyro_channel.channel_rows(obs, pred)])
 

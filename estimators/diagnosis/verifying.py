@@ -20,7 +20,7 @@ from rollingstar.estimators.diagnosis.library import Candidate, separating_exper
 from rollingstar.estimators.diagnosis.locating import Dataset, Location
 from rollingstar.estimators.diagnosis.modelling import CHI2_Z_LIMIT, EffectModel, known_noise
 from rollingstar.estimators.diagnosis.naming import Naming
-from rollingstar.estimators.diagnosis.observations import Observations, Prediction
+from rollingstar.estimators.diagnosis.observations import Observations, Prediction, star_chi2, whitened_residuals
 
 TIME_EFFECT_EXPERIMENT = ("a recording in which the tracker turns (constant rate, rate reversal): "
                           "time effects move stars only with motion")
@@ -236,7 +236,8 @@ def heldout_distribution(obs: Observations, pred0: Prediction, pred1: Prediction
         return None
     out = {}
     for key, p in (("before", pred0), ("after", pred1)):
-        r = np.concatenate([(obs.x - p.x)[m] / obs.sigma[m], (obs.y - p.y)[m] / obs.sigma[m]])
+        w = whitened_residuals(obs, p)
+        r = np.concatenate([w[m, 0], w[m, 1]])
         ks = stats.kstest(r, "norm")
         out[key] = {"ks_statistic": float(ks.statistic), "p_value": float(ks.pvalue), "std": float(np.std(r))}
     return out
@@ -248,7 +249,7 @@ def heldout_chi2(obs: Observations, pred: Prediction, heldout: np.ndarray, frame
     a held-out frame (when the recording has a gyro)."""
     out = []
     if heldout.any():
-        c = float(np.sum(((obs.x - pred.x)[heldout] ** 2 + (obs.y - pred.y)[heldout] ** 2) / obs.sigma[heldout] ** 2))
+        c = float(np.sum(star_chi2(obs, pred)[heldout]))
         out.append(("image", c, int(2 * heldout.sum() - 3 * frames_fitted)))
     if chan_out is not None:
         e = chan_out.residual(pred.nuisance.attitude, obs.t_ref_ns, pred.effects)
@@ -267,5 +268,5 @@ def chi2_dof(obs: Observations, pred: Prediction, m: np.ndarray, frames_fitted: 
     """Chi-square per degree of freedom of the observations in ``m`` (3 dof per fitted attitude)."""
     if not m.any():
         return None
-    c = np.sum(((obs.x - pred.x)[m] ** 2 + (obs.y - pred.y)[m] ** 2) / obs.sigma[m] ** 2)
+    c = np.sum(star_chi2(obs, pred)[m])
     return float(c / max(2 * m.sum() - 3 * frames_fitted, 1))
