@@ -203,6 +203,9 @@ class AttitudeEstimateRecord(_Record):
     gyro_bias_rad_s: _Vec3 | None = Field(
         None, description="gyro bias estimated with the attitude (camera frame, rad/s); null when not estimated"
     )
+    false_match_prob: float | None = Field(
+        None, ge=0.0, le=1.0, description="probability that the frame's identified stars are chance coincidences; "
+        "null when no identification check ran")
 
     @model_validator(mode="after")
     def _valid_has_q(self) -> "AttitudeEstimateRecord":
@@ -267,6 +270,19 @@ class RateEstimateRecord(_Record):
         return self.t_ns
 
 
+class FittedCamera(BaseModel):
+    """A camera model fitted on one frame: pinhole focal length and principal point (px) and radial
+    distortion ``k1, k2`` (normalised coordinates, ``rollingstar.sensors.camera.PinholeCamera``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    focal_px: float = Field(gt=0)
+    cx: float
+    cy: float
+    k1: float = 0.0
+    k2: float = 0.0
+
+
 class FrameStatusRecord(_Record):
     """``rollingstar.FrameStatus``: what happened to one frame."""
 
@@ -278,6 +294,9 @@ class FrameStatusRecord(_Record):
     flags: list[str] = Field(description="short machine-readable notes, e.g. 'too_few_stars'")
     n_detected: int
     n_identified: int
+    camera: FittedCamera | None = Field(
+        None, description="the camera model an identifier fitted on this frame, used by every later stage; "
+        "null: the recording's declared camera")
 
     def default_log_time_ns(self) -> int:
         return self.t0_ns

@@ -11,6 +11,7 @@ from typing import Any
 from pydantic import Field
 
 from rollingstar.config import Strict, read_yaml, validate
+from rollingstar.estimators.identifiers.integrity import DEFAULT_MAX_FALSE_MATCH_PROB
 
 
 class StageConfig(Strict):
@@ -24,6 +25,10 @@ class PipelineConfig(Strict):
     name: str = "pipeline"
     description: str = ""
     stages: list[StageConfig] = Field(min_length=1)
+    max_false_match_prob: float = Field(
+        default=DEFAULT_MAX_FALSE_MATCH_PROB, gt=0.0, lt=1.0,
+        description="Largest probability that a frame's identified stars are chance coincidences; a frame above "
+        "it keeps no identification and no valid attitude (estimators/identifiers/integrity.py).")
 
 
 

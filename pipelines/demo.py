@@ -20,7 +20,7 @@ seed: 1
 DEMO_PIPELINE_YAML = """
 name: baseline
 stages:
-  - {kind: tracking, params: {gate_px: 10.0}}
+  - {kind: lost-in-space, params: {start_from_prior: true, track_min_matches: 2, tracking: {gate_px: 10.0}}}
   - {kind: none}
   - {kind: quest}
 """

@@ -108,7 +108,8 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
     try:
         with safe_output(output, inputs) as tmp:
             start = _Start.find(rec, stages, identity, output, resume, checkpoint_every if tmp != output else 0)
-            summary = _run(rec, pipeline.name, start, tmp, metadata, output, max_frames, show_progress)
+            summary = _run(rec, pipeline.name, start, tmp, metadata, output, max_frames, show_progress,
+                           pipeline.max_false_match_prob)
             _remove_leftovers(output, tmp, start)
     except LogWriteError as exc:  # it names the temporary file, kept as <output>.partial
         if tmp is None or tmp == output:
@@ -122,10 +123,10 @@ def _partial(output: Path) -> Path:
 
 
 def _run(rec: Recording, name: str, start: _Start, target: Path, metadata: dict, output: Path,
-         max_frames: int | None, show_progress: bool) -> RunSummary:
+         max_frames: int | None, show_progress: bool, max_false_match_prob: float) -> RunSummary:
     """The run itself, into ``target``: copy what the resume point holds, then stream the frames."""
     state = start.state
-    run = StagePipeline(state.stages, rec.holds_centroids, state.stage_seconds)
+    run = StagePipeline(state.stages, rec.holds_centroids, state.stage_seconds, rec.context, max_false_match_prob)
     source = FrameSource(rec, state.checker, run.needs_truth, skip=state.frames_read, delivered=state.n_frames)
     with stop_on_sigint() as stop, LogWriter(target, kind="run", metadata=metadata, digest=True) as writer, \
             progress_bar(f"run {name}", rec.n_frame_messages, show_progress) as advance:

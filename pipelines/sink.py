@@ -57,6 +57,20 @@ class EstimateSink:
             self.counts["flagged"] += bool(frame.flags)
 
 
+def _fitted_camera(frame: FrameData) -> dict | None:
+    """The camera an identifier fitted on the frame, as the frame status records it (None: the declared one)."""
+    cam = frame.camera
+    if cam is None:
+        return None
+    return {"focal_px": float(cam.focal_px), "cx": float(cam.cx), "cy": float(cam.cy), "k1": float(cam.k1), "k2": float(cam.k2)}
+
+
+def _false_match_prob(frame: FrameData) -> float | None:
+    """The frame's identification chance probability for its attitude records (None: not checked)."""
+    check = frame.identification
+    return None if check is None or check.n_matched < 2 else float(check.false_match_prob)
+
+
 def write_frame(writer: LogWriter, frame: FrameData) -> None:
     """One finished frame's estimates; its ``/estimate/frame`` status last."""
     t0 = int(frame.t0_ns)
@@ -72,7 +86,8 @@ def write_frame(writer: LogWriter, frame: FrameData) -> None:
         writer.write_json(TOPIC_EST_ATTITUDE, AttitudeRecord(
             frame=frame.index, t_ns=int(est.t_ns), q=quat_to_fields(est.q_xyzw) if est.valid else None, valid=bool(est.valid),
             reason=est.reason, n_stars=int(est.n_stars), covariance_rad2=cov,
-            gyro_bias_rad_s=None if est.gyro_bias_rad_s is None else [float(v) for v in np.ravel(est.gyro_bias_rad_s)]),
+            gyro_bias_rad_s=None if est.gyro_bias_rad_s is None else [float(v) for v in np.ravel(est.gyro_bias_rad_s)],
+            false_match_prob=_false_match_prob(frame)),
             int(est.t_ns))
         if est.valid:
             writer.write_pose(TOPIC_EST_POSE, int(est.t_ns), est.q_xyzw)
@@ -85,4 +100,5 @@ def write_frame(writer: LogWriter, frame: FrameData) -> None:
             iterations=r.iterations), int(r.t_ns))
     n_det = (stars.n + (frame.unmatched.n if frame.unmatched is not None else 0))
     writer.write_json(TOPIC_EST_FRAME, FrameStatus(frame=frame.index, t0_ns=t0, flags=list(frame.flags),
-                                                   n_detected=int(n_det), n_identified=int(stars.identified.sum())), t0)
+                                                   n_detected=int(n_det), n_identified=int(stars.identified.sum()),
+                                                   camera=_fitted_camera(frame)), t0)
