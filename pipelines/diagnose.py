@@ -3,7 +3,7 @@
 The command around the diagnosis algorithm (:mod:`rollingstar.estimators.diagnosis.algorithm`; see
 docs/diagnosis.md for the method). Here: load the scenario (``--sim``, or the one the recording
 declares) and the pipeline; run the pipeline on the recording (identified stars, a first attitude
-per frame; lost in space when tracking from the declared attitude loses lock); flatten its output
+per frame; lost in space when the recording declares no attitude or tracking loses lock); flatten its output
 into :class:`~rollingstar.estimators.diagnosis.observations.Observations`; read the recording's gyro
 samples. The algorithm then locates, names, models and verifies; this module writes what it found:
 the JSON object (``--json``), the report directory (``index.html``, PNGs, ``result.json``,
@@ -42,27 +42,20 @@ from rollingstar.sensors.timing import DetectorTiming
 
 __all__ = ["DiagnoseOptions", "diagnose_recording", "run_diagnose", "print_summary"]
 
-# Tracking gate 30 px: the second frame is predicted without a rate (the identifier extrapolates
-# from two estimates), and 2 deg/s over a 130 ms frame period moves stars ~20 px on a 4380 px focal
-# length; the refine pass (2 px) then drops mismatches.
+# The identifier starts from the recording's declared initial attitude when it has one (tracking,
+# verified against the false-match bound on every frame) and by a pattern search when it has none
+# or tracking loses the stars. Tracking gate 30 px: the second frame is predicted without a rate
+# (the tracker extrapolates from two estimates), and 2 deg/s over a 130 ms frame period moves
+# stars ~20 px on a 4380 px focal length; the refine pass (2 px) then drops mismatches.
 DEFAULT_PIPELINE_YAML = """
 name: diagnose-default
 stages:
   - {kind: cog, params: {threshold_sigma: 5.0}}
-  - {kind: tracking, params: {gate_px: 30.0}}
-  - {kind: none}
-  - {kind: quest}
-"""
-FALLBACK_PIPELINE_YAML = """
-name: diagnose-lost-in-space
-stages:
-  - {kind: cog, params: {threshold_sigma: 5.0}}
-  - {kind: lost-in-space, params: {tracking: {gate_px: 30.0}}}
+  - {kind: lost-in-space, params: {start_from_prior: true, tracking: {gate_px: 30.0}}}
   - {kind: none}
   - {kind: quest}
 """
 DEFAULT_PIPELINE_SOURCE = "<diagnose default pipeline>"
-FALLBACK_PIPELINE_SOURCE = "<diagnose lost-in-space pipeline>"
 SAME_STAR_RAD = 1e-3  # a catalogue id names the recorded star only if their directions agree this well
 
 
@@ -73,10 +66,6 @@ def recording_scenario(recording: Path) -> ScenarioConfig:
 
 def default_pipeline() -> PipelineConfig:
     return validate(PipelineConfig, parse_yaml(DEFAULT_PIPELINE_YAML, DEFAULT_PIPELINE_SOURCE), DEFAULT_PIPELINE_SOURCE)
-
-
-def fallback_pipeline() -> PipelineConfig:
-    return validate(PipelineConfig, parse_yaml(FALLBACK_PIPELINE_YAML, FALLBACK_PIPELINE_SOURCE), FALLBACK_PIPELINE_SOURCE)
 
 
 def run_and_read(recording: Path, pipeline: PipelineConfig, source: str, show_progress: bool):
@@ -96,17 +85,13 @@ def run_and_read(recording: Path, pipeline: PipelineConfig, source: str, show_pr
 
 
 def identify_stars(recording: Path, pipeline: PipelineConfig | None, source: str, show_progress: bool):
-    """Run the given pipeline, or the default one (lost in space when tracking loses lock).
+    """Run the given pipeline, or the default one (tracking from the declared attitude when there is
+    one, lost in space otherwise and whenever tracking loses the stars).
 
     Returns the pipeline that ran, its identified stars and its attitudes (:func:`run_and_read`).
     """
     chosen = pipeline or default_pipeline()
     stars, att = run_and_read(recording, chosen, source, show_progress)
-    if pipeline is None and len(att) < 0.5 * max(len(stars), 1):
-        # tracking from the declared initial attitude lost lock (e.g. a large boresight offset):
-        # identify without a prior (lost in space), then track
-        chosen = fallback_pipeline()
-        stars, att = run_and_read(recording, chosen, FALLBACK_PIPELINE_SOURCE, show_progress)
     return chosen, stars, att
 
 
