@@ -310,6 +310,11 @@ def figures(name: str = typer.Argument("foundation", help="foundation | real-dat
     if name == "real-data":
         real_data_figures(out_dir, as_json, repeats=repeats)
         return
+    if name == "real-cameras":  # cameras the pipeline was not tuned on, end to end (studies/real_cameras.py)
+        from rollingstar.studies.real_cameras import real_cameras_figures
+
+        real_cameras_figures(quick, as_json, seed)
+        return
     if name != "foundation":
         raise UserError(f"unknown figure set {name!r}; available: foundation, real-data")
     result = run_foundation(quick=quick, seed=seed)

@@ -65,13 +65,14 @@ class LostInSpaceParams(BaseModel):
                       "the pattern search, and it starts the fit with fit_distortion='radial'.")
     k2: float = Field(default=0.0, ge=-1e3, le=1e3, description="Known radial distortion k2 (as k1; a narrow field constrains it "
                       "poorly, so fitted values can be large while k2 r^4 stays small).")
-    fit_distortion: Literal["none", "radial", "auto"] = Field(
+    fit_distortion: Literal["none", "focal", "radial", "auto"] = Field(
         default="none", description="'radial': after the pattern match fit focal length and radial distortion (k1, and k2 "
         "with distortion_terms=2) jointly with the attitude to the matched stars, re-match with the fitted model and "
-        "verify with it (see the class docstring); every later stage then uses the fitted camera. 'none': pinhole with "
-        "the known k1, k2. 'auto': 'radial' for fields wider than auto_distortion_fov_deg, else 'none'.")
+        "verify with it (see the class docstring); every later stage then uses the fitted camera. 'focal': the same "
+        "with the focal length alone (the known k1, k2 kept). 'none': pinhole with the known focal length, k1, k2. "
+        "'auto': 'radial' for fields wider than auto_distortion_fov_deg, else 'focal'.")
     auto_distortion_fov_deg: float = Field(default=20.0, gt=0, description="Horizontal field (deg) above which "
-                                           "fit_distortion='auto' fits the distortion.")
+                                           "fit_distortion='auto' fits the distortion (below, the focal length only).")
     distortion_terms: Literal[1, 2] = Field(default=2, description="Radial terms fitted: 1 (k1) or 2 (k1, k2).")
     fit_principal_point: bool = Field(default=False, description="With fit_distortion='radial', also fit the principal point.")
     distortion_min_matches: int = Field(default=8, ge=4, description="Fewest matches the distortion is fitted with; below, "
@@ -147,7 +148,10 @@ class LostInSpaceIdentifier(Identifier):
        same way.
     5. The camera: when the intrinsics were fitted (``fit_distortion``), the identified frames carry
        the fitted model in ``frame.camera`` (focal length, principal point, k1, k2), and every later
-       stage (correction, attitude, smoother) projects with it.
+       stage (correction, attitude, smoother) projects with it. A published focal length is often
+       0.5-1 % off the lens' (tetra3 images: 11.53 deg nominal, 11.43 deg fitted); with stars off the
+       image centre a scale error tilts the attitude a solver fits, so ``auto`` fits the focal
+       length on every field and the radial terms on wide ones.
 
     Output: as every identifier, ``frame.stars`` = identified detections with ``catalog_id`` and
     ``ref_icrs``, ``frame.unmatched`` = the rest. :attr:`last_solution` holds the diagnostics of
@@ -186,8 +190,12 @@ class LostInSpaceIdentifier(Identifier):
             "magnitude_limit": self.params.magnitude_limit})
         self._tracker: TrackingIdentifier | None = None
         self._track_model = RadialCamera.from_pinhole(cam, self.params.k1, self.params.k2)
-        self._fitting = self.params.fit_distortion == "radial" or (
-            self.params.fit_distortion == "auto" and self._fov_deg > self.params.auto_distortion_fov_deg)
+        mode = self.params.fit_distortion
+        if mode == "auto":
+            mode = "radial" if self._fov_deg > self.params.auto_distortion_fov_deg else "focal"
+        self._fitting = mode != "none"
+        self._fit_names = ("focal_px", *(("k1", "k2")[:self.params.distortion_terms] if mode == "radial" else ()),
+                           *(("cx", "cy") if self.params.fit_principal_point else ()))
         if self.params.track and self.params.start_from_prior and context.initial_attitude is not None:
             self._tracker = self._tracking_identifier(context.initial_attitude, self.params.tracking,
                                                       self._track_model.camera(cam))
@@ -320,7 +328,7 @@ class LostInSpaceIdentifier(Identifier):
         # re-match every detection against our catalogue and camera model; with fit_distortion the
         # intrinsics are refitted to the matches and the matching repeated until the set is stable
         fitting = self._fitting
-        names = ("focal_px", "k1", "k2")[:1 + self.params.distortion_terms] + (("cx", "cy") if self.params.fit_principal_point else ())
+        names = self._fit_names
         sigma: dict = {}
         previous = None
         for _ in range(6 if fitting else 1):

@@ -54,10 +54,13 @@ def test_quest_solves_with_the_fitted_camera(context):
     assert min(nominal) > 3 * max(errors), (nominal, errors)
 
 
-def test_auto_fits_a_wide_field_and_not_a_narrow_one(context):
+def test_auto_fits_the_distortion_of_a_wide_field_and_the_focal_length_of_a_narrow_one(context):
     wide = LostInSpaceIdentifier(fit_distortion="auto")
     wide.setup(context)
-    assert wide._fitting  # 39 deg > 20 deg
+    assert wide._fit_names == ("focal_px", "k1", "k2")  # 39 deg > 20 deg
     narrow = LostInSpaceIdentifier(fit_distortion="auto", auto_distortion_fov_deg=45.0)
     narrow.setup(context)
-    assert not narrow._fitting
+    assert narrow._fit_names == ("focal_px",)
+    fixed = LostInSpaceIdentifier(fit_distortion="none")
+    fixed.setup(context)
+    assert not fixed._fitting
