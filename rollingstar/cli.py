@@ -292,7 +292,7 @@ def reproduce(paper: str = typer.Argument(..., help="he2021a | he2021b | fu2022 
 
 
 @command()
-def figures(name: str = typer.Argument("foundation", help="foundation | real-data"),
+def figures(name: str = typer.Argument("foundation", help="foundation | real-data | covariance-weighting"),
             quick: bool = typer.Option(False, "--quick"),
             as_json: bool = typer.Option(False, "--json"),
             out_dir: Path = typer.Option(None, "--out", help="write <out>/foundation.md (real-data.md), .json and img/*.png"),
@@ -310,13 +310,16 @@ def figures(name: str = typer.Argument("foundation", help="foundation | real-dat
     if name == "real-data":
         real_data_figures(out_dir, as_json, repeats=repeats)
         return
+    if name == "covariance-weighting":
+        _covariance_weighting_figure(out_dir, seed, as_json, quick)
+        return
     if name == "real-cameras":  # cameras the pipeline was not tuned on, end to end (studies/real_cameras.py)
         from rollingstar.studies.real_cameras import real_cameras_figures
 
         real_cameras_figures(quick, as_json, seed)
         return
     if name != "foundation":
-        raise UserError(f"unknown figure set {name!r}; available: foundation, real-data")
+        raise UserError(f"unknown figure set {name!r}; available: foundation, real-data, covariance-weighting")
     result = run_foundation(quick=quick, seed=seed)
     command = f"rollingstar figures foundation{' --quick' if quick else ''} --out {out_dir or 'docs'} --seed {seed}"
     if out_dir is not None:
@@ -325,6 +328,24 @@ def figures(name: str = typer.Argument("foundation", help="foundation | real-dat
         print(json.dumps(result, indent=2))
     else:
         out.print(foundation_markdown(result, command), highlight=False)
+
+
+def _covariance_weighting_figure(out_dir: Path | None, seed: int, as_json: bool, quick: bool) -> None:
+    """Attitude RMSE per axis, scalar vs 2 x 2 star weighting (studies/covariance_weighting.py)."""
+    from rollingstar.studies.covariance_weighting import (
+        covariance_weighting_table,
+        run_covariance_weighting,
+        write_covariance_weighting,
+    )
+
+    result = run_covariance_weighting(quick=quick, seed=seed)
+    command = f"rollingstar figures covariance-weighting{' --quick' if quick else ''} --seed {seed}"
+    if out_dir is not None:
+        write_covariance_weighting(result, Path(out_dir), command + f" --out {out_dir}")
+    if as_json:
+        print(json.dumps(result, indent=2))
+    else:
+        out.print(covariance_weighting_table(result), highlight=False)
 
 
 @command()
