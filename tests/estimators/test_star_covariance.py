@@ -165,7 +165,7 @@ def _check(res, trials: int):
     err_scalar, _ = res[False]
     rmse_full = np.sqrt(np.mean(np.sum(err_full**2, axis=1)))
     rmse_scalar = np.sqrt(np.mean(np.sum(err_scalar**2, axis=1)))
-    assert rmse_full < 0.8 * rmse_scalar  # measured ~0.45 (5:1 noise, 14 stars)
+    assert rmse_full < 0.8 * rmse_scalar  # measured 0.44 (quest), 0.54 (mekf, gtsam): 5:1 noise, 14 stars
     # mean NEES of chi-square(3) samples: 3 +- 4.5 sigma of its sampling error sqrt(6 / trials)
     assert abs(np.mean(nees_full) - 3.0) < 4.5 * np.sqrt(6.0 / trials)
 
