@@ -87,7 +87,7 @@ class Vector3(BaseModel):
 
 _STAR_COLUMNS = (
     "x", "y", "t_ns", "row_time_ns", "flux", "peak", "npix", "saturated", "snr", "sigma_px",
-    "vx", "vy", "catalog_id", "ref_icrs", "magnitude",
+    "cov_xx", "cov_xy", "cov_yy", "vx", "vy", "catalog_id", "ref_icrs", "magnitude",
 )
 
 
@@ -109,6 +109,9 @@ class StarsRecord(_Record):
     saturated: list[bool] | None = Field(None, description="spot has a saturated pixel")
     snr: _FloatCol | None = Field(None, description="signal-to-noise ratio")
     sigma_px: _FloatCol | None = Field(None, description="1-sigma position uncertainty per axis, px")
+    cov_xx: _FloatCol | None = Field(None, description="position covariance, x x, px^2 (image axes)")
+    cov_xy: _FloatCol | None = Field(None, description="position covariance, x y, px^2")
+    cov_yy: _FloatCol | None = Field(None, description="position covariance, y y, px^2")
     vx: _FloatCol | None = Field(None, description="image velocity along x, px/s")
     vy: _FloatCol | None = Field(None, description="image velocity along y, px/s")
     catalog_id: list[int] | None = Field(None, description="catalogue id, -1 when unidentified")
@@ -348,7 +351,7 @@ def _cov_list(cov) -> list[float] | None:
 
 # --- arrays <-> records ---------------------------------------------------------------------
 
-_FLOAT_COLS = ("x", "y", "flux", "peak", "snr", "sigma_px", "vx", "vy", "magnitude")
+_FLOAT_COLS = ("x", "y", "flux", "peak", "snr", "sigma_px", "cov_xx", "cov_xy", "cov_yy", "vx", "vy", "magnitude")
 _INT_COLS = ("t_ns", "row_time_ns", "npix", "catalog_id")
 
 
@@ -409,7 +412,9 @@ def stars_to_arrays(record: StarsRecord | dict) -> dict[str, np.ndarray]:
     Only the columns present in the record are returned: ``x, y`` float, ``t_ns``,
     ``row_time_ns``, ``npix``, ``catalog_id`` int64, ``saturated`` bool, ``ref_icrs`` (n, 3) with
     NaN rows, the rest float. Apart from ``magnitude`` the names match
-    ``rollingstar.estimators.data.StarTable.build``.
+    ``rollingstar.estimators.data.StarTable.build``, which gives a column the record leaves out
+    its unknown value (NaN for the position covariance ``cov_xx, cov_xy, cov_yy`` of a record
+    written before those columns existed).
     """
     rec = _as_record(record, StarsRecord)
     out: dict[str, np.ndarray] = {}

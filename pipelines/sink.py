@@ -78,6 +78,7 @@ def write_frame(writer: LogWriter, frame: FrameData) -> None:
     writer.write_json(TOPIC_EST_STARS, arrays_to_stars(
         frame.index, t0, x=stars.x, y=stars.y, t_ns=stars.t_ns, row_time_ns=stars.row_time_ns, flux=stars.flux,
         peak=stars.peak, npix=stars.npix, saturated=stars.saturated, snr=stars.snr, sigma_px=stars.sigma_px,
+        cov_xx=stars.cov_xx, cov_xy=stars.cov_xy, cov_yy=stars.cov_yy,
         vx=stars.vx, vy=stars.vy, catalog_id=stars.catalog_id, ref_icrs=stars.ref_icrs), t0)
     labels = [str(int(c)) if c >= 0 else "?" for c in stars.catalog_id]
     writer.write_annotations(TOPIC_EST_SPOTS, t0, stars.x, stars.y, labels)  # none: clears the last overlay

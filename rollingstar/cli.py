@@ -292,7 +292,7 @@ def reproduce(paper: str = typer.Argument(..., help="he2021a | he2021b | fu2022 
 
 
 @command()
-def figures(name: str = typer.Argument("foundation", help="foundation | real-data | covariance-weighting"),
+def figures(name: str = typer.Argument("foundation", help="foundation | real-data | covariance-weighting | centroid-covariance"),
             quick: bool = typer.Option(False, "--quick"),
             as_json: bool = typer.Option(False, "--json"),
             out_dir: Path = typer.Option(None, "--out", help="write <out>/foundation.md (real-data.md), .json and img/*.png"),
@@ -318,8 +318,14 @@ def figures(name: str = typer.Argument("foundation", help="foundation | real-dat
 
         real_cameras_figures(quick, as_json, seed)
         return
+    if name == "centroid-covariance":  # the centroiders' 2 x 2 covariance on smeared images (studies/centroid_covariance.py)
+        from rollingstar.studies.centroid_covariance import centroid_covariance_figures
+
+        centroid_covariance_figures(out_dir, quick, seed, as_json)
+        return
     if name != "foundation":
-        raise UserError(f"unknown figure set {name!r}; available: foundation, real-data, covariance-weighting")
+        raise UserError(f"unknown figure set {name!r}; available: foundation, real-data, covariance-weighting, "
+                        "centroid-covariance")
     result = run_foundation(quick=quick, seed=seed)
     command = f"rollingstar figures foundation{' --quick' if quick else ''} --out {out_dir or 'docs'} --seed {seed}"
     if out_dir is not None:

@@ -10,8 +10,16 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from rollingstar.estimators.centroiders.base import Centroider
-from rollingstar.estimators.centroiders.edge import with_edge_bias
-from rollingstar.estimators.centroiders.saturation import with_clipping
+from rollingstar.estimators.centroiders.covariance import (
+    effective_gain,
+    isotropic_sigma,
+    label_moments,
+    pixel_variance,
+    spot_covariance,
+    spot_shape,
+)
+from rollingstar.estimators.centroiders.edge import with_edge_covariance
+from rollingstar.estimators.centroiders.fragments import with_fragments
 from rollingstar.estimators.centroiders.window_cog import _grow as grow_stack
 from rollingstar.estimators.data import FrameData, StarTable
 
@@ -35,11 +43,14 @@ class CogParams(BaseModel):
     saturation_adu: float | None = Field(
         default=None, description="Saturation level; None: 2**bit_depth - 1 from the context, else the image dtype's max.")
     gain_e_per_adu: float | None = Field(
-        default=None, gt=0, description="Conversion gain for the shot-noise term of snr; None: background noise only.")
+        default=None, gt=0, description="Conversion gain (e-/ADU) for the shot-noise terms of snr and of the position "
+        "covariance; None: snr without shot noise, the covariance with the sensor context's gain (none when unknown).")
     connectivity: Literal[4, 8] = Field(default=8, description="Pixel connectivity of a spot.")
     reject_border: bool = Field(default=False, description="Drop spots with a pixel on the detector's outermost rows/columns.")
-    edge_sigma: bool = Field(default=True, description="Add to sigma_px the CoG bias of spots cut by the detector edge "
+    edge_sigma: bool = Field(default=True, description="Add to the covariance the CoG bias of spots cut by the detector edge "
                              "and flag the frame edge_truncated_stars:N (estimators/centroiders/edge.py).")
+    fragments: bool = Field(default=True, description="Widen along the smear the covariance of the pieces of a smear "
+                            "broken by the threshold and flag the frame fragmented_stars:N (estimators/centroiders/fragments.py).")
     grow_px: int = Field(default=1, ge=0, description="Grow each spot by this many pixel rings (below threshold) before the CoG.")
     noise_floor_adu: float = Field(default=float(1.0 / np.sqrt(12.0)), gt=0,
                                    description="Smallest noise sigma used (ADU): the quantisation noise of integer pixels.")
@@ -57,7 +68,8 @@ class _Spots(NamedTuple):
     npix: np.ndarray
     saturated: np.ndarray
     snr: np.ndarray
-    sigma_px: np.ndarray
+    cov: np.ndarray  # (3, n): xx, xy, yy
+    shape: np.ndarray  # (3, n): intensity-weighted second moments xx, xy, yy
     edge_cut: np.ndarray | None
 
 class CogCentroider(Centroider):
@@ -87,15 +99,20 @@ class CogCentroider(Centroider):
        ``npix``, ``saturated = max I >= saturation`` (saturated spots are kept, flagged: their CoG
        is still usable but their flux is a lower bound), ``snr = flux / sqrt(npix s^2 + flux / g)``
        (``g = gain_e_per_adu``; without it the shot-noise term is left out),
-       ``sigma_px = s sqrt(sum (x_i - x)^2 + (y_i - y)^2) / (sqrt(2) flux)`` (background-noise
-       propagation through the CoG, per axis; shot noise and PSF-sampling bias not included). A
-       saturated spot's clipped, noise-free flat top carries no sub-pixel information: its
-       ``sigma_px`` adds in quadrature the RMS sampling error of a clipped spot's CoG,
-       :func:`rollingstar.estimators.centroiders.saturation.clipped_cog_sigma_px` (from its flux, its number of
-       pixels at the saturation level and the saturation level above background). A spot with a
-       pixel on the detector's outermost rows or columns whose profile is cut by the edge adds in
-       quadrature the CoG bias of the cut, :func:`rollingstar.estimators.centroiders.edge.edge_bias_px`, and
-       the frame is flagged ``edge_truncated_stars:N`` (``reject_border`` drops such spots instead).
+       and the 2 x 2 position covariance ``cov_xx, cov_xy, cov_yy`` of
+       :mod:`rollingstar.estimators.centroiders.covariance` (its docstring has the terms):
+       background and shot noise propagated through the CoG over the spot's own pixels (shot
+       noise with the gain ``gain_e_per_adu``, else the sensor context's, else left out), the
+       scatter of the threshold mask of a long faint smear, and for a saturated spot the RMS
+       sampling error of its clipped, noise-free flat top (saturation.py: from its flux, its
+       number of pixels at the saturation level and the saturation level above background).
+       ``sigma_px = sqrt((cov_xx + cov_yy) / 2)``. A spot with a pixel on the detector's outermost
+       rows or columns whose profile is cut by the edge adds the CoG bias of the cut along the cut
+       axis, :func:`rollingstar.estimators.centroiders.edge.edge_bias_px`, and the frame is flagged
+       ``edge_truncated_stars:N`` (``reject_border`` drops such spots instead). With
+       ``fragments``, the pieces of a smear the threshold broke into several spots have their
+       covariance widened along the smear (:mod:`rollingstar.estimators.centroiders.fragments`)
+       and the frame is flagged ``fragmented_stars:N``.
     5. Times: ``row_time_ns = timing.row_start_ns(t0, y)`` and ``t_ns = timing.row_mid_exposure_ns(t0, y)``
        (the time a static-PSF centroid refers to).
 
@@ -110,6 +127,7 @@ class CogCentroider(Centroider):
         super().setup(context)
         cam = context.camera
         self._shape = (int(cam.height), int(cam.width))
+        self._gain = effective_gain(self.params.gain_e_per_adu, context)
         H, W = self._shape
         if self.params.background != "median":
             t = self.params.tile_px
@@ -277,7 +295,8 @@ class CogCentroider(Centroider):
         H, W = self._shape
         size = keep.size + 1
         bg_on = np.broadcast_to(bg_flat(flat), flat.shape)
-        d = raw_flat[flat].astype(float) - bg_on
+        raw_on = raw_flat[flat]
+        d = raw_on.astype(float) - bg_on
         rows, cols = np.divmod(flat, W)
         rows = rows.astype(float)
         cols = cols.astype(float)
@@ -298,41 +317,45 @@ class CogCentroider(Centroider):
         with np.errstate(invalid="ignore", divide="ignore"):
             x = sx / flux
             y = sy / flux
-            # second moments about the centroid for the noise propagation
-            xc = np.concatenate([[0.0], x])[lab_on]
-            yc = np.concatenate([[0.0], y])[lab_on]
-            m2 = np.bincount(lab_on, weights=(cols - xc) ** 2 + (rows - yc) ** 2, minlength=size)[1:]
-            sigma_px = noise * np.sqrt(m2 / 2.0) / flux
-            if saturated.any():  # clipped spots: add the CoG sampling error of the flat top (saturation.py)
-                n_sat = np.bincount(lab_on, weights=raw_flat[flat] >= sat_level, minlength=size)[1:]
-                s_d = sat_level - np.bincount(lab_on, weights=bg_on, minlength=size)[1:] / npix
-                sigma_px = with_clipping(sigma_px, flux, n_sat, saturated, s_d)
+            clipped = raw_on >= sat_level
+            n_sat = np.bincount(lab_on, weights=clipped, minlength=size)[1:] if saturated.any() else None
+            s_d = sat_level - np.bincount(lab_on, weights=bg_on, minlength=size)[1:] / npix if saturated.any() else None
+            dx, dy = cols - np.r_[0.0, x][lab_on], rows - np.r_[0.0, y][lab_on]
+            var = pixel_variance(d, noise, self._gain, clipped)
+            shape = label_moments(lab_on, size, d, dx, dy) / flux
+            cov = spot_covariance(label_moments(lab_on, size, var, dx, dy), shape, flux, p.threshold_sigma * noise, noise,
+                                  self._gain, n_sat, saturated, s_d)
             if p.edge_sigma and border.any():  # spots cut by the detector edge: add the CoG bias of the cut (edge.py)
-                sigma_px, edge_cut = with_edge_bias(sigma_px, x, y, flux, peak, self._shape, only=border)
+                cov, edge_cut = with_edge_covariance(cov, x, y, flux, peak, self._shape, only=border)
             var = npix * noise**2
             if p.gain_e_per_adu is not None:
                 var = var + np.maximum(flux, 0.0) / p.gain_e_per_adu
             snr = flux / np.sqrt(var)
-        return _Spots(keep, x, y, flux, peak, npix, saturated, snr, sigma_px, edge_cut)
+        return _Spots(keep, x, y, flux, peak, npix, saturated, snr, cov, shape, edge_cut)
 
     def _with_stars(self, frame: FrameData, s: _Spots) -> FrameData:
         """The frame with the kept spots as its star table, brightest first (step 5: times); flagged
-        ``edge_truncated_stars:N`` when N of them are cut by the detector edge."""
+        ``edge_truncated_stars:N`` when N of them are cut by the detector edge and
+        ``fragmented_stars:N`` when N are pieces of broken smears (their covariance widened)."""
         order = np.flatnonzero(s.keep)
         order = order[np.argsort(-s.flux[order], kind="stable")]
-        x, y = s.x[order], s.y[order]
+        x, y, flux, cov = s.x[order], s.y[order], s.flux[order], s.cov[:, order]
+        pieces = np.zeros(order.size, dtype=bool)
+        if self.params.fragments and order.size > 1:
+            cov, pieces = with_fragments(cov, x, y, flux, spot_shape(s.shape[:, order], flux, 1.0))
         timing = self.context.timing
         stars = StarTable.build(
             x, y,
             t_ns=timing.row_mid_exposure_ns(frame.t0_ns, y),
             row_time_ns=timing.row_start_ns(frame.t0_ns, y),
-            flux=s.flux[order], peak=s.peak[order], npix=s.npix[order],
+            flux=flux, peak=s.peak[order], npix=s.npix[order],
             saturated=s.saturated[order],
-            snr=s.snr[order], sigma_px=s.sigma_px[order],
+            snr=s.snr[order], sigma_px=isotropic_sigma(cov), cov_xx=cov[0], cov_xy=cov[1], cov_yy=cov[2],
         )
         out = frame.evolve(stars=stars)
         n_cut = int(s.edge_cut[order].sum()) if s.edge_cut is not None else 0
-        return out.flagged(f"edge_truncated_stars:{n_cut}") if n_cut else out
+        out = out.flagged(f"edge_truncated_stars:{n_cut}") if n_cut else out
+        return out.flagged(f"fragmented_stars:{int(pieces.sum())}") if pieces.any() else out
 
 
 def _robust_sigma(resid: np.ndarray) -> float:

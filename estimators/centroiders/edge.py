@@ -1,8 +1,8 @@
-"""Centre-of-gravity bias of a spot cut by the detector edge, added to the reported ``sigma_px``.
+"""Centre-of-gravity bias of a spot cut by the detector edge, added to the reported position covariance.
 
 A spot whose PSF reaches past the first or last row or column loses the light that fell beyond
 the edge, and the centre of gravity of what remains is pulled inwards. The background-noise
-``sigma_px`` of the centroiders does not see this: with the plain baseline, spots cut by the edge
+covariance of the centroiders does not see this: with the plain baseline, spots cut by the edge
 pushed the attitude error to 2.5 times its reported sigma (docs/reliability.md).
 
 Model (one axis; the detector's pixels cover ``[-0.5, N - 0.5]``): a Gaussian profile of standard
@@ -22,9 +22,9 @@ iteration (``_ITERATIONS`` steps, vectorised over the spots that reach the edge:
 frame that has any, mostly numpy's per-call cost on a handful of spots, nothing otherwise;
 `benchmarks/centroid_speed.py`, edge term column).
 
-Reported: ``sigma_px`` with ``max(|bias_x|, |bias_y|)`` added in quadrature (``sigma_px`` is one
-isotropic per-axis sigma; the larger axis keeps the cut axis from being under-reported). The
-position is left as measured: the thresholded centroiders also drop the far wing on the inner
+Reported: the position covariance with ``diag(bias_x^2, bias_y^2)`` added (the bias lies along
+the axis the edge cuts; ``sigma_px`` follows from the covariance, covariance.py). The position
+is left as measured: the thresholded centroiders also drop the far wing on the inner
 side, which pulls their centroid back towards the edge, so the model's bias is an upper estimate
 rather than a correction (measured against simulation in tests/estimators/test_edge_sigma.py).
 Spots with more than ``1 - ON_DETECTOR`` of their profile on the detector are returned unchanged.
@@ -34,7 +34,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import ndtr
 
-ON_DETECTOR = 0.999  # spots with T_x T_y above this are not cut (their sigma_px is returned as is)
+from rollingstar.estimators.centroiders.covariance import with_axes
+
+ON_DETECTOR = 0.999  # spots with T_x T_y above this are not cut (their covariance is returned as is)
 MARGIN_SIGMAS = 3.3  # Phi(-3.3) = 5e-4 per side: an uncut spot this far inside has T_x T_y > 0.998
 _ITERATIONS = 20
 _INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
@@ -104,14 +106,17 @@ def edge_bias_px(x, y, flux, peak, shape: tuple[int, int],
     return bx, by, cut
 
 
-def with_edge_bias(sigma_px: np.ndarray, x, y, flux, peak, shape: tuple[int, int],
-                   only: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(``sigma_px`` with the edge bias of cut spots added in quadrature, mask of cut spots).
+def with_edge_covariance(cov: np.ndarray, x, y, flux, peak, shape: tuple[int, int],
+                         only: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(``cov`` with the edge bias of cut spots added along the axes of the cut, mask of cut spots).
 
-    ``only``: the spots that can be cut (``cog`` passes those with a pixel on the outermost rows
-    or columns: a thresholded spot that does not reach the edge has the same pixels, and so the same
-    centroid, as on an endless detector); None: every spot the model finds cut."""
+    ``cov``: rows ``(xx, xy, yy)`` (3, n), px^2; a cut spot gets ``diag(bias_x^2, bias_y^2)``
+    added (its bias points inwards along the axis the edge cuts; its size is an upper estimate,
+    module docstring). ``only``: the spots that can be cut (``cog`` passes those with a pixel on
+    the outermost rows or columns: a thresholded spot that does not reach the edge has the same
+    pixels, and so the same centroid, as on an endless detector); None: every spot the model
+    finds cut. ``cov`` is returned as is (the same object) when no spot is cut."""
     bx, by, cut = edge_bias_px(x, y, flux, peak, shape, candidates=only)
     if not cut.any():
-        return sigma_px, cut
-    return np.where(cut, np.hypot(sigma_px, np.maximum(np.abs(bx), np.abs(by))), sigma_px), cut
+        return cov, cut
+    return with_axes(cov, np.where(cut, bx, 0.0), np.where(cut, by, 0.0)), cut

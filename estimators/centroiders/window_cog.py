@@ -21,8 +21,10 @@ into one ``(n, h, w)`` array and every step runs once for the stack:
 4. each component grows by ``grow_px`` rings of below-threshold pixels inside its window (the
    higher label wins where rings meet), then per component (``np.bincount``) with ``d = I - b``:
    ``flux = sum d``, ``x = sum d x / flux``, ``y = sum d y / flux``, ``peak``, ``npix``,
-   ``saturated``, ``snr = flux / sqrt(npix s^2 + flux / g)`` (no shot term without a gain ``g``), ``sigma_px = s sqrt(sum r^2) / (sqrt(2) flux)``
-   (saturated spots: plus the clipped-spot term in quadrature, :mod:`rollingstar.estimators.centroiders.saturation`);
+   ``saturated``, ``snr = flux / sqrt(npix s^2 + flux / g)`` (no shot term without a gain ``g``),
+   the 2 x 2 position covariance ``cov`` of :func:`rollingstar.estimators.centroiders.covariance.spot_covariance`
+   (noise propagation with the window's noise ``s``, threshold mask, clipping) and
+   ``sigma_px = sqrt((cov_xx + cov_yy) / 2)``;
 5. per window the kept component nearest to the window's predicted position is returned.
 
 This is the ``cog`` centroider's definition (Liebe 2002; see ``estimators/centroiders/cog.py``)
@@ -35,7 +37,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from rollingstar.estimators.centroiders.saturation import with_clipping
+from rollingstar.estimators.centroiders.covariance import (
+    isotropic_sigma,
+    label_moments,
+    pixel_variance,
+    spot_covariance,
+)
 
 _MAD_TO_SIGMA = 1.482602218505602
 _TRUNC3 = 0.98658  # std of a unit normal truncated to +-3
@@ -54,6 +61,7 @@ class WindowSpots:
     saturated: np.ndarray
     snr: np.ndarray
     sigma_px: np.ndarray
+    cov: np.ndarray  # (3, n): xx, xy, yy (px^2)
 
 
 def cut_windows(image: np.ndarray, r0: np.ndarray, c0: np.ndarray, h: int, w: int) -> np.ndarray:
@@ -114,9 +122,12 @@ def _grow(flat: np.ndarray, labels: np.ndarray, shape: tuple[int, int, int], eig
 
 def centroid_windows(stack: np.ndarray, px: np.ndarray, py: np.ndarray, *, threshold_sigma: float, min_pixels: int,
                      max_pixels: int | None, connectivity: int, grow_px: int, noise_floor_adu: float,
-                     saturation_adu: float, reject_border: bool = False, gain_e_per_adu: float | None = None) -> WindowSpots:
+                     saturation_adu: float, reject_border: bool = False, gain_e_per_adu: float | None = None,
+                     cov_gain_e_per_adu: float | None = None) -> WindowSpots:
     """CoG of every window of ``stack`` (n, h, w) in one pass; per window the spot nearest to
-    ``(px_k, py_k)`` (window coordinates). See the module docstring for the steps."""
+    ``(px_k, py_k)`` (window coordinates). See the module docstring for the steps.
+    ``gain_e_per_adu``: the shot-noise term of ``snr``; ``cov_gain_e_per_adu``: that of the
+    covariance (None: left out)."""
     raw = np.asarray(stack)
     n, H, W = raw.shape
     img = raw.astype(float)
@@ -127,7 +138,8 @@ def centroid_windows(stack: np.ndarray, px: np.ndarray, py: np.ndarray, *, thres
     if n_lab == 0:
         empty = np.full(n, np.nan)
         return WindowSpots(np.zeros(n, dtype=bool), empty, empty.copy(), empty.copy(), empty.copy(),
-                           np.zeros(n, dtype=int), np.zeros(n, dtype=bool), empty.copy(), empty.copy())
+                           np.zeros(n, dtype=int), np.zeros(n, dtype=bool), empty.copy(), empty.copy(),
+                           np.full((3, n), np.nan))
     size = n_lab + 1
     flat = np.flatnonzero(labels)
     lab = labels.ravel()[flat]
@@ -164,14 +176,13 @@ def centroid_windows(stack: np.ndarray, px: np.ndarray, py: np.ndarray, *, thres
     with np.errstate(invalid="ignore", divide="ignore"):
         x = sx / flux
         y = sy / flux
-        xc = np.concatenate([[0.0], x])[lab]
-        yc = np.concatenate([[0.0], y])[lab]
-        m2 = np.bincount(lab, weights=(cols - xc) ** 2 + (rows - yc) ** 2, minlength=size)[1:]
-        sigma_px = s * np.sqrt(m2 / 2.0) / flux
         saturated = raw_max[1:] >= saturation_adu
-        if saturated.any():  # clipped spots: the CoG sampling error of the flat top, as in cog
-            n_sat = np.bincount(lab, weights=raw.ravel()[flat] >= saturation_adu, minlength=size)[1:]
-            sigma_px = with_clipping(sigma_px, flux, n_sat, saturated, saturation_adu - bg[win])
+        clipped = raw.ravel()[flat] >= saturation_adu
+        n_sat = np.bincount(lab, weights=clipped, minlength=size)[1:]
+        dx, dy = cols - np.r_[0.0, x][lab], rows - np.r_[0.0, y][lab]
+        var = pixel_variance(d, noise[win_of[lab]], cov_gain_e_per_adu, clipped)
+        cov = spot_covariance(label_moments(lab, size, var, dx, dy), label_moments(lab, size, d, dx, dy) / flux, flux,
+                              threshold_sigma * s, s, cov_gain_e_per_adu, n_sat, saturated, saturation_adu - bg[win])
         shot = 0.0 if gain_e_per_adu is None else np.maximum(flux, 0.0) / gain_e_per_adu
         snr = flux / np.sqrt(npix * s**2 + shot)
     pick = _nearest_kept(keep, x, y, flux, win, px, py)
@@ -183,9 +194,10 @@ def centroid_windows(stack: np.ndarray, px: np.ndarray, py: np.ndarray, *, thres
         out[win[pick]] = values[pick]
         return out
 
+    cov_w = np.stack([per_window(c) for c in cov])
     return WindowSpots(found, per_window(x), per_window(y), per_window(flux), per_window(peak[1:]),
                        per_window(npix, 0, int), per_window(saturated, False, bool),
-                       per_window(snr), per_window(sigma_px))
+                       per_window(snr), isotropic_sigma(cov_w), cov_w)
 
 
 def _label_windows(mask: np.ndarray, connectivity: int) -> tuple[np.ndarray, int]:

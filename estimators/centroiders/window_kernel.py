@@ -14,12 +14,13 @@ background ``b_k`` and noise ``s_k``:
    its labelled neighbours (``cog``'s rule);
 3. per component: ``flux = sum d``, ``x = sum d x / flux``, ``y = sum d y / flux``, ``peak = max d``,
    ``npix``, ``saturated = max I >= saturation`` (over the pixels above threshold),
-   ``snr = flux / sqrt(npix s^2 + flux / g)``, ``sigma_px = s sqrt(sum r^2) / (sqrt(2) flux)`` and the
-   number of pixels at the saturation level (the callers add the clipped-spot term to a saturated
-   spot's ``sigma_px``, :func:`rollingstar.estimators.centroiders.saturation.with_clipping`: its Bessel sums are scipy's);
+   ``snr = flux / sqrt(npix s^2 + flux / g)`` and the number of pixels at the saturation level;
    components with ``flux <= 0`` (or, with ``reject_border``, touching the window edge) are dropped;
 4. per window the component whose centroid is nearest to the predicted position ``(px_k, py_k)``
-   (window coordinates) is returned, ties to the brighter.
+   (window coordinates) is returned, ties to the brighter, with its second moments: the noise
+   moments ``sum var_i (r_i - r)(r_i - r)^T`` and the shape moments ``sum d_i (r_i - r)(r_i - r)^T /
+   flux``, from which the callers compute its position covariance in numpy
+   (:func:`window_covariance`: the model and the clipped-spot Bessel sums are scipy's).
 
 It also returns, per window, the sums over the *background* pixels (every ``BG_STEP``-th row,
 outside every grown spot, ``|d| < clip_sigma s_k`` with ``clip_sigma = min(3, threshold_sigma)``)
@@ -39,18 +40,19 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from rollingstar.estimators.centroiders.covariance import isotropic_sigma, spot_covariance
 from rollingstar.estimators.centroiders.edge import MARGIN_SIGMAS
-from rollingstar.estimators.centroiders.saturation import with_clipping
 from rollingstar.estimators.centroiders.window_cog import WindowSpots
 from rollingstar.estimators.centroiders.window_gyro import gyro_increment
 
+N_VALS = 12  # rows of the kernel's per-window values (centroid_windows_kernel)
 BG_STEP = 4  # background sums over every 4th row (all columns, contiguous): 1024 of a 64 x 64 window's pixels
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def centroid_windows_kernel(image, integer, r0, c0, h, w, px, py, bg, noise, threshold_sigma, min_pixels, max_pixels,
-                            eight, grow_px, saturation, reject_border, gain, alpha, noise_floor, clip_sigma, trunc,
-                            iwork, fwork, bwork):  # pragma: no cover
+                            eight, grow_px, saturation, reject_border, gain, cov_gain, alpha, noise_floor, clip_sigma,
+                            trunc, iwork, fwork, bwork):  # pragma: no cover
     """See the module docstring. ``image`` 2-D (any real dtype; ``integer``: an integer dtype, then
     ``I - b > t`` is tested as ``I > floor(b + t)`` in integers, as ``cog`` does); ``r0, c0`` (n,)
     int64 window origins with the windows inside the frame; ``px, py, bg, noise`` (n,) float64;
@@ -61,13 +63,17 @@ def centroid_windows_kernel(image, integer, r0, c0, h, w, px, py, bg, noise, thr
     to ``+-clip_sigma``). ``iwork``, ``fwork`` and ``bwork`` are scratch buffers from
     :func:`workspace` (allocated once: zeroing fresh buffers costs more than the windows).
 
-    Returns ``found (n,) bool, vals (7, n) float64 [x, y, flux, peak, snr, sigma_px, n_saturated],
+    Returns ``found (n,) bool, vals (12, n) float64 [x, y, flux, peak, snr, n_saturated, noise moments
+    sum var (r - r_c)(r - r_c)^T as xx, xy, yy, shape moments sum d (r - r_c)(r - r_c)^T / flux as
+    xx, xy, yy]`` (``var = s^2 + max(d, 0) / cov_gain``, no shot term when ``cov_gain <= 0``, 0 for
+    pixels at the saturation level; the callers turn the moments into the covariance with
+    :func:`rollingstar.estimators.centroiders.covariance.spot_covariance`),
     npix (n,) int64, saturated (n,) bool, bgsum (n, 3) float64 [count, sum d, sum d^2]``
     (compiled; the tests call it with and without numba's JIT through the wrapper)."""
     n = r0.shape[0]
     m = h * w
     found = np.zeros(n, dtype=np.bool_)
-    vals = np.full((7, n), np.nan)
+    vals = np.full((N_VALS, n), np.nan)
     npix_out = np.zeros(n, dtype=np.int64)
     sat_out = np.zeros(n, dtype=np.bool_)
     bgsum = np.zeros((n, 3))
@@ -90,7 +96,6 @@ def centroid_windows_kernel(image, integer, r0, c0, h, w, px, py, bg, noise, thr
     sx = fwork[3 * m + 2:4 * m + 3]
     sy = fwork[4 * m + 3:5 * m + 4]
     peak = fwork[5 * m + 4:6 * m + 5]
-    m2 = fwork[6 * m + 5:7 * m + 6]
     if eight:
         dr = np.array([-1, 1, 0, 0, -1, -1, 1, 1])
         dc = np.array([0, 0, -1, 1, -1, 1, -1, 1])
@@ -235,7 +240,6 @@ def centroid_windows_kernel(image, integer, r0, c0, h, w, px, py, bg, noise, thr
             sy[c] = 0.0
             peak[c] = -np.inf
             border[c] = False
-            m2[c] = 0.0
         for e in range(f1):
             q = pix[e]
             L = lab[q]
@@ -250,14 +254,6 @@ def centroid_windows_kernel(image, integer, r0, c0, h, w, px, py, bg, noise, thr
                 peak[L] = dv
             if qi == 0 or qi == h - 1 or qj == 0 or qj == w - 1:
                 border[L] = True
-        for e in range(f1):
-            q = pix[e]
-            L = lab[q]
-            qi = q // w
-            qj = q - qi * w
-            ex = qj - sx[L] / flux[L]
-            ey = qi - sy[L] / flux[L]
-            m2[L] += ex * ex + ey * ey
         # 4. the kept spot nearest to the prediction (ties: the brighter)
         best = -1
         best_d2 = np.inf
@@ -279,10 +275,29 @@ def centroid_windows_kernel(image, integer, r0, c0, h, w, px, py, bg, noise, thr
             vals[3, k] = peak[c]
             shot = 0.0 if gain <= 0 else flux[c] / gain
             vals[4, k] = flux[c] / np.sqrt(cnt[c] * s * s + shot)
-            vals[5, k] = s * np.sqrt(m2[c] / 2.0) / flux[c]
+            vals[5, k] = nsat[c]
             npix_out[k] = cnt[c]
             sat_out[k] = raw_max[c] >= saturation
-            vals[6, k] = nsat[c]
+            for a in range(6, N_VALS):
+                vals[a, k] = 0.0
+            for e in range(f1):  # second moments of the picked spot
+                q = pix[e]
+                if lab[q] != c:
+                    continue
+                qi = q // w
+                qj = q - qi * w
+                dv = d[q]
+                ex = qj - sx[c] / flux[c]
+                ey = qi - sy[c] / flux[c]
+                var = s * s + (max(dv, 0.0) / cov_gain if cov_gain > 0 else 0.0)
+                if image[rk + qi, ck + qj] >= saturation:
+                    var = 0.0
+                vals[6, k] += var * ex * ex
+                vals[7, k] += var * ex * ey
+                vals[8, k] += var * ey * ey
+                vals[9, k] += dv * ex * ex / flux[c]
+                vals[10, k] += dv * ex * ey / flux[c]
+                vals[11, k] += dv * ey * ey / flux[c]
         # background sums: without the ring pixels (below threshold, inside a grown spot)
         for e in range(nk, f1):
             q = pix[e]
@@ -370,7 +385,7 @@ def predict_windows(x, y, dtheta, cx, cy, f, height, width, h, w):  # pragma: no
 def workspace(m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Zeroed scratch buffers ``(iwork, fwork, bwork)`` of :func:`centroid_windows_kernel` for
     windows of ``m`` pixels."""
-    return np.zeros(10 * m + 5, dtype=np.int64), np.zeros(7 * m + 6), np.zeros(3 * m + 2, dtype=bool)
+    return np.zeros(10 * m + 5, dtype=np.int64), np.zeros(6 * m + 5), np.zeros(3 * m + 2, dtype=bool)
 
 
 def truncated_normal_std(c: float) -> float:
@@ -383,10 +398,13 @@ def truncated_normal_std(c: float) -> float:
 def centroid_windows_at(image: np.ndarray, r0: np.ndarray, c0: np.ndarray, h: int, w: int, px: np.ndarray,
                         py: np.ndarray, bg: np.ndarray, noise: np.ndarray, *, threshold_sigma: float, min_pixels: int,
                         max_pixels: int | None, connectivity: int, grow_px: int, saturation_adu: float,
-                        reject_border: bool = False, gain_e_per_adu: float | None = None):
+                        reject_border: bool = False, gain_e_per_adu: float | None = None,
+                        cov_gain_e_per_adu: float | None = None):
     """:func:`centroid_windows_kernel` on the windows ``image[r0_k : r0_k + h, c0_k : c0_k + w]``
     (inside the frame) with background ``bg`` and noise ``noise`` per window (threshold
     ``threshold_sigma * noise``); ``px, py`` and the spots' ``x, y`` in frame coordinates.
+    ``gain_e_per_adu``: the shot-noise term of ``snr``; ``cov_gain_e_per_adu``: that of the
+    covariance (None: left out).
 
     Returns ``(WindowSpots, bgsum)`` (``bgsum`` (n, 3): count, sum d, sum d^2 over each window's
     background pixels, see the module docstring)."""
@@ -399,11 +417,24 @@ def centroid_windows_at(image: np.ndarray, r0: np.ndarray, c0: np.ndarray, h: in
         int(h), int(w), np.asarray(px, dtype=float), np.asarray(py, dtype=float), np.array(bg, dtype=float),
         np.array(noise, dtype=float), float(threshold_sigma), int(min_pixels), -1 if max_pixels is None else int(max_pixels),
         connectivity == 8, int(grow_px), float(saturation_adu), bool(reject_border),
-        0.0 if gain_e_per_adu is None else float(gain_e_per_adu), 0.0, 0.0, clip, truncated_normal_std(clip),
+        0.0 if gain_e_per_adu is None else float(gain_e_per_adu),
+        0.0 if cov_gain_e_per_adu is None else float(cov_gain_e_per_adu), 0.0, 0.0, clip, truncated_normal_std(clip),
         *workspace(int(h) * int(w)))
-    sigma = with_clipping(vals[5], vals[2], vals[6], sat, float(saturation_adu) - np.asarray(bg, dtype=float))
-    spots = WindowSpots(found, vals[0], vals[1], vals[2], vals[3], npix, sat, vals[4], sigma)
+    cov = window_covariance(vals, sat, np.asarray(bg, dtype=float), np.asarray(noise, dtype=float), float(threshold_sigma),
+                            cov_gain_e_per_adu, float(saturation_adu))
+    spots = WindowSpots(found, vals[0], vals[1], vals[2], vals[3], npix, sat, vals[4], isotropic_sigma(cov), cov)
     return spots, bgsum
+
+
+def window_covariance(vals: np.ndarray, saturated: np.ndarray, bg: np.ndarray, noise: np.ndarray,
+                      threshold_sigma: float, gain: float | None, saturation: float) -> np.ndarray:
+    """Rows ``xx, xy, yy`` (3, n) of the position covariance of the kernel's spots (``vals`` as
+    :func:`centroid_windows_kernel` returns them; ``bg``, ``noise`` per window as the kernel used
+    them) by :func:`rollingstar.estimators.centroiders.covariance.spot_covariance`."""
+    flux = vals[2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return spot_covariance(vals[6:9], vals[9:12], flux, threshold_sigma * noise, noise, gain, vals[5], saturated,
+                               saturation - bg)
 
 
 @njit(cache=True, nogil=True)
@@ -448,13 +479,13 @@ def predict_step(x, y, t_prev, tau, psi, theta, rate, origin_ns, exposure_mean, 
 @njit(cache=True, nogil=True, error_model="numpy")
 def track_windows(image, integer, x, y, t_prev, tau, psi, theta, rate, origin_ns, exposure_mean, t0_ns, line_delay_ns,
                   exposure_ns, cx, cy, f, height, width, h, w, bg, noise, threshold_sigma, min_pixels, max_pixels,
-                  eight, grow_px, saturation, reject_border, gain, alpha, noise_floor, clip_sigma, trunc,
+                  eight, grow_px, saturation, reject_border, gain, cov_gain, alpha, noise_floor, clip_sigma, trunc,
                   iwork, fwork, bwork):  # pragma: no cover - compiled
     """One windowed frame in one compiled call: :func:`predict_step`, then
     :func:`centroid_windows_kernel` (which updates ``bg``/``noise`` when ``alpha > 0``), then the
     check that no two guide stars took the same spot. Returns ``status`` (0: every star found;
     1: a prediction not finite or a window without a spot; 2: two stars on one spot), ``vals``
-    (6, n), ``npix``, ``saturated`` and ``times`` (2, n) int64: each spot's mid-exposure and row
+    (:data:`N_VALS`, n), ``npix``, ``saturated`` and ``times`` (2, n) int64: each spot's mid-exposure and row
     start, ``DetectorTiming.row_mid_exposure_ns`` / ``row_start_ns`` of its ``y`` (same formulas)."""
     px, py, r0, c0, _, _ = predict_step(x, y, t_prev, tau, psi, theta, rate, origin_ns, exposure_mean, t0_ns,
                                         line_delay_ns, exposure_ns, cx, cy, f, height, width, h, w)
@@ -462,11 +493,11 @@ def track_windows(image, integer, x, y, t_prev, tau, psi, theta, rate, origin_ns
     times = np.zeros((2, n), dtype=np.int64)
     for k in range(n):
         if not (np.isfinite(px[k]) and np.isfinite(py[k])):
-            return 1, np.full((6, n), np.nan), np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.bool_), times
+            return 1, np.full((N_VALS, n), np.nan), np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.bool_), times
     found, vals, npix, sat, _ = centroid_windows_kernel(image, integer, r0, c0, h, w, px, py, bg, noise, threshold_sigma,
                                                         min_pixels, max_pixels, eight, grow_px, saturation,
-                                                        reject_border, gain, alpha, noise_floor, clip_sigma, trunc,
-                                                        iwork, fwork, bwork)
+                                                        reject_border, gain, cov_gain, alpha, noise_floor, clip_sigma,
+                                                        trunc, iwork, fwork, bwork)
     for k in range(n):
         if not found[k]:
             return 1, vals, npix, sat, times

@@ -9,8 +9,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from rollingstar.estimators.centroiders.base import Centroider
 from rollingstar.estimators.centroiders.cog import CogCentroider, CogParams
-from rollingstar.estimators.centroiders.edge import with_edge_bias
-from rollingstar.estimators.centroiders.saturation import with_clipping
+from rollingstar.estimators.centroiders.covariance import effective_gain, isotropic_sigma
+from rollingstar.estimators.centroiders.edge import with_edge_covariance
 from rollingstar.estimators.centroiders.window_cog import (
     centroid_windows,
     cut_windows,
@@ -25,6 +25,7 @@ from rollingstar.estimators.centroiders.window_kernel import (
     predict_step,
     track_windows,
     truncated_normal_std,
+    window_covariance,
     workspace,
 )
 from rollingstar.estimators.data import FrameData, SensorContext, StarTable
@@ -104,7 +105,7 @@ class WindowedCentroider(Centroider):
 
     Output spots are catalogue-agnostic (``catalog_id = -1``: identification stays with the
     identifier stage; the centroider role contract), in guide-star order; ``x, y``, ``flux``,
-    ``sigma_px`` etc. are the window CoG's in full-frame pixel coordinates, times from the sensor
+    ``sigma_px``, ``cov_*`` etc. are the window CoG's in full-frame pixel coordinates, times from the sensor
     timing of the full-frame row. ``last_mode`` is ``"full"`` or ``"window"`` (diagnostics).
     """
 
@@ -134,7 +135,9 @@ class WindowedCentroider(Centroider):
         # the per-window reference (batch=False); a window's border is not the detector's edge, which
         # is handled in full-frame coordinates (_edge_cut) as on the batched paths
         self._win = CogCentroider(**(p.cog.model_dump() | {"edge_sigma": False}))
-        self._win.setup(SensorContext(camera=wcam, timing=context.timing, catalog=None, bit_depth=bit_depth))
+        self._win.setup(SensorContext(camera=wcam, timing=context.timing, catalog=None, bit_depth=bit_depth,
+                                      gain_e_per_adu=getattr(context, "gain_e_per_adu", None)))
+        self._cov_gain = effective_gain(p.cog.gain_e_per_adu, context)
         self._saturation = (float(p.cog.saturation_adu) if p.cog.saturation_adu is not None
                             else float(2 ** int(bit_depth) - 1) if bit_depth else None)  # None: the image dtype's max
         self._gyro = FastGyroIntegrator(p.gyro_bias_rad_s, default_period_s=float(context.timing.frame_period_ns) * S_PER_NS)
@@ -152,7 +155,7 @@ class WindowedCentroider(Centroider):
         clip = min(3.0, float(c.threshold_sigma))  # background pixels: |I - b| < clip s (below threshold)
         self._track_args = (self._line_delay_ns, self._exposure_ns, *self._geometry)
         self._kernel_args2 = (bool(c.reject_border), 0.0 if c.gain_e_per_adu is None else float(c.gain_e_per_adu),
-                              1.0 / p.background_frames if self._tracked else 0.0, float(c.noise_floor_adu),
+                              self._cov_gain or 0.0, 1.0 / p.background_frames if self._tracked else 0.0, float(c.noise_floor_adu),
                               clip, truncated_normal_std(clip), *workspace(self._wh * self._ww))
         self.last_mode = ""
 
@@ -215,13 +218,14 @@ class WindowedCentroider(Centroider):
             # the default: prediction, windows, background update and checks in one compiled call
             tr = self._tracks
             g = self._gyro
+            bg, noise = self._bg.copy(), self._noise.copy()  # as the kernel uses them (it updates them in place)
             status, vals, npix, saturated, times = track_windows(
                 image, image.dtype.kind in "iu", tr.x, tr.y, tr.row_time_ns if p.exposure_mean else tr.t_ns, g.tau,
                 g.psi, g.theta, g.rate, g.origin_ns or 0, p.exposure_mean, int(frame.t0_ns), *self._track_args,
                 self._bg, self._noise, *self._kernel_args, self._saturation_of(image), *self._kernel_args2)
             if status:
                 return self._full_frame(frame)  # a star lost, or two on one spot: re-acquire
-            return self._table(frame, *self._with_clipping(vals, saturated, image), npix, saturated, times)
+            return self._table(frame, *self._kernel_columns(vals, saturated, image, bg, noise), npix, saturated, times)
         px, py, r0, c0, _, _ = self._predict_windows(frame.t0_ns)
         if not (np.isfinite(px.sum()) and np.isfinite(py.sum())):
             return self._full_frame(frame)
@@ -233,56 +237,59 @@ class WindowedCentroider(Centroider):
                                      threshold_sigma=c.threshold_sigma, min_pixels=c.min_pixels, max_pixels=c.max_pixels,
                                      connectivity=c.connectivity, grow_px=c.grow_px, noise_floor_adu=c.noise_floor_adu,
                                      saturation_adu=self._saturation_of(image), reject_border=c.reject_border,
-                                     gain_e_per_adu=c.gain_e_per_adu)
+                                     gain_e_per_adu=c.gain_e_per_adu, cov_gain_e_per_adu=self._cov_gain)
             found = spots.found
-            cols = (spots.x + c0, spots.y + r0, spots.flux, spots.peak, spots.snr, spots.sigma_px,
+            cols = (spots.x + c0, spots.y + r0, spots.flux, spots.peak, spots.snr, spots.cov,
                     spots.npix.astype(np.int64), spots.saturated)
         else:  # compiled kernel with each window's own background (background='window', or the first windowed frame)
             self._bg, self._noise = self._window_background(image, r0, c0)
             found, vals, npix, saturated, _ = centroid_windows_kernel(
                 image, image.dtype.kind in "iu", r0, c0, self._wh, self._ww, px, py, self._bg, self._noise,
                 *self._kernel_args, self._saturation_of(image), *self._kernel_args2)
-            cols = (*self._with_clipping(vals, saturated, image), npix, saturated)
+            cols = (*self._kernel_columns(vals, saturated, image, self._bg, self._noise), npix, saturated)
         if not found.all():
             return self._full_frame(frame)
         if found.size > 1 and any_coincident(cols[0], cols[1], 1e-6):
             return self._full_frame(frame)  # two guide stars took the same spot: re-acquire
         return self._table(frame, *cols)
 
-    def _with_clipping(self, vals: np.ndarray, saturated: np.ndarray, image: np.ndarray) -> tuple:
-        """The kernel's ``x, y, flux, peak, snr, sigma_px`` with a saturated spot's clipped-spot term
-        added to ``sigma_px`` (``vals[6]``: its pixels at the saturation level; as ``cog`` does)."""
-        if not saturated.any():  # the usual case: skip the rest (a tracking frame costs ~70 us)
-            return vals[0], vals[1], vals[2], vals[3], vals[4], vals[5]
-        sigma = with_clipping(vals[5], vals[2], vals[6], saturated, self._saturation_of(image) - self._bg)
-        return vals[0], vals[1], vals[2], vals[3], vals[4], sigma
+    def _kernel_columns(self, vals: np.ndarray, saturated: np.ndarray, image: np.ndarray, bg: np.ndarray,
+                        noise: np.ndarray) -> tuple:
+        """The kernel's ``x, y, flux, peak, snr`` and the spots' position covariance (3, n) from its
+        moments (``bg``, ``noise``: each window's, as the kernel used them)."""
+        cov = window_covariance(vals, saturated, bg, noise, float(self.params.cog.threshold_sigma), self._cov_gain,
+                                self._saturation_of(image))
+        return vals[0], vals[1], vals[2], vals[3], vals[4], cov
 
-    def _table(self, frame: FrameData, x, y, flux, peak, snr, sigma, npix, saturated, times=None) -> FrameData:
-        """The guide stars' spots as the frame's stars (they become the tracks); ``times``: their
-        (mid-exposure, row start) from the compiled path, else from the sensor timing."""
+    def _table(self, frame: FrameData, x, y, flux, peak, snr, cov, npix, saturated, times=None) -> FrameData:
+        """The guide stars' spots as the frame's stars (they become the tracks); ``cov`` (3, n) their
+        position covariance; ``times``: their (mid-exposure, row start) from the compiled path, else
+        from the sensor timing."""
         if times is None:
             timing = self.context.timing
             times = timing.row_mid_exposure_ns(frame.t0_ns, y), timing.row_start_ns(frame.t0_ns, y)
-        sigma, cut = self._edge_cut(x, y, flux, peak, sigma)
+        cov, cut = self._edge_cut(x, y, flux, peak, cov)
         n = x.size
         unknown = np.full(5 * n, np.nan)  # vx, vy, ref_icrs: one allocation, contiguous views
         # the table directly (StarTable.build's checks and broadcasts cost more than the kernel here)
         stars = StarTable(x=x, y=y, t_ns=times[0], row_time_ns=times[1], flux=flux, peak=peak, npix=npix,
-                          saturated=saturated, snr=snr, sigma_px=sigma, vx=unknown[:n], vy=unknown[n:2 * n],
+                          saturated=saturated, snr=snr, sigma_px=isotropic_sigma(cov), cov_xx=cov[0], cov_xy=cov[1],
+                          cov_yy=cov[2], vx=unknown[:n], vy=unknown[n:2 * n],
                           catalog_id=np.full(n, -1, dtype=np.int64), ref_icrs=unknown[2 * n:].reshape(n, 3))
         self._tracks = stars
         self.last_mode = "window"
         return self._edge_flag(frame.evolve(stars=stars), cut)
 
-    def _edge_cut(self, x, y, flux, peak, sigma) -> tuple[np.ndarray, np.ndarray | None]:
-        """``sigma`` with the CoG bias of stars cut by the detector edge added (edge.py, as ``cog``
-        does on full frames) and the mask of those stars (None: none near the edge, the usual
-        case, decided by one compiled call). A window does not say which spots reach the outermost
-        rows/columns, so the model alone decides (an upper estimate for a spot that stops short)."""
+    def _edge_cut(self, x, y, flux, peak, cov) -> tuple[np.ndarray, np.ndarray | None]:
+        """``cov`` (rows ``xx, xy, yy``) with the CoG bias of stars cut by the detector edge added
+        (edge.py, as ``cog`` does on full frames) and the mask of those stars (None: none near the
+        edge, the usual case, decided by one compiled call). A window does not say which spots
+        reach the outermost rows/columns, so the model alone decides (an upper estimate for a spot
+        that stops short)."""
         H, W = self._full._shape
         if not self.params.cog.edge_sigma or not any_near_edge(x, y, flux, peak, W, H):
-            return sigma, None
-        return with_edge_bias(sigma, x, y, flux, peak, (H, W))
+            return cov, None
+        return with_edge_covariance(cov, x, y, flux, peak, (H, W))
 
     @staticmethod
     def _edge_flag(frame: FrameData, cut: np.ndarray | None) -> FrameData:
@@ -300,9 +307,10 @@ class WindowedCentroider(Centroider):
     def _accept(self, frame: FrameData, stars: StarTable) -> FrameData:
         if stars.n > 1 and any_coincident(stars.x, stars.y, 1e-6):
             return self._full_frame(frame)  # two guide stars took the same spot: re-acquire
-        sigma, cut = self._edge_cut(stars.x, stars.y, stars.flux, stars.peak, stars.sigma_px)
+        cov, cut = self._edge_cut(stars.x, stars.y, stars.flux, stars.peak,
+                                  np.stack([stars.cov_xx, stars.cov_xy, stars.cov_yy]))
         if cut is not None:
-            stars = stars.with_columns(sigma_px=sigma)
+            stars = stars.with_columns(sigma_px=isotropic_sigma(cov), cov_xx=cov[0], cov_xy=cov[1], cov_yy=cov[2])
         self._tracks = stars
         self.last_mode = "window"
         return self._edge_flag(frame.evolve(stars=stars), cut)

@@ -8,7 +8,9 @@ start of row 0: the same on every row of a frame and strictly increasing from fr
 (ADU above background; an empty cell means unknown). Optional: ``sigma_px``, ``snr``, ``peak``
 (floats, empty = unknown), ``npix`` (integer), ``saturated`` (1/0, true/false), ``catalog_id``
 (integer, -1 or empty = unidentified) with ``ra_deg``, ``dec_deg`` (ICRS direction of the
-identified star) and ``magnitude``. Other columns are ignored with a warning.
+identified star) and ``magnitude``; ``cov_xx, cov_xy, cov_yy`` (the 2 x 2 position covariance,
+px^2, all three or none; a row's cells all empty = unknown, else positive definite). Other
+columns are ignored with a warning.
 
 Each star's ``t_ns`` is the mid-exposure of its own row and ``row_time_ns`` its row's exposure
 start (:class:`~rollingstar.sensors.timing.DetectorTiming` of the camera's shutter), as for simulated
@@ -56,7 +58,8 @@ from rollingstar.sensors.build import build_timing
 from rollingstar.sensors.conventions import radec_to_unit
 
 REQUIRED = ("frame", "x", "y", "flux")
-OPTIONAL = ("sigma_px", "snr", "peak", "npix", "saturated", "catalog_id", "ra_deg", "dec_deg", "magnitude")
+COVARIANCE = ("cov_xx", "cov_xy", "cov_yy")
+OPTIONAL = ("sigma_px", "snr", "peak", "npix", "saturated", "catalog_id", "ra_deg", "dec_deg", "magnitude", *COVARIANCE)
 
 
 def read_centroid_table(path: str | Path, camera: CameraSpec, log: WarningLog | None = None) -> dict[str, np.ndarray]:
@@ -103,6 +106,7 @@ def read_centroid_table(path: str | Path, camera: CameraSpec, log: WarningLog | 
         i = int(bad_sigma[0])
         raise ImportDataError(f"{table.where(i, 'sigma_px')}: {cols['sigma_px'][i]}; a position uncertainty is "
                               "> 0 px (leave the cell empty when it is unknown)")
+    cols.update(_covariance_columns(table))
     if "npix" in table.columns:
         cols["npix"] = int_column(table, "npix", default=0)
     if "saturated" in table.columns:
@@ -178,7 +182,7 @@ def import_centroids(csv: str | Path, out: str | Path, camera: CameraSpec | str 
                 "sensor": {"yaml": yaml.safe_dump(cam.model_dump(mode="json"), sort_keys=False)},
                 "import": import_metadata("centroids", csv, details, log)}
     star_cols = [k for k in ("flux", "sigma_px", "snr", "peak", "npix", "saturated", "catalog_id", "ref_icrs",
-                             "magnitude") if k in cols]
+                             "magnitude", *COVARIANCE) if k in cols]
     inputs = [csv, *([camera] if isinstance(camera, (str, Path)) else [])]
     with safe_output(out, inputs) as tmp, LogWriter(tmp, kind="import", metadata=metadata) as writer:
         for a, b in zip(starts, ends):
@@ -196,3 +200,28 @@ def _observation_spec(observation_time, catalog) -> ObservationSpec:
         return ObservationSpec.model_validate({"observation_time": observation_time, "catalog": catalog or {}})
     except ValidationError as err:
         raise ImportDataError(format_validation_error("import_centroids", err)) from None
+
+
+def _covariance_columns(table) -> dict[str, np.ndarray]:
+    """The optional ``cov_xx, cov_xy, cov_yy`` columns (px^2): all three or none, each row either
+    all empty (unknown) or a positive-definite 2 x 2 matrix; errors name line and column."""
+    present = [c for c in COVARIANCE if c in table.columns]
+    if not present:
+        return {}
+    if len(present) < 3:
+        raise ImportDataError(f"{table.path}: {', '.join(present)} without {', '.join(c for c in COVARIANCE if c not in present)}"
+                              "; the position covariance needs cov_xx, cov_xy and cov_yy")
+    xx, xy, yy = (float_column(table, c, required=False) for c in COVARIANCE)
+    known = np.isfinite(np.stack([xx, xy, yy]))
+    partial = np.flatnonzero(known.any(axis=0) & ~known.all(axis=0))
+    if partial.size:
+        i = int(partial[0])
+        raise ImportDataError(f"{table.where(i, COVARIANCE[int(np.argmin(known[:, i]))])}: empty while the row's other "
+                              "covariance cells are given; fill all three or leave all three empty")
+    with np.errstate(invalid="ignore"):
+        bad = np.flatnonzero(known.all(axis=0) & ~((xx > 0) & (yy > 0) & (xx * yy - xy * xy > 0)))
+    if bad.size:
+        i = int(bad[0])
+        raise ImportDataError(f"{table.where(i, 'cov_xx')}: [[{xx[i]}, {xy[i]}], [{xy[i]}, {yy[i]}]] is not a "
+                              "position covariance (positive definite, px^2)")
+    return dict(zip(COVARIANCE, (xx, xy, yy)))

@@ -14,7 +14,7 @@ from rollingstar.estimators.centroiders.cog import CogCentroider
 from rollingstar.estimators.centroiders.edge import (
     edge_bias_px,
     near_edge,
-    with_edge_bias,
+    with_edge_covariance,
 )
 from rollingstar.estimators.centroiders.window_kernel import any_near_edge
 from rollingstar.estimators.centroiders.windowed import WindowedCentroider
@@ -89,17 +89,21 @@ def test_near_edge_and_its_compiled_twin_agree():
 
 def test_uncut_spots_are_returned_unchanged():
     sigma = np.array([0.03, 0.04, 0.05])
+    cov = np.stack([sigma**2, np.zeros(3), sigma**2])
     x, y = np.array([48.0, 10.0, 80.0]), np.array([30.0, 30.0, 20.0])
     flux, peak = np.full(3, 1e4), np.full(3, 1e4 / (2 * np.pi * 1.2**2))
-    out, cut = with_edge_bias(sigma, x, y, flux, peak, SHAPE)
-    assert out is sigma and not cut.any()
+    out, cut = with_edge_covariance(cov, x, y, flux, peak, SHAPE)
+    assert out is cov and not cut.any()
     assert not any_near_edge(x, y, flux, peak, SHAPE[1], SHAPE[0])
-    # one of them at the edge: only that one changes, and the compiled pre-check sees it
+    # one of them at the left edge: only that one changes, along x only (the axis the edge cuts),
+    # and the compiled pre-check sees it
     x[1] = 0.3
-    out, cut = with_edge_bias(sigma, x, y, flux, peak, SHAPE)
-    assert cut.tolist() == [False, True, False] and out[1] > 0.3 and out[[0, 2]].tolist() == [0.03, 0.05]
+    out, cut = with_edge_covariance(cov, x, y, flux, peak, SHAPE)
+    assert cut.tolist() == [False, True, False] and np.sqrt(out[0, 1]) > 0.3
+    assert out[1, 1] == 0.0 and out[2, 1] == cov[2, 1]
+    assert np.array_equal(out[:, [0, 2]], cov[:, [0, 2]])
     assert any_near_edge(x, y, flux, peak, SHAPE[1], SHAPE[0])
-    assert not with_edge_bias(sigma, x, y, flux, peak, SHAPE, only=np.zeros(3, bool))[1].any()
+    assert not with_edge_covariance(cov, x, y, flux, peak, SHAPE, only=np.zeros(3, bool))[1].any()
 
 
 @given(x=st.floats(-3.0, 6.0), y=st.floats(-3.0, 70.0), s=st.floats(0.3, 6.0), extra=st.floats(1.0, 50.0))

@@ -126,8 +126,9 @@ def test_batched_windows_equal_the_per_window_cog_loop(kernel, dtype):
         assert fast.last_mode == slow.last_mode
         windowed += fast.last_mode == "window"
         assert a.stars.n == b.stars.n
-        for col in ("x", "y", "flux", "peak", "snr", "sigma_px"):
+        for col in ("x", "y", "flux", "peak", "snr", "sigma_px", "cov_xx", "cov_xy", "cov_yy"):
             np.testing.assert_allclose(getattr(a.stars, col), getattr(b.stars, col), rtol=1e-9, atol=1e-9, err_msg=col)
+        assert np.all(np.isfinite(a.stars.cov_xx)) and np.all(a.stars.cov_xx * a.stars.cov_yy > a.stars.cov_xy**2)
         for col in ("npix", "saturated", "t_ns", "row_time_ns"):
             np.testing.assert_array_equal(getattr(a.stars, col), getattr(b.stars, col), err_msg=col)
     assert windowed == 5
@@ -157,8 +158,8 @@ def test_window_cog_known_answer_and_windows_do_not_join():
 def test_compiled_kernel_equals_numpy_window_pass_on_many_windows():
     """centroid_windows_at (compiled, in place in the frame) equals centroid_windows (numpy, stacked
     windows) given the same per-window background and noise: every column, 40 random windows with
-    0-3 noisy spots each (edges, blends, hot pixels, saturated spots: their sigma_px carries the
-    clipped-spot term), 4- and 8-connectivity, grow 0-2 rings."""
+    0-3 noisy spots each (edges, blends, hot pixels, saturated spots: their covariance carries the
+    clipped-spot term), 4- and 8-connectivity, grow 0-2 rings, with and without the shot term."""
     from rollingstar.estimators.centroiders.window_cog import (
         centroid_windows,
         cut_windows,
@@ -185,7 +186,8 @@ def test_compiled_kernel_equals_numpy_window_pass_on_many_windows():
     for connectivity in (4, 8):
         for grow in (0, 1, 2):
             kw = dict(threshold_sigma=4.0, min_pixels=2, max_pixels=40, connectivity=connectivity, grow_px=grow,
-                      saturation_adu=1500.0, reject_border=grow == 1, gain_e_per_adu=2.0 if grow == 2 else None)
+                      saturation_adu=1500.0, reject_border=grow == 1, gain_e_per_adu=2.0 if grow == 2 else None,
+                      cov_gain_e_per_adu=2.0 if grow != 1 else None)
             ref = centroid_windows(cut_windows(img, r0, c0, h, w), px - c0, py - r0, noise_floor_adu=0.3, **kw)
             got, bgsum = centroid_windows_at(img, r0, c0, h, w, px, py, bg, noise, **kw)
             assert 3 < ref.found.sum() < n  # found and empty windows both occur
@@ -195,6 +197,7 @@ def test_compiled_kernel_equals_numpy_window_pass_on_many_windows():
             np.testing.assert_allclose(got.y, ref.y + r0, rtol=1e-12, equal_nan=True)
             for col in ("flux", "peak", "snr", "sigma_px"):
                 np.testing.assert_allclose(getattr(got, col), getattr(ref, col), rtol=1e-10, equal_nan=True, err_msg=col)
+            np.testing.assert_allclose(got.cov, ref.cov, rtol=1e-9, atol=1e-15, equal_nan=True)
             for col in ("npix", "saturated"):
                 np.testing.assert_array_equal(getattr(got, col), getattr(ref, col), err_msg=col)
     # background sums (every 4th row, |d| < 3 s, outside spots): exact where no pixel is above threshold
