@@ -208,3 +208,19 @@ def test_isotropic_covariance_columns_change_no_number():
         a = _run(make(), [FrameData(index=0, t0_ns=0, stars=stars)], scene.context)
         b = _run(make(), [FrameData(index=0, t0_ns=0, stars=cols)], scene.context)
         assert np.array_equal(a.q_xyzw, b.q_xyzw) and np.array_equal(a.covariance_rad2, b.covariance_rad2)
+
+
+def test_solvers_unproject_with_the_frames_fitted_camera():
+    """Stars imaged by a camera whose focal length differs from the context's by 2 %: every solver
+    recovers the truth with the frame's camera (``FrameData.camera``), not with the context's (gtsam
+    then reports the data inconsistent with its model: an invalid estimate)."""
+    scene = make_scene(seed=26)
+    fitted = dataclasses.replace(scene.context.camera, focal_length_m=scene.context.camera.focal_length_m * 1.02)
+    x, y, _ = fitted.project(scene.truth.inv().apply(scene.context.catalog.unit_icrs[scene.catalog_index]))
+    stars = identified(scene, 0, np.random.default_rng(0), sigma_px=0.0).with_columns(x=x, y=y)
+    for make in (QuestSolver, MekfFilter, GtsamSmoother, RequestSolver):
+        errs = []
+        for camera in (fitted, None):
+            est = _run(make(), [FrameData(index=0, t0_ns=0, stars=stars, camera=camera)], scene.context)
+            errs.append(np.degrees((est.rotation.inv() * scene.truth).magnitude()) * 3600 if est.valid else np.inf)
+        assert errs[0] < 1e-3 < 1.0 < errs[1], (make.name, errs)

@@ -8,6 +8,8 @@ no number.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from rollingstar.estimators.conformance.scenes import make_scene
@@ -209,3 +211,19 @@ def test_gyro_kf_with_2x2_noise_is_consistent():
         nees.append(np.einsum("ni,ni->n", e, np.linalg.solve(C, e[..., None])[..., 0]))
     m = np.concatenate(nees)
     assert abs(m.mean() - 2.0) < 4.5 * np.sqrt(4.0 / m.size)
+
+
+def test_ls_rate_unprojects_with_the_frames_fitted_camera():
+    frame, ctx = _rate_frame()
+    s = frame.stars
+    fitted = dataclasses.replace(ctx.camera, focal_length_m=ctx.camera.focal_length_m * 1.02)
+    dt = (s.t_ns - ctx.timing.frame_reference_ns(frame.t0_ns)) * 1e-9
+    sig = np.full(s.n, LsRateEstimator.Params().default_sigma_px)
+    direct = {cam: solve_rate(cam, s.x, s.y, dt, s.ref_icrs, np.maximum(sig, 1e-3)).omega for cam in (fitted, ctx.camera)}
+    ctx0 = dataclasses.replace(ctx, centroid_sigma_px=None)  # the plugin's default sigma, as ``direct``
+    plugin = LsRateEstimator()
+    plugin.setup(ctx0)
+    for cam, camera in ((fitted, fitted), (ctx.camera, None)):
+        omega = plugin.process(frame.evolve(camera=camera)).rate.omega_rad_s
+        np.testing.assert_allclose(omega, direct[cam], rtol=1e-9)
+    assert not np.allclose(direct[fitted], direct[ctx.camera], rtol=1e-6)
