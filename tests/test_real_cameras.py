@@ -44,6 +44,7 @@ def test_rendered_sets_every_identifiable_frame_is_identified(rendered):
         assert len(identifiable) >= len(frames) - 1, s["set"]
         assert all(f["valid"] for f in identifiable), [(f["set"], f["frame"], f["flags"]) for f in identifiable]
         assert not s["peer_solved_we_missed"], s
+        assert s["wrong"] == 0, s  # no valid attitude more than 1 deg off (tracking across a re-pointing)
 
 
 def test_rendered_sets_pointing_within_the_centroid_noise(rendered):
@@ -92,7 +93,7 @@ def test_creusot_every_peer_frame_solved_and_pointing_against_astrometry_net(cre
     """Every star field (all PNGs but Mula/black*.png) identified, so every frame the peer solves;
     the image centre within 400 arcsec of astrometry.net's centre; the two frames without stars not."""
     s = creusot["sets"][0]
-    assert s["frames"] == 34 and not s["peer_solved_we_missed"]
+    assert s["frames"] == 34 and not s["peer_solved_we_missed"] and s["wrong"] == 0
     for f in creusot["frames"]:
         starless = f["recording"].endswith("Mula") and f["frame"] in (0, 1)  # black.png, black_2.png
         assert f["valid"] != starless, (f["recording"], f["frame"], f["flags"])
