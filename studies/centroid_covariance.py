@@ -32,6 +32,7 @@ from rollingstar.outputs import write_text
 from rollingstar.pipelines.truth import true_positions
 from rollingstar.progress import progress_bar
 from rollingstar.sensors import build
+from rollingstar.sensors.centroid_sim import solve_star_rows
 from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.scenario import ScenarioConfig, load_scenario
 from rollingstar.sensors.simulate import ImageModel, StarTrackerSimulator
@@ -97,17 +98,37 @@ def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray
     return np.linalg.norm(p[:, None] - closest, axis=2)
 
 
-def _usable(sim, truth, ends: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """Truth stars whose smear is away from the edge and from every other star's smear."""
+def _smears_in_view(sim, t0_ns: int) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """Catalogue ids and smear ends of every star near the field, at the time of its own
+    centroid row (the simulator's row equation), also of those whose centroid lies just off the
+    detector while their smear reaches onto it."""
+    timing = sim.timing
+    t_mid = np.int64(t0_ns + (timing.rows * timing.effective_line_delay_ns + timing.exposure_ns) // 2)
+    boresight = sim.motion.attitude(np.array([t_mid]))[0].apply([0.0, 0.0, 1.0])
+    speed = float(np.linalg.norm(sim.motion.angular_velocity(np.array([t_mid]))[0]))
+    reach = speed * (timing.frame_period_ns * S_PER_NS) + 0.01
+    idx = sim.catalog.cone(boresight, sim.camera.half_diagonal_rad + reach)
+    unit = sim.catalog.unit_icrs[idx]
+    x, y, _ = solve_star_rows(sim.camera, timing, sim.motion, (), unit, int(t0_ns))
+    ok = np.isfinite(x) & np.isfinite(y)
+    pos, vel = _truth_at(sim, unit[ok], timing.row_mid_exposure_ns(t0_ns, y[ok]))
+    half = 0.5 * timing.exposure_ns * S_PER_NS
+    return sim.catalog.ids[idx][ok], (pos - vel * half, pos + vel * half)
+
+
+def _usable(sim, truth, ends: tuple[np.ndarray, np.ndarray], t0_ns: int) -> np.ndarray:
+    """Truth stars whose smear is away from the edge and from every other star's smear (also of
+    stars whose centroid is off the detector)."""
     a, b = ends
     H, W = sim.camera.height, sim.camera.width
     lo, hi = np.minimum(a, b), np.maximum(a, b)
     inside = (lo[:, 0] >= EDGE_PX) & (lo[:, 1] >= EDGE_PX) & (hi[:, 0] <= W - 1 - EDGE_PX) & (hi[:, 1] <= H - 1 - EDGE_PX)
     n = len(truth)
+    ids, (oa, ob) = _smears_in_view(sim, t0_ns)
     samples = a[:, None] + np.linspace(0, 1, 9)[None, :, None] * (b - a)[:, None]  # (n, 9, 2)
-    d = _segment_distance(samples.reshape(-1, 2), a, b).reshape(n, 9, n).min(axis=1)
-    np.fill_diagonal(d, np.inf)
-    return inside & (d.min(axis=1) > BLEND_PX)
+    d = _segment_distance(samples.reshape(-1, 2), oa, ob).reshape(n, 9, ids.size).min(axis=1)
+    d[truth.catalog_id[:, None] == ids[None, :]] = np.inf  # a star's own smear
+    return inside & (d.min(axis=1, initial=np.inf) > BLEND_PX)
 
 
 def _frame_errors(sim, cog: CogCentroider, k: int) -> dict[str, np.ndarray]:
@@ -120,7 +141,7 @@ def _frame_errors(sim, cog: CogCentroider, k: int) -> dict[str, np.ndarray]:
     pos, vel = _truth_at(sim, tr.unit_icrs, tr.t_ns)
     half = 0.5 * sim.timing.exposure_ns * S_PER_NS
     ends = (pos - vel * half, pos + vel * half)
-    usable = _usable(sim, tr, ends)
+    usable = _usable(sim, tr, ends, frame.t0_ns)
     det = np.column_stack([stars.x, stars.y])
     dist = _segment_distance(det, *ends) if len(tr) and stars.n else np.zeros((stars.n, len(tr)))
     j = np.argmin(dist, axis=1) if len(tr) else np.zeros(stars.n, dtype=int)
@@ -241,7 +262,27 @@ def centroid_covariance_markdown(result: dict, command: str) -> str:
     worst = max((abs(r["all"][k] - 1.0) for r in result["cases"] if r["all"].get("n") for k in ("along", "across")),
                 default=float("nan"))
     lines += ["", f"Largest |chi2/dof - 1| over the cases and axes: {f(worst)} (target: {result['band']:g}).", ""]
-    return "\n".join(lines)
+    return "\n".join(lines + _broken_smears(result, f))
+
+
+def _broken_smears(result: dict, f) -> list[str]:
+    """The paragraph on the cases where the threshold broke faint smears into pieces."""
+    rows = [r for r in result["cases"] if r["fragment_spots"] and r["single"].get("n")]
+    if not rows:
+        return []
+    lines = ["## Broken smears", "",
+             "At the fastest rates the faintest smears (Hp 5.5-6, under ~2 thresholds per pixel) break into two or "
+             "three spots. Each piece is off the star by up to half the smear; `cog` finds the pieces of one smear "
+             "(`estimators/centroiders/fragments.py`), widens each one's covariance along the smear by its offset "
+             "from the pieces' common centre, and flags the frame `fragmented_stars:N`. The table above counts "
+             "every piece; here the stars seen as one spot alone:", "",
+             "| case | pieces | stars as one spot | chi2/dof along | across | RMS error along / across [px] |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        s = r["single"]
+        lines.append(f"| {r['label']} | {r['fragment_spots']} | {s['n']} | {f(s['along'])} | {f(s['across'])} | "
+                     f"{f(s['rms_along_px'], 3)} / {f(s['rms_across_px'], 3)} |")
+    return lines + [""]
 
 
 def plot_centroid_covariance(result: dict, out_dir: Path) -> Path:

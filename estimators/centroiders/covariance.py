@@ -23,20 +23,24 @@ It is the sum of four terms, each from the spot's own pixels (:func:`spot_covari
    ``L`` along its long axis ``u``, width ``w`` across, brightness ``rho`` in thresholds), fitted
    by Monte Carlo (``tests/estimators/test_centroid_covariance.py`` checks it)::
 
-       Cov_mask = (t / F)^2 [A w^5 (L / 2)^2 / m  u u^T  +  C w^7 (L + 2 w) / m^0.75  I] + beta^2 c v v^T
+       Cov_mask = (t / F)^2 [A (1 + E c_w) w^5 (L / 2)^2 / m  u u^T  +  C w^7 (L + 2 w) / m^0.75  I]
+                  + beta^2 c_L v v^T
 
    with ``m = max(rho - 1, 0.25)`` and ``v`` the axis across the smear. The last part is the
    pixel-phase bias of the truncated profile across a smear, ``beta = B (sigma_t / t)^-1.5
    rho^-0.95`` px (``sigma_t``: the pixel noise at the threshold), which is the same all along a
-   smear that runs along a pixel axis and averages out along a tilted one: ``c = 1 / (1 +
+   smear that runs along a pixel axis and averages out along a tilted one: ``c_L = 1 / (1 +
    (pi L tan(theta))^2)``, ``theta`` the smear's angle to the nearest pixel axis
-   (:func:`phase_coherence`). ``A``, ``C`` and ``B`` are :data:`TRUNCATION_ALONG`,
-   :data:`TRUNCATION_ACROSS` and :data:`PHASE_BIAS`, measured for the default mask (one grown
-   ring) and PSF sigma 0.8-1.4 px.
+   (:func:`phase_coherence`). The ends of a smear along a pixel axis leave the mask a whole row
+   or column at a time, which ``1 + E c_w`` accounts for (``c_w`` the same coherence over the
+   ends' width ``2 w``). ``A``, ``E``, ``C`` and ``B`` are :data:`TRUNCATION_ALONG`,
+   :data:`END_COHERENT`, :data:`TRUNCATION_ACROSS` and :data:`PHASE_BIAS`, measured for the
+   default mask (one grown ring) and PSF sigma 0.8-1.4 px.
 
 3. Saturation (:func:`clipping_covariance`): a clipped, flat-topped spot has lost its sub-pixel
-   information; saturation.py gives the RMS CoG error of a round plateau (added on both axes) and
-   of a clipped ridge across a smear (added across it, with the same coherence ``c``).
+   information; saturation.py gives the RMS CoG error of a round plateau (added on both axes), of
+   a clipped ridge across a smear (added across it, with the coherence ``c_L``) and of the ridge's
+   clipped ends along it.
 
 4. The detector edge (edge.py): a spot cut by the edge adds its CoG bias along the cut axis.
 """
@@ -47,14 +51,19 @@ from typing import NamedTuple
 import numpy as np
 from scipy.special import erf
 
-from rollingstar.estimators.centroiders.saturation import clipped_cog_sigma_px, clipped_streak_variance
+from rollingstar.estimators.centroiders.saturation import (
+    clipped_cog_sigma_px,
+    clipped_streak_end_variance,
+    clipped_streak_variance,
+)
 
-#: ``A``, ``C``, ``B`` of the mask term (module docstring), fitted to Monte Carlo of smeared spots.
-TRUNCATION_ALONG = 1.5
+#: ``A``, ``C``, ``B``, ``E`` of the mask term (module docstring), fitted to Monte Carlo of smeared spots.
+TRUNCATION_ALONG = 1.2
 TRUNCATION_ACROSS = 0.15
 PHASE_BIAS = 0.0042
-_MIN_MARGIN = 0.25  # rho - 1 floor: a spot no brighter than the threshold still gets a finite term
-_MIN_WIDTH_PX = 0.3
+END_COHERENT = 1.0
+MIN_MARGIN = 0.25  # rho - 1 floor: a spot no brighter than the threshold still gets a finite term
+MIN_WIDTH_PX = 0.3
 STREAK_LENGTH_WIDTHS = 2.0  # a saturated spot longer than this many widths is a clipped ridge
 
 
@@ -105,7 +114,7 @@ def spot_shape(moments: np.ndarray, flux: np.ndarray, threshold) -> SpotShape:
     xx, xy, yy = moments
     half_diff = np.hypot(0.5 * (xx - yy), xy)
     mean = 0.5 * (xx + yy)
-    l1, l2 = mean + half_diff, np.maximum(mean - half_diff, _MIN_WIDTH_PX**2)
+    l1, l2 = mean + half_diff, np.maximum(mean - half_diff, MIN_WIDTH_PX**2)
     angle = 0.5 * np.arctan2(2 * xy, xx - yy)
     length = np.sqrt(np.maximum(12.0 * (l1 - l2), 0.0))
     w = np.sqrt(l2)
@@ -132,10 +141,11 @@ def _along_across(along: np.ndarray, across: np.ndarray, shape: SpotShape) -> np
 def truncation_covariance(shape: SpotShape, flux: np.ndarray, threshold, noise, gain: float | None) -> np.ndarray:
     """The scatter the threshold mask adds to a spot's centroid, rows ``xx, xy, yy`` (px^2; module
     docstring, term 2). ``threshold`` and ``noise`` in ADU above background, ``gain`` e-/ADU."""
-    margin = np.maximum(shape.rho - 1.0, _MIN_MARGIN)
+    margin = np.maximum(shape.rho - 1.0, MIN_MARGIN)
     w = shape.width
     scale = (np.asarray(threshold, dtype=float) / flux) ** 2
-    along = TRUNCATION_ALONG * scale * w**5 * (0.5 * shape.length) ** 2 / margin
+    ends = END_COHERENT * phase_coherence(SpotShape(shape.ux, shape.uy, 2.0 * w, w, shape.rho))
+    along = TRUNCATION_ALONG * (1.0 + ends) * scale * w**5 * (0.5 * shape.length) ** 2 / margin
     iso = TRUNCATION_ACROSS * scale * w**7 * (shape.length + 2 * w) / margin**0.75
     t = np.asarray(threshold, dtype=float)
     sigma_t = np.sqrt(np.asarray(noise, dtype=float) ** 2 + (t / gain if gain else 0.0))
@@ -150,15 +160,19 @@ def clipping_covariance(shape: SpotShape, flux: np.ndarray, n_saturated: np.ndar
     round plateau's sampling error on both axes (:func:`~rollingstar.estimators.centroiders.saturation.clipped_cog_sigma_px`),
     and for a smear longer than :data:`STREAK_LENGTH_WIDTHS` widths the clipped ridge's across it
     (:func:`~rollingstar.estimators.centroiders.saturation.clipped_streak_variance`, ridge width
-    ``n_saturated / L``, times :func:`phase_coherence`)."""
+    ``n_saturated / L``, times :func:`phase_coherence`) and that of its clipped ends along it
+    (:func:`~rollingstar.estimators.centroiders.saturation.clipped_streak_end_variance`)."""
     sat = np.asarray(saturated, dtype=bool)
     flux = np.where(sat, flux, 0.0)
     n_sat = np.where(sat, n_saturated, 0)
     iso = clipped_cog_sigma_px(flux, n_sat, saturation_above_bg) ** 2
     streak = sat & (shape.length > STREAK_LENGTH_WIDTHS * shape.width)
     length = np.where(streak, np.maximum(shape.length, 1.0), 1.0)
-    across = clipped_streak_variance(np.where(streak, flux, 0.0) / length, n_sat / length, saturation_above_bg)
-    return _along_across(iso, iso + across * phase_coherence(shape), shape)
+    flux_streak = np.where(streak, flux, 0.0)
+    across = clipped_streak_variance(flux_streak / length, n_sat / length, saturation_above_bg)
+    along = clipped_streak_end_variance(flux_streak, length, n_sat / length, n_sat, saturation_above_bg)
+    coherence = phase_coherence(shape)
+    return _along_across(iso + along, iso + across * coherence, shape)
 
 
 def spot_covariance(noise_moments: np.ndarray, shape_moments: np.ndarray, flux: np.ndarray, threshold, noise,

@@ -42,11 +42,17 @@ A saturated spot's reported covariance is its noise covariance plus ``sigma_clip
 pixels themselves carry no noise), so its per-axis sigma is ``sqrt(sigma_noise^2 + sigma_clip^2)``.
 Checked against simulated clipped Gaussian spots (PSF sigma 0.8-2.2 px, peak 1.2-300 x the
 saturation level): tests/estimators/test_saturation_sigma.py.
+
+A saturated smear is a clipped ridge rather than a round plateau: :func:`clipped_streak_variance`
+is the same derivation in one dimension, across the ridge, and :func:`clipped_streak_end_variance`
+the error along it from the ridge's clipped ends (computed directly from a model of the ridge);
+estimators/centroiders/covariance.py adds them to a smeared spot's covariance across and along
+the smear.
 """
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import erfcx, jv
+from scipy.special import erfcx, jv, ndtr
 
 _MAX_FREQ = 4
 _KL = np.array([(k, m) for k in range(-_MAX_FREQ, _MAX_FREQ + 1) for m in range(-_MAX_FREQ, _MAX_FREQ + 1) if (k, m) != (0, 0)],
@@ -134,3 +140,54 @@ def clipped_streak_variance(flux_per_px: np.ndarray, ridge_width_px: np.ndarray,
     dC = 4.0 * np.pi * (slope / h) * (h * h * np.sin(z) / k**2 - 3.0 * (np.sin(z) - z * np.cos(z)) / k**4)
     out[ok] = 2.0 * np.mean(np.sum(dC**2, axis=2), axis=1) / (2.0 * np.pi * F) ** 2
     return out
+
+
+_END_PHASES = (np.arange(32) + 0.5) / 32 - 0.5  # px: sub-pixel phases along the smear
+_LENGTH_OFFSETS = np.array([-0.5, 0.0, 0.5])  # px: the smear's length known from moments
+
+
+def clipped_streak_end_variance(flux: np.ndarray, length_px: np.ndarray, ridge_width_px: np.ndarray,
+                                n_saturated: np.ndarray, saturation_above_bg) -> np.ndarray:
+    """Mean square (over sub-pixel phase, px^2) of the CoG error *along* a saturated smear: its
+    clipped ridge ends where the profile along the smear falls through the saturation level,
+    with a kink in slope whose sampling moves the centroid (the along twin of
+    :func:`clipped_streak_variance`).
+
+    The ridge's central row is modelled as a line of length ``L`` blurred by the across sigma of
+    :func:`_ridge_sigma` (the PSF is round), pixel-integrated, with plateau ``S_d exp(h^2 / 2
+    sigma^2)``, clipped at ``S_d``; its CoG error is computed directly at 32 phases and scaled by
+    the share of the spot's flux in the clipped rows (``n_saturated S_d / flux``; unclipped rows
+    are smooth and only dilute it), averaged over ``L +- 0.5`` and ``h +- 0.25`` px."""
+    F = np.asarray(flux, dtype=float)
+    S = np.broadcast_to(np.asarray(saturation_above_bg, dtype=float), F.shape)
+    L0, h0 = np.asarray(length_px, dtype=float), 0.5 * np.asarray(ridge_width_px, dtype=float)
+    out = np.zeros(F.shape)
+    ok = (h0 > 0) & (F > 0) & (S > 0) & (L0 > 0)
+    for k in np.flatnonzero(ok):
+        f_px = F[k] / L0[k]  # flux per pixel along
+        h = np.maximum(h0[k] + _HALF_WIDTH_OFFSETS[::4], 0.05)  # 3 widths
+        sigma = _ridge_sigma(h, np.maximum(f_px - 2 * h * S[k], S[k]), np.full(h.shape, S[k]))
+        plateau = S[k] * np.exp(0.5 * (h / sigma) ** 2)
+        L = np.maximum(L0[k] + _LENGTH_OFFSETS, 0.5)
+        half = int(np.ceil(L.max() / 2 + 6 * sigma.max())) + 1
+        i = np.arange(-half, half + 1, dtype=float)
+        # (widths, lengths, phases, pixels): pixel integral of Phi((u + L/2)/s) - Phi((u - L/2)/s)
+        s_ = sigma[:, None, None, None]
+        u = i[None, None, None, :] - _END_PHASES[None, None, :, None]
+        Lh = 0.5 * L[None, :, None, None]
+        v = plateau[:, None, None, None] * (_ramp(u + Lh, s_) - _ramp(u - Lh, s_))
+        c = np.minimum(v, S[k])
+        e = np.sum(c * u, axis=-1) / np.sum(c, axis=-1)
+        share = min(1.0, float(n_saturated[k]) * S[k] / F[k])
+        out[k] = share**2 * np.mean(e**2)
+    return out
+
+
+def _ramp(a: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """The integral of ``Phi(t / s)`` over the pixel ``t in [a - 1/2, a + 1/2]`` (``s`` the sigma):
+    with ``g(t) = t Phi(t / s) + s phi(t / s)``, ``g(a + 1/2) - g(a - 1/2)``."""
+    def g(t):
+        z = t / s
+        return t * ndtr(z) + s * np.exp(-0.5 * z * z) / np.sqrt(2 * np.pi)
+
+    return g(a + 0.5) - g(a - 0.5)

@@ -181,3 +181,17 @@ def test_pieces_of_a_broken_smear_are_grouped_and_widened():
     assert np.all(out.stars.cov_xx < 0.01)
     shape = spot_shape(np.array([[10.0, 0.1], [0.0, 0.0], [1.0, 1.0]]), np.array([1e3, 1e3]), 10.0)
     assert (fragment_groups(np.array([0.0, 40.0]), np.array([0.0, 0.0]), shape) == -1).all()  # too far apart
+
+
+@pytest.mark.parametrize("theta", [0.0, 0.3])
+def test_saturated_smears_have_a_covariance_of_the_right_size(theta):
+    """A magnitude-1.3 star smeared 20 px (peak ~1.3 x the 12-bit saturation level on a ~1.5 px
+    wide ridge): the clipped ridge's sampling error across (and its ends' along) the smear are
+    phase averages, so the chi2/dof is only asserted within 0.3-2.5 on both axes (measured along
+    / across, 256 spots: 0.86 / 1.88 along a pixel axis, 0.91 / 0.42 tilted; the round-plateau term alone gave
+    10 across along a pixel axis)."""
+    err, cov, _ = _monte_carlo(2.7e5, 20.0, theta, images=4, seed=9)
+    u, v = np.array([np.cos(theta), np.sin(theta)]), np.array([-np.sin(theta), np.cos(theta)])
+    for axis in (u, v):
+        chi2 = np.mean((err @ axis) ** 2 / np.einsum("i,nij,j->n", axis, cov, axis))
+        assert 0.3 < chi2 < 2.5, (theta, axis, chi2)
