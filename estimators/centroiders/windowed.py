@@ -105,8 +105,11 @@ class WindowedCentroider(Centroider):
 
     Output spots are catalogue-agnostic (``catalog_id = -1``: identification stays with the
     identifier stage; the centroider role contract), in guide-star order; ``x, y``, ``flux``,
-    ``sigma_px``, ``cov_*`` etc. are the window CoG's in full-frame pixel coordinates, times from the sensor
-    timing of the full-frame row. ``last_mode`` is ``"full"`` or ``"window"`` (diagnostics).
+    ``sigma_px``, ``cov_*`` etc. are the window CoG's in full-frame pixel coordinates (the
+    covariance as ``cog``'s, :mod:`rollingstar.estimators.centroiders.covariance`), times from the
+    sensor timing of the full-frame row. A window keeps one spot per guide star, so a smear the
+    threshold broke into pieces is not recognised there (``cog`` does it on the full frames;
+    estimators/centroiders/fragments.py). ``last_mode`` is ``"full"`` or ``"window"`` (diagnostics).
     """
 
     name = "windowed"
