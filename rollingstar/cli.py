@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import errno
 import functools
+import importlib
 import json
 import sys
 import tempfile
@@ -292,40 +293,41 @@ def reproduce(paper: str = typer.Argument(..., help="he2021a | he2021b | fu2022 
 
 
 @command()
-def figures(name: str = typer.Argument("foundation", help="foundation | real-data | covariance-weighting | centroid-covariance"),
+def figures(name: str = typer.Argument("foundation", help="foundation | real-data | real-cameras | adversarial | "
+                                        "centroid-covariance | covariance-weighting"),
             quick: bool = typer.Option(False, "--quick"),
             as_json: bool = typer.Option(False, "--json"),
-            out_dir: Path = typer.Option(None, "--out", help="write <out>/foundation.md (real-data.md), .json and img/*.png"),
+            out_dir: Path = typer.Option(None, "--out", help="write <out>/<figure>.md, .json and img/*.png (where the set writes pages)"),
             seed: int = typer.Option(1, "--seed", min=0, max=2**63 - 1),
             repeats: int = typer.Option(3, "--repeats", min=1, help="real-data: timings are the minimum of this many calls")):
-    """Measure the foundation figures (static vs Cramér–Rao bound, rolling shutter, image level) or the
-    real-sky figures (real-data: identification, per-lens calibration, vs astrometry.net)."""
-    from rollingstar.studies.figures import (
-        foundation_markdown,
-        real_data_figures,
-        run_foundation,
-        write_foundation_docs,
-    )
+    """Measure a figure set: foundation (static vs Cramér–Rao bound, rolling shutter, image level);
+    real-data (identification, per-lens calibration, vs astrometry.net); real-cameras (import + run
+    on cameras the pipeline was not tuned on, vs a peer solver); adversarial (no false identification
+    reported valid); centroid-covariance (the centroiders' 2 x 2 covariance on smeared images);
+    covariance-weighting (attitude RMSE with scalar vs 2 x 2 star weights)."""
+    handlers = {
+        "foundation": lambda: _foundation_figures(out_dir, seed, as_json, quick),
+        "real-data": lambda: _study("figures", "real_data_figures")(out_dir, as_json, repeats=repeats),
+        "real-cameras": lambda: _study("real_cameras", "real_cameras_figures")(quick, as_json, seed),
+        "adversarial": lambda: _adversarial_figure(seed, as_json, quick),
+        "centroid-covariance": lambda: _study("centroid_covariance", "centroid_covariance_figures")(out_dir, quick, seed, as_json),
+        "covariance-weighting": lambda: _covariance_weighting_figure(out_dir, seed, as_json, quick),
+    }
+    if name not in handlers:
+        raise UserError(f"unknown figure set {name!r}; available: {', '.join(handlers)}")
+    handlers[name]()
 
-    if name == "real-data":
-        real_data_figures(out_dir, as_json, repeats=repeats)
-        return
-    if name == "covariance-weighting":
-        _covariance_weighting_figure(out_dir, seed, as_json, quick)
-        return
-    if name == "real-cameras":  # cameras the pipeline was not tuned on, end to end (studies/real_cameras.py)
-        from rollingstar.studies.real_cameras import real_cameras_figures
 
-        real_cameras_figures(quick, as_json, seed)
-        return
-    if name == "centroid-covariance":  # the centroiders' 2 x 2 covariance on smeared images (studies/centroid_covariance.py)
-        from rollingstar.studies.centroid_covariance import centroid_covariance_figures
+def _study(module: str, function: str):
+    """``rollingstar.studies.<module>.<function>``, imported when the command runs (studies are the
+    slowest imports of the package, and each figure set needs only its own)."""
+    return getattr(importlib.import_module(f"rollingstar.studies.{module}"), function)
 
-        centroid_covariance_figures(out_dir, quick, seed, as_json)
-        return
-    if name != "foundation":
-        raise UserError(f"unknown figure set {name!r}; available: foundation, real-data, covariance-weighting, "
-                        "centroid-covariance")
+
+def _foundation_figures(out_dir: Path | None, seed: int, as_json: bool, quick: bool) -> None:
+    """The foundation figures (studies/figures.py), printed and optionally written under ``out_dir``."""
+    from rollingstar.studies.figures import foundation_markdown, run_foundation, write_foundation_docs
+
     result = run_foundation(quick=quick, seed=seed)
     command = f"rollingstar figures foundation{' --quick' if quick else ''} --out {out_dir or 'docs'} --seed {seed}"
     if out_dir is not None:
@@ -352,6 +354,17 @@ def _covariance_weighting_figure(out_dir: Path | None, seed: int, as_json: bool,
         print(json.dumps(result, indent=2))
     else:
         out.print(covariance_weighting_table(result), highlight=False)
+
+
+def _adversarial_figure(seed: int, as_json: bool, quick: bool) -> None:
+    """Every shipped identifier configuration on adversarial frames (studies/adversarial.py)."""
+    from rollingstar.studies.adversarial import adversarial_table, run_adversarial
+
+    result = run_adversarial(frames_per_case=25 if quick else 100, seed=seed, show_progress=not as_json)
+    if as_json:
+        print(json.dumps(result, indent=2))
+    else:
+        out.print(adversarial_table(result), highlight=False)
 
 
 @command()
