@@ -298,21 +298,25 @@ def demosaic_rgb(image: np.ndarray) -> np.ndarray:
                               mode="mirror") for c in "RGB"], axis=-1)
 
 
+#: zlib level of the PNGs written (lossless at any level; 1 writes 5-10x faster than the default 6).
+PNG_COMPRESS_LEVEL = 1
+
+
 def save_image(spec: RenderedSpec, image: np.ndarray, path: Path) -> Path:
     """Write one rendered frame in ``spec.output``'s format; returns the file written."""
     bits = spec.image["bit_depth"]
     if spec.output == "png16":
-        Image.fromarray(image.astype(np.uint16)).save(path.with_suffix(".png"))
+        Image.fromarray(image.astype(np.uint16)).save(path.with_suffix(".png"), compress_level=PNG_COMPRESS_LEVEL)
         return path.with_suffix(".png")
     if spec.output == "rgb":
         rgb = np.clip(np.rint(demosaic_rgb(image) * (255.0 / (2**bits - 1))), 0, 255).astype(np.uint8)
-        Image.fromarray(rgb, mode="RGB").save(path.with_suffix(".png"))
+        Image.fromarray(rgb, mode="RGB").save(path.with_suffix(".png"), compress_level=PNG_COMPRESS_LEVEL)
         return path.with_suffix(".png")
     grey = Image.fromarray(np.clip(image, 0, 255).astype(np.uint8), mode="L")
     if spec.output == "jpeg":
         grey.save(path.with_suffix(".jpg"), quality=JPEG_QUALITY)
         return path.with_suffix(".jpg")
-    grey.save(path.with_suffix(".png"))
+    grey.save(path.with_suffix(".png"), compress_level=PNG_COMPRESS_LEVEL)
     return path.with_suffix(".png")
 
 

@@ -23,7 +23,7 @@ from rollingstar.sensors.conventions import unit_to_radec
 _GDR3 = np.dtype([("id", "<i8"), ("ra", "<f8"), ("dec", "<f8"), ("mag", "<f4"), ("pmra", "<f4"), ("pmdec", "<f4")])
 _CACHE: dict[tuple, object] = {}
 _LOCK = threading.Lock()
-_MAX_CACHED = 8
+_MAX_CACHED = 16  # a few MB each; a process that meets many cameras (a study, the tests) reuses them
 
 
 def catalog_fingerprint(catalog) -> str:
