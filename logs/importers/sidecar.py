@@ -96,6 +96,10 @@ class CameraSpec(_Strict):
         None, description="(cx, cy); default the detector centre ((W-1)/2, (H-1)/2)")
     shutter: ShutterSpec = ShutterSpec()
     bit_depth: int | None = Field(None, ge=8, le=16, description="ADC bits; default from the image dtype (8 or 16)")
+    gain_e_per_adu: PositiveFloat = Field(
+        1.0, description="conversion gain, electrons per ADU: the centroiders' shot-noise term. The default 1 "
+        "overstates the shot noise of most cameras' 8-12 bit output (several to tens of e-/ADU), so the "
+        "reported centroid covariance errs on the large side until the camera states it")
 
     @model_validator(mode="after")
     def _optics(self) -> "CameraSpec":
@@ -265,4 +269,4 @@ def _scenario(camera, name, description, level, frames, bit_depth, centroid_sigm
     return ScenarioConfig(
         name=name, description=description, level=level, sensor=camera.sensor_config(), shutter=shutter,
         catalog=catalog, motion=MotionConfig(initial_attitude=initial_attitude), noise=noise,
-        image=ImageConfig(bit_depth=bit_depth), frames=max(1, int(frames)))
+        image=ImageConfig(bit_depth=bit_depth, gain_e_per_adu=camera.gain_e_per_adu), frames=max(1, int(frames)))

@@ -614,3 +614,17 @@ def test_image_folder_entries_that_are_not_files_are_named(tmp_path, make):
         "camera: {width_px: 40, height_px: 30, focal_length_mm: 10.0, pixel_size_um: 5.0}\n")
     with pytest.raises(ImportDataError, match="f01.png match the image files but are not readable regular files"):
         import_images(folder, tmp_path / "r.mcap")
+
+
+def test_the_camera_gain_reaches_the_centroiders(tmp_path):
+    """camera.yaml's gain_e_per_adu is the sensor context's, which sizes the centroid covariance's
+    shot-noise term; without it the declared default is 1 e-/ADU."""
+    from rollingstar.pipelines.source import open_recording
+
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    Image.fromarray(np.zeros((30, 40), dtype=np.uint8)).save(folder / "a.png")
+    stated = import_images(folder, tmp_path / "g.mcap", camera=small_camera(gain_e_per_adu=8.0))
+    default = import_images(folder, tmp_path / "d.mcap", camera=small_camera())
+    assert open_recording(stated).context.gain_e_per_adu == 8.0
+    assert open_recording(default).context.gain_e_per_adu == 1.0
