@@ -296,6 +296,8 @@ def import_images(folder: str | Path, out: str | Path, camera: CameraSpec | str 
             image = read_image(f)
             if image.itemsize * 8 != container_bits:  # header and pixels disagree (e.g. mode "I")
                 raise ImportDataError(f"{f}: decoded as {image.dtype}, expected {container_bits}-bit like the other images")
+            if cam.mirrored:
+                image = np.ascontiguousarray(image[:, ::-1])
             writer.write_image(TOPIC_IMAGE, image, t)
             advance()
     return out

@@ -96,6 +96,10 @@ class CameraSpec(_Strict):
         None, description="(cx, cy); default the detector centre ((W-1)/2, (H-1)/2)")
     shutter: ShutterSpec = ShutterSpec()
     bit_depth: int | None = Field(None, ge=8, le=16, description="ADC bits; default from the image dtype (8 or 16)")
+    mirrored: bool = Field(
+        False, description="the images are the mirror image of what the camera sees (a star diagonal or another "
+        "mirror in the light path): the importer reverses every row, so the recording holds the unmirrored view; "
+        "principal_point_px is in the files' own pixels")
     gain_e_per_adu: PositiveFloat = Field(
         1.0, description="conversion gain, electrons per ADU: the centroiders' shot-noise term. The default 1 "
         "overstates the shot noise of most cameras' 8-12 bit output (several to tens of e-/ADU), so the "
@@ -127,9 +131,11 @@ class CameraSpec(_Strict):
     def sensor_config(self) -> SensorConfig:
         """The scenario sensor block (focal length and pixel size whose ratio is ``focal_px``)."""
         pixel_um = self.pixel_size_um if self.pixel_size_um is not None else NOMINAL_PIXEL_SIZE_UM
+        pp = self.principal_point_px
+        if pp is not None and self.mirrored:  # the recording holds the rows reversed
+            pp = ((self.width_px - 1) - pp[0], pp[1])
         return SensorConfig(focal_length_mm=self.focal_px * pixel_um * 1e-3, pixel_size_um=pixel_um,
-                            width_px=self.width_px, height_px=self.height_px,
-                            principal_point_px=self.principal_point_px)
+                            width_px=self.width_px, height_px=self.height_px, principal_point_px=pp)
 
 
 class TimestampsSpec(_Strict):

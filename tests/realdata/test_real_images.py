@@ -178,3 +178,42 @@ def test_diagnose_an_image_import_without_a_prior(real_data_dir, tmp_path):
     # bring the held-out stars down to a fraction of a pixel
     assert "focal_length" in result["verdict"]
     assert result["heldout_rms_after_px"] < 0.3 < result["heldout_rms_before_px"]
+
+
+def test_a_mirrored_camera_is_declared_not_guessed(real_data_dir, tmp_path):
+    """A tetra3 image mirrored left-right (as through a star diagonal): without `mirrored: true` the
+    pattern solve sees the parity flip and rejects it; with it, the import reverses the rows back
+    and the frame is identified with the attitude of the unmirrored original."""
+    import yaml
+    from PIL import Image
+    from scipy.spatial.transform import Rotation
+
+    from rollingstar.logs.importers import import_images
+    from rollingstar.logs.reader import LogReader
+    from rollingstar.pipelines.config import load_pipeline
+    from rollingstar.pipelines.runner import run_pipeline
+
+    src = sorted((real_data_dir / "tetra3").glob("*.tiff"))[0]
+    side = yaml.safe_load((rd.ROOT / "configs" / "cameras" / "tetra3_recording.yaml").read_text())
+    camera = yaml.safe_load((rd.ROOT / "configs" / "cameras" / side.pop("camera_file")).read_text())
+    pipeline = load_pipeline(rd.ROOT / "configs" / "pipelines" / "real_images.yaml")
+    quats = {}
+    for tag, mirror in (("original", False), ("mirrored_undeclared", None), ("mirrored_declared", True)):
+        folder = tmp_path / tag
+        folder.mkdir()
+        with Image.open(src) as im:
+            (im if mirror is False else im.transpose(Image.Transpose.FLIP_LEFT_RIGHT)).save(folder / src.name)
+        sidecar = dict(side, files=src.name, camera=dict(camera, mirrored=bool(mirror)))
+        (folder / "recording.yaml").write_text(yaml.safe_dump(sidecar))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            rec = import_images(folder, tmp_path / f"{tag}.mcap")
+        run_pipeline(rec, pipeline, tmp_path / f"{tag}.out.mcap", show_progress=False)
+        reader = LogReader(tmp_path / f"{tag}.out.mcap")
+        status = next(iter(reader.messages(["/estimate/frame"]))).data
+        att = next(iter(reader.messages(["/estimate/attitude"]))).data
+        quats[tag] = att["q"] if att["valid"] else None
+        if tag == "mirrored_undeclared":
+            assert quats[tag] is None and "lost_in_space_rejected:mirrored_image" in status["flags"], status
+    a, b = (Rotation.from_quat([q[k] for k in "xyzw"]) for q in (quats["original"], quats["mirrored_declared"]))
+    assert np.degrees((a.inv() * b).magnitude()) * 3600 < 5.0
