@@ -15,7 +15,9 @@ Every identifier's output is checked for chance coincidences
 identifier): a frame whose matches are more likely than ``max_false_match_prob`` to be chance
 keeps no identified star (they move to ``unmatched``), is flagged
 ``identification_rejected:<reason>``, and any attitude a later stage still reports for it is
-made invalid with that reason. A frame whose identified stars scatter far more than their stated
+made invalid with that reason; a frame whose matches are not likely chance but too few to verify
+(``unverifiable``, ``inconsistent_residuals``) keeps its identified stars for per-star stages and
+is flagged the same way, and no attitude made from them is valid. A frame whose identified stars scatter far more than their stated
 position covariances allow (the check's chi-square, ``integrity.inconsistent``) keeps its
 attitudes, with their covariances scaled by the chi-square per degree of freedom and the flag
 ``covariance_scaled:<factor>``. ``frame.identification`` carries the check either way.
@@ -170,6 +172,8 @@ def verify_identification(frame: FrameData, context: SensorContext, bound: float
     frame = frame.evolve(identification=check)
     if check.passed or check.n_matched < 2:
         return frame
+    if not check.reason.startswith("false_match_probability"):  # unverifiable or inconsistent: ids kept
+        return frame.flagged(f"identification_rejected:{check.reason}")
     stars = frame.stars
     keep = ~stars.identified
     unmatched = stars.take(stars.identified).with_columns(

@@ -15,7 +15,15 @@ found (pattern search, tracking from a prior, a third-party identifier):
    detection falls within ``g`` of one of them with probability ``p = min(1, N pi g^2 / (W H))``;
    the probability that ``k`` or more of the ``n`` detections do so by chance is the binomial
    tail ``P = sum_{i>=k} C(n, i) p^i (1 - p)^(n - i)`` (``scipy.stats.binom.sf(k - 1, n, p)``).
-   Overlapping discs make the true ``p`` smaller, so ``P`` is conservative. This is the test the
+   Overlapping discs make the true ``p`` smaller, so ``P`` is conservative. The fit's attitude
+   (3 parameters; 6 with the rate) could have been chosen to make any two (three) detections
+   match, so those *anchor* stars are not evidence: the probability reported and tested is
+   ``P = binom.sf(k - 1 - a, n - a, p)`` with ``a`` = 2 (3) anchors, the verification tetra3
+   applies to the stars beyond its pattern. Two stars (three with a rate) can never be verified.
+   When even the tail over all ``k`` stars exceeds the bound the matches are likely chance
+   (``false_match_probability``: the stage mechanics withdraw them); when only the anchored one
+   does, they are ``unverifiable``: the stars keep their identities for per-star stages (a
+   filter tracking guide stars) but no attitude made from them is reported valid. This is the test the
    ``lost-in-space`` identifier applies to its pattern hypotheses (tetra3's verification), made
    independent of the identifier: a tracker whose prior points at an unrelated part of the sky, a
    mirrored or shuffled star field, random spots, all leave large residuals or few matches, hence
@@ -82,13 +90,19 @@ def check_identification(stars: StarTable | None, unmatched: StarTable | None, c
     gate = max(float(np.max(resid)), floor) if np.all(np.isfinite(resid)) else float("inf")
     n_pred = predicted_count(attitude, camera, catalog)
     p = min(1.0, max(n_pred, k) * np.pi * gate**2 / (camera.width * camera.height))
-    prob = float(binom.sf(k - 1, max(n, k), p))
-    dof = 2 * k - (6 if rate_fitted(ident) else 3)
+    fitted = 6 if rate_fitted(ident) else 3
+    anchors = (fitted + 1) // 2  # stars the fit could have made match whatever they were
+    n = max(n, k)
+    chance = float(binom.sf(k - 1, n, p))
+    prob = float(binom.sf(k - 1 - anchors, n - anchors, p)) if k > anchors else 1.0
+    dof = 2 * k - fitted
     info = np.linalg.inv(ident.position_covariance(sigma if np.isfinite(sigma) else DEFAULT_CENTROID_SIGMA_PX))
     chi2_dof = float(np.einsum("ni,nij,nj->", dx, info, dx) / dof) if dof > 0 and np.all(np.isfinite(dx)) else float("nan")
-    check = IdentificationCheck(prob, max(n, k), k, n_pred, gate, float(bound), True, "", chi2_dof, max(dof, 0))
+    check = IdentificationCheck(prob, n, k, n_pred, gate, float(bound), True, "", chi2_dof, max(dof, 0))
+    if chance > bound:
+        return replace(check, passed=False, reason=f"false_match_probability({chance:.1e}>{bound:.0e})")
     if prob > bound:
-        return replace(check, passed=False, reason=f"false_match_probability({prob:.1e}>{bound:.0e})")
+        return replace(check, passed=False, reason=f"unverifiable({prob:.1e}>{bound:.0e},{k} stars)")
     if k < MIN_REDUNDANT_MATCHES and inconsistent(check):
         return replace(check, passed=False, reason=f"inconsistent_residuals(chi2/dof={chi2_dof:.3g},{k}<{MIN_REDUNDANT_MATCHES} stars)")
     return check

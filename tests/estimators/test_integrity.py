@@ -53,7 +53,8 @@ def test_shuffled_identities_fail():
 
 
 def test_probability_is_the_binomial_tail_of_the_stated_model():
-    """P = binom.sf(k - 1, n, N pi g^2 / (W H)) with g the largest residual, N the stars predicted."""
+    """P = binom.sf(k - 3, n - 2, N pi g^2 / (W H)) with g the largest residual, N the stars
+    predicted: the two anchor stars an attitude can always be fitted to are not evidence."""
     context, rng = _context(), np.random.default_rng(3)
     R, idx, x, y = _field(context, rng, min_stars=5)
     idx, x, y = idx[:5], x[:5], y[:5]
@@ -67,7 +68,7 @@ def test_probability_is_the_binomial_tail_of_the_stated_model():
     p = n_pred * np.pi * resid.max() ** 2 / (cam.width * cam.height)
     assert check.n_detections == 25 and check.n_matched == 5 and check.n_predicted == n_pred
     np.testing.assert_allclose(check.gate_px, resid.max())
-    np.testing.assert_allclose(check.false_match_prob, binom.sf(4, 25, p), rtol=1e-9)
+    np.testing.assert_allclose(check.false_match_prob, binom.sf(2, 23, p), rtol=1e-9)
 
 
 def test_rolling_shutter_motion_is_fitted_not_read_as_residual():
@@ -84,6 +85,15 @@ def test_rolling_shutter_motion_is_fitted_not_read_as_residual():
     resid, _, _ = fit_residuals(stars, cam)
     assert resid.max() < 0.05
     assert check_identification(stars, None, cam, cat).passed
+
+
+def test_two_stars_can_match_anything_and_are_never_verified():
+    """Two true stars fit to 1e-3 px, yet any two detections can be fitted by some attitude: the
+    identification is unverifiable (not chance: the ids stay), P = 1."""
+    context, rng = _context(), np.random.default_rng(6)
+    _, idx, x, y = _field(context, rng)
+    check = check_identification(_identified(context, idx[:2], x[:2], y[:2]), None, context.camera, context.catalog)
+    assert not check.passed and check.false_match_prob == 1.0 and check.reason.startswith("unverifiable")
 
 
 def test_fewer_than_two_matches_is_not_applicable():
