@@ -17,6 +17,30 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _cv_predict(X, P, s, h, q, x, Pp):  # pragma: no cover (compiled)
+    """The prediction of track ``s`` over ``h`` seconds into ``x`` (4,) and ``Pp`` (4, 4):
+    ``x = F X[s]``, ``Pp = F P[s] F^T + Q`` (the kernels' shared first half)."""
+    x[0] = X[s, 0] + h * X[s, 1]
+    x[1] = X[s, 1]
+    x[2] = X[s, 2] + h * X[s, 3]
+    x[3] = X[s, 3]
+    for j in range(4):  # F P: row 0 += h row 1, row 2 += h row 3
+        Pp[0, j] = P[s, 0, j] + h * P[s, 1, j]
+        Pp[1, j] = P[s, 1, j]
+        Pp[2, j] = P[s, 2, j] + h * P[s, 3, j]
+        Pp[3, j] = P[s, 3, j]
+    for i in range(4):  # (F P) F^T: column 0 += h column 1, column 2 += h column 3
+        Pp[i, 0] += h * Pp[i, 1]
+        Pp[i, 2] += h * Pp[i, 3]
+    q11, q12, q22 = q * h**4 / 4.0, q * h**3 / 2.0, q * h**2
+    for a in (0, 2):
+        Pp[a, a] += q11
+        Pp[a, a + 1] += q12
+        Pp[a + 1, a] += q12
+        Pp[a + 1, a + 1] += q22
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def kf_cv_step_kernel(X, P, z, dt, q, r, X_out, P_out):  # pragma: no cover (compiled)
     """Eq (11) predict + update of ``n`` tracks: state ``X`` (n, 4), covariance ``P`` (n, 4, 4),
     measurement ``z`` (n, 2) px, step ``dt`` (n,) s; results into ``X_out``, ``P_out`` (may alias).
@@ -33,26 +57,7 @@ def kf_cv_step_kernel(X, P, z, dt, q, r, X_out, P_out):  # pragma: no cover (com
     K = np.empty((4, 2))
     A = np.empty((4, 4))
     for s in range(n):
-        h = dt[s]
-        # ---- predict
-        x[0] = X[s, 0] + h * X[s, 1]
-        x[1] = X[s, 1]
-        x[2] = X[s, 2] + h * X[s, 3]
-        x[3] = X[s, 3]
-        for j in range(4):  # F P: row 0 += h row 1, row 2 += h row 3
-            Pp[0, j] = P[s, 0, j] + h * P[s, 1, j]
-            Pp[1, j] = P[s, 1, j]
-            Pp[2, j] = P[s, 2, j] + h * P[s, 3, j]
-            Pp[3, j] = P[s, 3, j]
-        for i in range(4):  # (F P) F^T: column 0 += h column 1, column 2 += h column 3
-            Pp[i, 0] += h * Pp[i, 1]
-            Pp[i, 2] += h * Pp[i, 3]
-        q11, q12, q22 = q * h**4 / 4.0, q * h**3 / 2.0, q * h**2
-        for a in (0, 2):
-            Pp[a, a] += q11
-            Pp[a, a + 1] += q12
-            Pp[a + 1, a] += q12
-            Pp[a + 1, a + 1] += q22
+        _cv_predict(X, P, s, dt[s], q, x, Pp)
         # ---- update
         sa, sb, sc, sd = Pp[0, 0] + r, Pp[0, 2], Pp[2, 0], Pp[2, 2] + r
         det = sa * sd - sb * sc
@@ -93,25 +98,7 @@ def kf_cv_step_cov_kernel(X, P, z, dt, q, R, X_out, P_out):  # pragma: no cover 
     A = np.empty((4, 4))
     KR = np.empty((4, 2))
     for s in range(n):
-        h = dt[s]
-        x[0] = X[s, 0] + h * X[s, 1]
-        x[1] = X[s, 1]
-        x[2] = X[s, 2] + h * X[s, 3]
-        x[3] = X[s, 3]
-        for j in range(4):
-            Pp[0, j] = P[s, 0, j] + h * P[s, 1, j]
-            Pp[1, j] = P[s, 1, j]
-            Pp[2, j] = P[s, 2, j] + h * P[s, 3, j]
-            Pp[3, j] = P[s, 3, j]
-        for i in range(4):
-            Pp[i, 0] += h * Pp[i, 1]
-            Pp[i, 2] += h * Pp[i, 3]
-        q11, q12, q22 = q * h**4 / 4.0, q * h**3 / 2.0, q * h**2
-        for a in (0, 2):
-            Pp[a, a] += q11
-            Pp[a, a + 1] += q12
-            Pp[a + 1, a] += q12
-            Pp[a + 1, a + 1] += q22
+        _cv_predict(X, P, s, dt[s], q, x, Pp)
         sa, sb, sc, sd = Pp[0, 0] + R[s, 0, 0], Pp[0, 2] + R[s, 0, 1], Pp[2, 0] + R[s, 1, 0], Pp[2, 2] + R[s, 1, 1]
         det = sa * sd - sb * sc
         i00, i01, i10, i11 = sd / det, -sb / det, -sc / det, sa / det
