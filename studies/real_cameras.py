@@ -87,12 +87,11 @@ from rollingstar.sensors.scenario import (
     SensorConfig,
     ShutterConfig,
 )
+from rollingstar.studies.real_data import CREUSOT_EPOCH, TETRA3_EPOCH
 
 ROOT = Path(__file__).resolve().parents[1]
 PIPELINE = CONFIGS / "pipelines" / "real_images.yaml"
 TETRA3_SIDECAR = CONFIGS / "cameras" / "tetra3_recording.yaml"
-TETRA3_EPOCH = 2019.5739  # 2019-07-29T20:47:26Z (configs/cameras/tetra3_recording.yaml)
-CREUSOT_EPOCH = 2023.69  # 2023-09-07 (log.json dates, no zone)
 RENDER_EPOCH = 2025.0
 RENDER_OBSERVATION = "2024-12-31T18:00:00Z"  # Julian epoch 2025.0
 PEER_CATALOG_HP = 9.0

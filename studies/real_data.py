@@ -16,6 +16,7 @@ import os
 import time
 import warnings
 from dataclasses import dataclass, replace
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +41,7 @@ from rollingstar.logs.importers.sidecar import load_camera
 from rollingstar.outputs import write_text
 from rollingstar.progress import progress_bar
 from rollingstar.sensors.camera import PinholeCamera
-from rollingstar.sensors.catalog import StarCatalog
+from rollingstar.sensors.catalog import StarCatalog, julian_year
 from rollingstar.sensors.conventions import RAD_TO_ARCSEC, radec_roll_from_attitude, radec_to_unit
 from rollingstar.sensors.timing import DetectorTiming
 from rollingstar.studies.real_calibration import (
@@ -53,8 +54,11 @@ from rollingstar.studies.real_calibration import (
 
 ROOT = Path(__file__).resolve().parents[1]
 TETRA3_CAMERA = CONFIGS / "cameras" / "tetra3_blackfly_s.yaml"
-TETRA3_EPOCH = 2019.58  # 2019-07-29
-CREUSOT_EPOCH = 2023.69  # 2023-09-07 (log.json dates are d/mm/yyyy: "7/09/2023")
+#: Observation epochs (Julian years): the tetra3 images at 2019-07-29T20:47:26Z (their file names, UTC
+#: checked against the pointings: configs/cameras/tetra3_recording.yaml); creusot on 2023-09-07
+#: (log.json dates are d/mm/yyyy, "7/09/2023", without a time or zone).
+TETRA3_EPOCH = julian_year(datetime(2019, 7, 29, 20, 47, 26, tzinfo=timezone.utc))
+CREUSOT_EPOCH = 2023.69
 MAGNITUDE_LIMIT = 7.0
 COG_PARAMS = dict(background="map", threshold_sigma=5.0, min_pixels=3)
 LIS_PARAMS = dict(track=False)
