@@ -175,10 +175,27 @@ def plot_covariance_weighting(result: dict, path: Path) -> Path:
     return path
 
 
+def covariance_weighting_markdown(result: dict, command: str) -> str:
+    """The page ``<out>/covariance-weighting.md``: what was measured, by which command, the table."""
+    return "\n".join([
+        "# Attitude accuracy: scalar sigma_px against the 2 x 2 star covariance", "",
+        f"Measured by `{command}`. The `ls_rate` pipeline (ls-rate rolling-shutter correction, QUEST) on the "
+        "he2021a sensor at image level; 'scalar' weights every star by its isotropic `sigma_px` "
+        "(`star_covariance: false` in ls-rate and quest), '2x2' by the full covariance (the default). Covariance "
+        "source 'centroider': what `cog` reports (docs/centroid-covariance.md); 'truth-smear': each star's true "
+        "image velocity sets the covariance's shape, scaled to the same trace. Method: "
+        "`studies/covariance_weighting.py`.", "",
+        "```", covariance_weighting_table(result), "```", "",
+        "![covariance weighting](img/covariance_weighting.png)", ""])
+
+
 def write_covariance_weighting(result: dict, out_dir: Path, command: str) -> list[Path]:
-    """``<out>/covariance_weighting.json`` (with the command) and ``<out>/img/covariance_weighting.png``."""
+    """``<out>/covariance_weighting.json`` (with the command), ``<out>/covariance-weighting.md`` and
+    ``<out>/img/covariance_weighting.png``."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     js = out_dir / "covariance_weighting.json"
     write_text(js, json.dumps({**result, "command": command}, indent=2) + "\n")
-    return [js, plot_covariance_weighting(result, out_dir / "img" / "covariance_weighting.png")]
+    md = out_dir / "covariance-weighting.md"
+    write_text(md, covariance_weighting_markdown(result, command))
+    return [js, md, plot_covariance_weighting(result, out_dir / "img" / "covariance_weighting.png")]
