@@ -370,7 +370,7 @@ def _adversarial_figure(seed: int, as_json: bool, quick: bool) -> None:
 @command()
 def diagnose(recording: Path = typer.Option(..., "--recording", help="MCAP recording to diagnose"),
              sim: str = typer.Option(None, "--sim", help="scenario YAML or shipped name (default: the sensor model the recording declares)"),
-             pipeline: str = typer.Option(None, "--pipeline", help="pipeline YAML or shipped name (default: cog, tracking, quest)"),
+             pipeline: str = typer.Option(None, "--pipeline", help="pipeline YAML or shipped name (default: cog, lost-in-space starting from the declared attitude when there is one, quest)"),
              out_dir: Path = typer.Option(None, "-o", "--output", help="report directory (index.html, PNGs, scenario_updated.yaml)"),
              as_json: bool = typer.Option(False, "--json", help="print one JSON object"),
              seed: int = typer.Option(0, "--seed", min=0, max=2**63 - 1, help="held-out split and bootstrap seed"),
