@@ -213,7 +213,9 @@ class IdentificationCheck:
     detections would fall within ``gate_px`` of one of the ``n_predicted`` catalogue stars on the
     detector; ``bound`` the largest accepted; ``passed`` whether it was accepted; ``reason`` why
     not ("" when passed); ``chi2_dof`` the fit's normalised residual (chi^2 per degree of freedom
-    with the stars' stated position covariances, ``dof`` degrees of freedom; NaN without them).
+    with the stars' stated position covariances, ``dof`` degrees of freedom; NaN without them);
+    ``scatter_scale`` the variance factor of the majority of the stars (robust: from the median
+    normalised residual) and ``n_outliers`` the stars beyond 5 sigma of their covariance.
     """
 
     false_match_prob: float
@@ -226,6 +228,8 @@ class IdentificationCheck:
     reason: str = ""
     chi2_dof: float = float("nan")
     dof: int = 0
+    scatter_scale: float = float("nan")
+    n_outliers: int = 0
 
 
 @dataclass(frozen=True)

@@ -17,10 +17,12 @@ keeps no identified star (they move to ``unmatched``), is flagged
 ``identification_rejected:<reason>``, and any attitude a later stage still reports for it is
 made invalid with that reason; a frame whose matches are not likely chance but too few to verify
 (``unverifiable``, ``inconsistent_residuals``) keeps its identified stars for per-star stages and
-is flagged the same way, and no attitude made from them is valid. A frame whose identified stars scatter far more than their stated
-position covariances allow (the check's chi-square, ``integrity.inconsistent``) keeps its
-attitudes, with their covariances scaled by the chi-square per degree of freedom and the flag
-``covariance_scaled:<factor>``. ``frame.identification`` carries the check either way.
+is flagged the same way, and no attitude made from them is valid. A frame of five or more stars
+whose scatter contradicts their stated position covariances (the check's chi-square,
+``integrity.inconsistent``) keeps its attitudes: when the majority scatters wider than stated,
+their covariances are scaled by the majority's factor (flag ``covariance_scaled:<factor>``);
+when only a few stars do, they are counted (``outlier_stars:N``). ``frame.identification``
+carries the check either way.
 """
 from __future__ import annotations
 
@@ -36,6 +38,7 @@ from rollingstar.estimators.data import AttitudeEstimate, FrameData, SensorConte
 from rollingstar.estimators.identifiers.base import Identifier
 from rollingstar.estimators.identifiers.integrity import (
     DEFAULT_MAX_FALSE_MATCH_PROB,
+    SCALE_THRESHOLD,
     check_identification,
     inconsistent,
 )
@@ -201,9 +204,12 @@ def _checked_attitudes(frame: FrameData) -> FrameData:
             AttitudeEstimate.invalid(a.t_ns, a.n_stars, reason) if a.valid else a for a in frame.attitudes))
     if not inconsistent(check):
         return frame
-    scaled = tuple(replace(a, covariance_rad2=np.asarray(a.covariance_rad2) * check.chi2_dof)
+    if not check.scatter_scale >= SCALE_THRESHOLD:  # an honest majority with a few outliers
+        return frame.flagged(f"outlier_stars:{check.n_outliers}") if check.n_outliers else frame
+    factor = check.scatter_scale
+    scaled = tuple(replace(a, covariance_rad2=np.asarray(a.covariance_rad2) * factor)
                    if a.valid and a.covariance_rad2 is not None else a for a in frame.attitudes)
-    return frame.evolve(attitudes=scaled).flagged(f"covariance_scaled:{check.chi2_dof:.3g}")
+    return frame.evolve(attitudes=scaled).flagged(f"covariance_scaled:{factor:.3g}")
 
 
 def finish_frame(frame: FrameData) -> FrameData:
@@ -215,8 +221,9 @@ def finish_frame(frame: FrameData) -> FrameData:
       (it is kept: the centroider's ``sigma_px`` of clipped spots, and so the covariance, is inflated
       for them, but the user should know the frame is not a normal one);
     - a valid attitude on a frame whose identification check failed is made invalid with its reason;
-      ``covariance_scaled:<factor>`` when the check found the stars' scatter inconsistent with
-      their covariances (the attitudes' covariances are scaled by that factor).
+      ``covariance_scaled:<factor>`` when the check found the majority of the stars scattering wider
+      than their covariances (the attitudes' covariances are scaled by that factor), or
+      ``outlier_stars:N`` when only a few stars do.
     """
     frame = _checked_attitudes(frame)
     if frame.stars is not None and frame.stars.identified.sum() < 2 and not any(a.valid for a in frame.attitudes):

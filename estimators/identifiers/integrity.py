@@ -39,8 +39,11 @@ fewer than two identified stars no attitude can be made and the check does not a
    more than their covariances say (a displaced or blended star, an unmodelled lens) makes every
    covariance computed from those stars too small: with fewer than :data:`MIN_REDUNDANT_MATCHES`
    stars the identification is rejected (``inconsistent_residuals``: too few stars to tell the
-   displaced one), otherwise the stage mechanics scale the frame's attitude covariances by
-   ``chi^2 / dof`` (:func:`inconsistent`).
+   displaced one). With more, the majority decides: when the stars' typical scatter (the median
+   normalised residual, robust to a few blends or misplaced spots) exceeds their covariances by
+   :data:`SCALE_THRESHOLD` or more, the stage mechanics scale the frame's attitude covariances by
+   that factor; a few stars beyond 5 sigma with an honest majority are only counted
+   (``outlier_stars:N``: a robust attitude gate, ``robust: ransac``, removes them).
 """
 from __future__ import annotations
 
@@ -63,6 +66,10 @@ RATE_FIT_MIN_MATCHES = 5
 MIN_GATE_PX = 0.5
 #: Chi-square tail probability below which a fit's residuals contradict the stated covariances.
 INCONSISTENT_P = 1e-6
+#: A star further than 5 sigma of its own covariance from the fit is an outlier.
+OUTLIER_Z2 = 25.0
+#: Majority scatter factor above which the frame's attitude covariances are scaled by it.
+SCALE_THRESHOLD = 2.0
 #: Fewest matches whose inconsistent residuals still leave a usable attitude (with fewer, the
 #: displaced star cannot be told from the others: the identification is rejected).
 MIN_REDUNDANT_MATCHES = 5
@@ -97,8 +104,13 @@ def check_identification(stars: StarTable | None, unmatched: StarTable | None, c
     prob = float(binom.sf(k - 1 - anchors, n - anchors, p)) if k > anchors else 1.0
     dof = 2 * k - fitted
     info = np.linalg.inv(ident.position_covariance(sigma if np.isfinite(sigma) else DEFAULT_CENTROID_SIGMA_PX))
-    chi2_dof = float(np.einsum("ni,nij,nj->", dx, info, dx) / dof) if dof > 0 and np.all(np.isfinite(dx)) else float("nan")
-    check = IdentificationCheck(prob, n, k, n_pred, gate, float(bound), True, "", chi2_dof, max(dof, 0))
+    z2 = np.einsum("ni,nij,nj->n", dx, info, dx) if np.all(np.isfinite(dx)) else np.full(k, np.nan)
+    chi2_dof = float(z2.sum() / dof) if dof > 0 else float("nan")
+    # the majority's scale: a star's z^2 has ~2 (1 - fitted / 2k) degrees of freedom; the median of
+    # chi^2 with 2 degrees of freedom is 2 ln 2
+    scale = float(np.median(z2) / (2.0 * np.log(2.0) * max(dof, 1) / (2.0 * k)))
+    check = IdentificationCheck(prob, n, k, n_pred, gate, float(bound), True, "", chi2_dof, max(dof, 0), scale,
+                                int(np.count_nonzero(z2 > OUTLIER_Z2)))
     if chance > bound:
         return replace(check, passed=False, reason=f"false_match_probability({chance:.1e}>{bound:.0e})")
     if prob > bound:
