@@ -167,20 +167,7 @@ class LostInSpaceIdentifier(Identifier):
             raise ValueError("the 'lost-in-space' identifier needs a star catalogue in the sensor context")
         cam = context.camera
         self._fov_deg = float(cam.fov_deg[0])
-        tol = self.params.fov_tolerance
-        cat = context.catalog
-        if self.params.pattern_catalog_magnitude is not None:
-            from rollingstar.sensors.catalog import StarCatalog
-
-            cat = StarCatalog.from_hipparcos(cat.epoch_year, self.params.pattern_catalog_magnitude)
-        if self.params.magnitude_limit is not None:
-            cat = cat.subset(cat.magnitude <= self.params.magnitude_limit)
-        self._catalog = cat
-        # the field range is widened to a quarter-degree grid so that cameras a little apart (one
-        # lens' per-image or calibrated focal lengths) share one memoised database (~1 s to build)
-        lo = np.floor(self._fov_deg * (1 - tol) * 4.0) / 4.0
-        hi = np.ceil(self._fov_deg * (1 + tol) * 4.0) / 4.0
-        self._db = solver_database(cat, lo, hi, self.params.magnitude_limit)
+        self._db = None  # built on the first pattern search (_database): tracking from a prior never needs it
         import tetra3rs
 
         self._camera_model = tetra3rs.CameraModel(float(cam.focal_px), int(cam.width), int(cam.height))
@@ -203,6 +190,31 @@ class LostInSpaceIdentifier(Identifier):
         self.last_mode = ""
 
     # ------------------------------------------------------------------ helpers
+    def __getstate__(self) -> dict:
+        """For run checkpoints: everything but the pattern database (a tetra3rs object that does not
+        pickle); it is rebuilt, from the memo or anew, on the next pattern search."""
+        return {**self.__dict__, "_db": None}
+
+    def _database(self):
+        """The pattern database (and its catalogue, ``self._catalog``), built on first use: about a
+        second per catalogue and field, memoised across instances (tetra3_database.py)."""
+        if self._db is None:
+            cat = self.context.catalog
+            if self.params.pattern_catalog_magnitude is not None:
+                from rollingstar.sensors.catalog import StarCatalog
+
+                cat = StarCatalog.from_hipparcos(cat.epoch_year, self.params.pattern_catalog_magnitude)
+            if self.params.magnitude_limit is not None:
+                cat = cat.subset(cat.magnitude <= self.params.magnitude_limit)
+            self._catalog = cat
+            # the field range is widened to a quarter-degree grid so that cameras a little apart (one
+            # lens' per-image or calibrated focal lengths) share one memoised database
+            tol = self.params.fov_tolerance
+            lo = np.floor(self._fov_deg * (1 - tol) * 4.0) / 4.0
+            hi = np.ceil(self._fov_deg * (1 + tol) * 4.0) / 4.0
+            self._db = solver_database(cat, lo, hi, self.params.magnitude_limit)
+        return self._db
+
     def _tracking_identifier(self, attitude: Rotation, params: TrackingParams, camera) -> TrackingIdentifier:
         t = TrackingIdentifier(**params.model_dump())
         t.setup(replace(self.context, initial_attitude=attitude, camera=camera))
@@ -305,7 +317,7 @@ class LostInSpaceIdentifier(Identifier):
         xu, yu = model.undistort(det.x[order], det.y[order])  # the pattern search sees a pinhole image
         cents = np.nan_to_num(np.column_stack([xu - cam.cx, yu - cam.cy, np.maximum(det.flux[order], 0.0)]))
         start = time.perf_counter()
-        res = self._db.solve_from_centroids(
+        res = self._database().solve_from_centroids(
             cents, camera_model=self._camera_model, fov_max_error_deg=self._fov_deg * self.params.fov_tolerance,
             match_threshold=self.params.match_threshold, solve_timeout_ms=None,
             max_patterns_checked=self.params.max_patterns_checked,
