@@ -41,6 +41,24 @@ def _cv_predict(X, P, s, h, q, x, Pp):  # pragma: no cover (compiled)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _cv_gain_update(Pp, x, z, s, sa, sb, sc, sd, K, X_out, A):  # pragma: no cover (compiled)
+    """Track ``s``'s update from the prediction ``x``, ``Pp`` and the innovation covariance
+    ``S = [[sa, sb], [sc, sd]]``: the gain ``K = Pp H^T S^-1`` (2 x 2 inverted in closed form), the
+    state ``X_out[s] = x + K (z[s] - H x)`` and ``A = Pp - K H Pp`` (the kernels' shared middle)."""
+    det = sa * sd - sb * sc
+    i00, i01, i10, i11 = sd / det, -sb / det, -sc / det, sa / det
+    for i in range(4):
+        K[i, 0] = Pp[i, 0] * i00 + Pp[i, 2] * i10
+        K[i, 1] = Pp[i, 0] * i01 + Pp[i, 2] * i11
+    y0, y1 = z[s, 0] - x[0], z[s, 1] - x[2]
+    for i in range(4):
+        X_out[s, i] = x[i] + K[i, 0] * y0 + K[i, 1] * y1
+    for i in range(4):
+        for j in range(4):
+            A[i, j] = Pp[i, j] - (K[i, 0] * Pp[0, j] + K[i, 1] * Pp[2, j])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def kf_cv_step_kernel(X, P, z, dt, q, r, X_out, P_out):  # pragma: no cover (compiled)
     """Eq (11) predict + update of ``n`` tracks: state ``X`` (n, 4), covariance ``P`` (n, 4, 4),
     measurement ``z`` (n, 2) px, step ``dt`` (n,) s; results into ``X_out``, ``P_out`` (may alias).
@@ -59,18 +77,7 @@ def kf_cv_step_kernel(X, P, z, dt, q, r, X_out, P_out):  # pragma: no cover (com
     for s in range(n):
         _cv_predict(X, P, s, dt[s], q, x, Pp)
         # ---- update
-        sa, sb, sc, sd = Pp[0, 0] + r, Pp[0, 2], Pp[2, 0], Pp[2, 2] + r
-        det = sa * sd - sb * sc
-        i00, i01, i10, i11 = sd / det, -sb / det, -sc / det, sa / det
-        for i in range(4):
-            K[i, 0] = Pp[i, 0] * i00 + Pp[i, 2] * i10
-            K[i, 1] = Pp[i, 0] * i01 + Pp[i, 2] * i11
-        y0, y1 = z[s, 0] - x[0], z[s, 1] - x[2]
-        for i in range(4):
-            X_out[s, i] = x[i] + K[i, 0] * y0 + K[i, 1] * y1
-        for i in range(4):
-            for j in range(4):
-                A[i, j] = Pp[i, j] - (K[i, 0] * Pp[0, j] + K[i, 1] * Pp[2, j])
+        _cv_gain_update(Pp, x, z, s, Pp[0, 0] + r, Pp[0, 2], Pp[2, 0], Pp[2, 2] + r, K, X_out, A)
         for i in range(4):
             for j in range(4):
                 P_out[s, i, j] = (A[i, j] - (A[i, 0] * K[j, 0] + A[i, 2] * K[j, 1])
@@ -99,20 +106,11 @@ def kf_cv_step_cov_kernel(X, P, z, dt, q, R, X_out, P_out):  # pragma: no cover 
     KR = np.empty((4, 2))
     for s in range(n):
         _cv_predict(X, P, s, dt[s], q, x, Pp)
-        sa, sb, sc, sd = Pp[0, 0] + R[s, 0, 0], Pp[0, 2] + R[s, 0, 1], Pp[2, 0] + R[s, 1, 0], Pp[2, 2] + R[s, 1, 1]
-        det = sa * sd - sb * sc
-        i00, i01, i10, i11 = sd / det, -sb / det, -sc / det, sa / det
+        _cv_gain_update(Pp, x, z, s, Pp[0, 0] + R[s, 0, 0], Pp[0, 2] + R[s, 0, 1], Pp[2, 0] + R[s, 1, 0],
+                        Pp[2, 2] + R[s, 1, 1], K, X_out, A)
         for i in range(4):
-            K[i, 0] = Pp[i, 0] * i00 + Pp[i, 2] * i10
-            K[i, 1] = Pp[i, 0] * i01 + Pp[i, 2] * i11
             KR[i, 0] = K[i, 0] * R[s, 0, 0] + K[i, 1] * R[s, 1, 0]
             KR[i, 1] = K[i, 0] * R[s, 0, 1] + K[i, 1] * R[s, 1, 1]
-        y0, y1 = z[s, 0] - x[0], z[s, 1] - x[2]
-        for i in range(4):
-            X_out[s, i] = x[i] + K[i, 0] * y0 + K[i, 1] * y1
-        for i in range(4):
-            for j in range(4):
-                A[i, j] = Pp[i, j] - (K[i, 0] * Pp[0, j] + K[i, 1] * Pp[2, j])
         for i in range(4):
             for j in range(4):
                 P_out[s, i, j] = (A[i, j] - (A[i, 0] * K[j, 0] + A[i, 2] * K[j, 1])
