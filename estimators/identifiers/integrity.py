@@ -140,11 +140,15 @@ def fit_residuals(ident: StarTable, camera, omega_rad_s=None) -> tuple[np.ndarra
     phi = np.zeros((ident.n, 3))
     if omega_rad_s is not None and not rate_fitted(ident):
         phi = dt[:, None] * np.asarray(omega_rad_s, dtype=float)[None, :]
+    # weights 1 / sigma^2 (the isotropic part of each star's covariance): the maximum-likelihood
+    # fit, so that well-measured stars are not judged against a fit the noisy ones pulled
+    cov = ident.position_covariance(DEFAULT_CENTROID_SIGMA_PX)
+    weights = 2.0 / np.trace(cov, axis1=1, axis2=2) if ident.n else np.zeros(0)
     # R^T r_i = Exp(phi_i) b_i: the stars referred to the middle time, then Wahba's problem
-    R, _ = Rotation.align_vectors(ref, Rotation.from_rotvec(phi).apply(body))
+    R, _ = Rotation.align_vectors(ref, Rotation.from_rotvec(phi).apply(body), weights=weights)
     if rate_fitted(ident):
         for _ in range(2):  # the second step removes the first's linearisation error
-            phi = _rate_step(R, body, ref, dt, phi)
+            phi = _rate_step(R, body, ref, dt, phi, np.sqrt(weights))
     # predicted camera vectors: w_i = (R Exp(phi_i))^T r_i
     w = (R * Rotation.from_rotvec(phi)).inv().apply(ref) if ident.n else np.zeros((0, 3))
     px, py, front = camera.project(w)
@@ -153,14 +157,16 @@ def fit_residuals(ident: StarTable, camera, omega_rad_s=None) -> tuple[np.ndarra
     return resid, R, dx
 
 
-def _rate_step(R: Rotation, body: np.ndarray, ref: np.ndarray, dt: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """Per-star rotation vectors ``phi_i = delta + omega dt_i`` after one linearised least-squares
-    step of the attitude-and-rate fit from ``phi``: ``b_i - w_i = [w_i]x (d delta + d omega dt_i)``
-    with ``w_i = (R Exp(phi_i))^T r_i``."""
+def _rate_step(R: Rotation, body: np.ndarray, ref: np.ndarray, dt: np.ndarray, phi: np.ndarray,
+               root_weights: np.ndarray) -> np.ndarray:
+    """Per-star rotation vectors ``phi_i = delta + omega dt_i`` after one linearised weighted
+    least-squares step of the attitude-and-rate fit from ``phi``: ``b_i - w_i = [w_i]x (d delta +
+    d omega dt_i)`` with ``w_i = (R Exp(phi_i))^T r_i``, each star's rows scaled by ``root_weights``."""
     w = (R * Rotation.from_rotvec(phi)).inv().apply(ref)
     S = skew(w)  # (n, 3, 3)
-    A = np.concatenate([S, S * dt[:, None, None]], axis=2).reshape(-1, 6)
-    sol, *_ = np.linalg.lstsq(A, (body - w).reshape(-1), rcond=None)
+    rw = np.repeat(root_weights, 3)
+    A = np.concatenate([S, S * dt[:, None, None]], axis=2).reshape(-1, 6) * rw[:, None]
+    sol, *_ = np.linalg.lstsq(A, (body - w).reshape(-1) * rw, rcond=None)
     return phi + sol[:3][None, :] + dt[:, None] * sol[3:][None, :]
 
 
