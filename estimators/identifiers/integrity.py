@@ -3,36 +3,31 @@
 A frame's identified stars are checked against the catalogue with no knowledge of how they were
 found (pattern search, tracking from a prior, a third-party identifier):
 
-1. Fit. The attitude that best fits the ``k`` identified stars (Wahba's problem, SVD,
-   ``Rotation.align_vectors``); with at least :data:`RATE_FIT_MIN_MATCHES` stars whose times
-   differ (raw rolling-shutter centroids, each at its own row time) also a constant body rate,
-   ``R(t) = R0 Exp(omega (t - t_mid))``, two linearised least-squares steps (the rolling shutter's
-   row-to-row motion would otherwise read as residual). With fewer stars the rate is the frame's
-   gyro rate when it has gyro samples, else zero (a static frame, as the pattern search assumes).
+1. Fit. The attitude that best fits the ``k`` identified stars, each weighted by its own
+   covariance (Wahba's problem, ``Rotation.align_vectors``); with at least
+   :data:`RATE_FIT_MIN_MATCHES` stars whose times differ (raw rolling-shutter centroids, each at
+   its own row time) also a constant body rate, ``R(t) = R0 Exp(omega (t - t_mid))``, by two
+   linearised weighted least-squares steps (the rolling shutter's row-to-row motion would
+   otherwise read as residual). With fewer stars the rate is the frame's gyro rate when it has gyro
+   samples, else zero (a static frame, as the pattern search assumes).
 2. Gate. ``g`` = the largest pixel residual of the ``k`` stars under that fit, at least
    ``max(min_gate_px, 3 * median star sigma)``: the distance within which every match was found.
 3. Chance. With ``N`` catalogue stars predicted on the ``W x H`` detector by the fit, one random
-   detection falls within ``g`` of one of them with probability ``p = min(1, N pi g^2 / (W H))``;
-   the probability that ``k`` or more of the ``n`` detections do so by chance is the binomial
-   tail ``P = sum_{i>=k} C(n, i) p^i (1 - p)^(n - i)`` (``scipy.stats.binom.sf(k - 1, n, p)``).
-   Overlapping discs make the true ``p`` smaller, so ``P`` is conservative. The fit's attitude
-   (3 parameters; 6 with the rate) could have been chosen to make any two (three) detections
-   match, so those *anchor* stars are not evidence: the probability reported and tested is
-   ``P = binom.sf(k - 1 - a, n - a, p)`` with ``a`` = 2 (3) anchors, the verification tetra3
-   applies to the stars beyond its pattern. Two stars (three with a rate) can never be verified.
-   When even the tail over all ``k`` stars exceeds the bound the matches are likely chance
-   (``false_match_probability``: the stage mechanics withdraw them); when only the anchored one
-   does, they are ``unverifiable``: the stars keep their identities for per-star stages (a
-   filter tracking guide stars) but no attitude made from them is reported valid. This is the test the
-   ``lost-in-space`` identifier applies to its pattern hypotheses (tetra3's verification), made
-   independent of the identifier: a tracker whose prior points at an unrelated part of the sky, a
-   mirrored or shuffled star field, random spots, all leave large residuals or few matches, hence
-   a large ``P``.
-
-The frame is accepted when ``P <= bound`` (default :data:`DEFAULT_MAX_FALSE_MATCH_PROB`); with
-fewer than two identified stars no attitude can be made and the check does not apply (``P = 1``,
-``passed`` False, no flag).
-
+   detection falls within ``g`` of one of them with probability ``p = min(1, N pi g^2 / (W H))``
+   (overlapping discs make the true ``p`` smaller: conservative). The fit's attitude (3
+   parameters; 6 with the rate) could have been chosen to make any ``a`` = 2 (3) detections match,
+   so those *anchor* stars are not evidence: the probability that the matches are chance is the
+   binomial tail over the others, ``P = binom.sf(k - 1 - a, n - a, p)`` (``n`` detections), the
+   verification tetra3 applies to the stars beyond its pattern, here independent of the
+   identifier. A tracker whose prior points at an unrelated part of the sky, a mirrored or
+   shuffled field, random spots: all leave large residuals or few matches, hence a large ``P``.
+   The frame passes when ``P <= bound`` (default :data:`DEFAULT_MAX_FALSE_MATCH_PROB`). When even
+   the tail over all ``k`` stars, ``binom.sf(k - 1, n, p)``, exceeds the bound the matches are
+   likely chance (``false_match_probability``: the stage mechanics withdraw them); when only
+   ``P`` does they are ``unverifiable``: the stars keep their identities for per-star stages (a
+   filter tracking guide stars) but no attitude made from them is valid. Two stars (three with a
+   rate) can never be verified; with fewer than two the check does not apply (``P = 1``,
+   ``passed`` False, no flag).
 4. Consistency. The same fit's ``chi^2 = sum_i r_i^T C_i^-1 r_i`` with each star's stated 2 x 2
    position covariance ``C_i`` (``StarTable.position_covariance``), over ``2 k - 3`` degrees of
    freedom (``2 k - 6`` with the rate). A chance-free identification whose positions scatter far
