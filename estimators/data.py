@@ -103,6 +103,11 @@ class StarTable:
     def empty(cls) -> "StarTable":
         return cls.build(np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64))
 
+    @classmethod
+    def concat(cls, *tables: "StarTable") -> "StarTable":
+        """The rows of ``tables``, in order (copies)."""
+        return cls(**{f.name: np.concatenate([getattr(t, f.name) for t in tables]) for f in fields(cls)})
+
     def take(self, index) -> "StarTable":
         """Rows selected by an integer index or boolean mask (copies)."""
         return StarTable(**{f.name: np.asarray(getattr(self, f.name))[index].copy() for f in fields(self)})

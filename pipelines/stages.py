@@ -34,12 +34,12 @@ import numpy as np
 
 from rollingstar.errors import PipelineError, UserError
 from rollingstar.estimators.centroiders.base import Centroider
-from rollingstar.estimators.data import AttitudeEstimate, FrameData, SensorContext, frame_camera
+from rollingstar.estimators.data import AttitudeEstimate, FrameData, SensorContext, StarTable, frame_camera
 from rollingstar.estimators.identifiers.base import Identifier
 from rollingstar.estimators.identifiers.integrity import (
     DEFAULT_MAX_FALSE_MATCH_PROB,
     SCALE_THRESHOLD,
-    check_identification,
+    check_frame,
     inconsistent,
 )
 from rollingstar.estimators.plugin import Plugin
@@ -168,10 +168,7 @@ class StagePipeline:
 def verify_identification(frame: FrameData, context: SensorContext, bound: float) -> FrameData:
     """``frame`` with its identification check; its identified stars withdrawn when the check fails
     (see the module docstring)."""
-    gyro = frame.gyro.omega_rad_s
-    omega = gyro.mean(axis=0) if len(gyro) else None
-    check = check_identification(frame.stars, frame.unmatched, frame_camera(frame, context), context.catalog, bound,
-                                 omega_rad_s=omega)
+    check = check_frame(frame, frame_camera(frame, context), context.catalog, bound)
     frame = frame.evolve(identification=check)
     if check.passed or check.n_matched < 2:
         return frame
@@ -182,14 +179,9 @@ def verify_identification(frame: FrameData, context: SensorContext, bound: float
     unmatched = stars.take(stars.identified).with_columns(
         catalog_id=np.full(check.n_matched, -1), ref_icrs=np.full((check.n_matched, 3), np.nan))
     if frame.unmatched is not None:
-        unmatched = concat_tables(frame.unmatched, unmatched)
+        unmatched = StarTable.concat(frame.unmatched, unmatched)
     return frame.evolve(stars=stars.take(keep), unmatched=unmatched,
                         flags=frame.flags + (f"identification_rejected:{check.reason}",))
-
-
-def concat_tables(a, b):
-    """The rows of two star tables, ``a``'s first."""
-    return type(a)(**{name: np.concatenate([getattr(a, name), getattr(b, name)]) for name in a.__dataclass_fields__})
 
 
 def _checked_attitudes(frame: FrameData) -> FrameData:

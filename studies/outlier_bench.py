@@ -79,8 +79,7 @@ def plant_false_matches(scene: Scene, k: int, seed: int) -> list[FrameData]:
         row_t = s.row_time_ns[:1].repeat(k) if s.n else t
         false = StarTable.build(x, y, t, row_t, catalog_id=rng.integers(10**6, 2 * 10**6, k), ref_icrs=ref,
                                 sigma_px=np.full(k, float(np.nanmedian(s.sigma_px))))
-        merged = StarTable(**{name: np.concatenate([getattr(s, name), getattr(false, name)])
-                              for name in StarTable.__dataclass_fields__})
+        merged = StarTable.concat(s, false)
         out.append(f.evolve(stars=merged))
     return out
 

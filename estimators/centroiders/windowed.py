@@ -328,7 +328,7 @@ class WindowedCentroider(Centroider):
                 return self._full_frame(frame)
             d2 = (spots.x + c0[i] - px[i]) ** 2 + (spots.y + r0[i] - py[i]) ** 2
             pick.append(spots.take([int(np.argmin(d2))]))
-        cat = StarTable(**{f: np.concatenate([getattr(s, f) for s in pick]) for f in StarTable.__dataclass_fields__})
+        cat = StarTable.concat(*pick)
         x, y = cat.x + c0, cat.y + r0
         timing = self.context.timing
         return self._accept(frame, cat.with_columns(x=x, y=y, t_ns=timing.row_mid_exposure_ns(frame.t0_ns, y),

@@ -48,7 +48,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from scipy.stats import binom, chi2
 
-from rollingstar.estimators.data import DEFAULT_CENTROID_SIGMA_PX, IdentificationCheck, StarTable
+from rollingstar.estimators.data import DEFAULT_CENTROID_SIGMA_PX, FrameData, IdentificationCheck, StarTable
 from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.so3 import skew
 
@@ -86,8 +86,9 @@ def check_identification(stars: StarTable | None, unmatched: StarTable | None, c
     k = ident.n
     if k < 2:
         return IdentificationCheck(1.0, n, k, 0, float("nan"), float(bound), False, f"too_few_matches({k}<2)")
-    resid, attitude, dx = fit_residuals(ident, camera, omega_rad_s)
     sigma = np.nanmedian(np.where(ident.sigma_px > 0, ident.sigma_px, np.nan)) if np.isfinite(ident.sigma_px).any() else np.nan
+    cov = ident.position_covariance(sigma if np.isfinite(sigma) else DEFAULT_CENTROID_SIGMA_PX)
+    resid, attitude, dx = fit_residuals(ident, camera, omega_rad_s, cov)
     floor = max(min_gate_px, 3.0 * (sigma if np.isfinite(sigma) else DEFAULT_CENTROID_SIGMA_PX))
     gate = max(float(np.max(resid)), floor) if np.all(np.isfinite(resid)) else float("inf")
     n_pred = predicted_count(attitude, camera, catalog)
@@ -98,7 +99,7 @@ def check_identification(stars: StarTable | None, unmatched: StarTable | None, c
     chance = float(binom.sf(k - 1, n, p))
     prob = float(binom.sf(k - 1 - anchors, n - anchors, p)) if k > anchors else 1.0
     dof = 2 * k - fitted
-    info = np.linalg.inv(ident.position_covariance(sigma if np.isfinite(sigma) else DEFAULT_CENTROID_SIGMA_PX))
+    info = np.linalg.inv(cov)
     z2 = np.einsum("ni,nij,nj->n", dx, info, dx) if np.all(np.isfinite(dx)) else np.full(k, np.nan)
     chi2_dof = float(z2.sum() / dof) if dof > 0 else float("nan")
     # the majority's scale: a star's z^2 has ~2 (1 - fitted / 2k) degrees of freedom; the median of
@@ -115,6 +116,13 @@ def check_identification(stars: StarTable | None, unmatched: StarTable | None, c
     return check
 
 
+def check_frame(frame: FrameData, camera, catalog, bound: float = DEFAULT_MAX_FALSE_MATCH_PROB) -> IdentificationCheck:
+    """:func:`check_identification` of ``frame``'s stars, with its gyro samples' mean rate when it has any."""
+    gyro = frame.gyro.omega_rad_s
+    return check_identification(frame.stars, frame.unmatched, camera, catalog, bound,
+                                omega_rad_s=gyro.mean(axis=0) if len(gyro) else None)
+
+
 def inconsistent(check: IdentificationCheck) -> bool:
     """True when the fit's chi-square contradicts the stars' stated covariances (``p < INCONSISTENT_P``)."""
     return check.dof > 0 and np.isfinite(check.chi2_dof) and chi2.sf(check.chi2_dof * check.dof, check.dof) < INCONSISTENT_P
@@ -125,9 +133,10 @@ def rate_fitted(ident: StarTable) -> bool:
     return ident.n >= RATE_FIT_MIN_MATCHES and np.ptp(ident.t_ns) > 0
 
 
-def fit_residuals(ident: StarTable, camera, omega_rad_s=None) -> tuple[np.ndarray, Rotation, np.ndarray]:
+def fit_residuals(ident: StarTable, camera, omega_rad_s=None, cov=None) -> tuple[np.ndarray, Rotation, np.ndarray]:
     """Pixel residual distances of the identified stars under the best-fit attitude (and body rate,
-    see the module docstring), the attitude at the stars' middle time, and the residual vectors (n, 2)."""
+    see the module docstring), the attitude at the stars' middle time, and the residual vectors (n, 2).
+    ``cov``: the stars' position covariances (n, 2, 2) the fit is weighted by (default: their own)."""
     body = camera.unproject(ident.x, ident.y)
     ref = ident.ref_icrs / np.linalg.norm(ident.ref_icrs, axis=1, keepdims=True)
     t = ident.t_ns.astype(np.int64)
@@ -137,7 +146,7 @@ def fit_residuals(ident: StarTable, camera, omega_rad_s=None) -> tuple[np.ndarra
         phi = dt[:, None] * np.asarray(omega_rad_s, dtype=float)[None, :]
     # weights 1 / sigma^2 (the isotropic part of each star's covariance): the maximum-likelihood
     # fit, so that well-measured stars are not judged against a fit the noisy ones pulled
-    cov = ident.position_covariance(DEFAULT_CENTROID_SIGMA_PX)
+    cov = ident.position_covariance(DEFAULT_CENTROID_SIGMA_PX) if cov is None else cov
     weights = 2.0 / np.trace(cov, axis1=1, axis2=2) if ident.n else np.zeros(0)
     # R^T r_i = Exp(phi_i) b_i: the stars referred to the middle time, then Wahba's problem
     R, _ = Rotation.align_vectors(ref, Rotation.from_rotvec(phi).apply(body), weights=weights)

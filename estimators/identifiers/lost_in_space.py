@@ -13,7 +13,7 @@ from scipy.stats import binom
 from rollingstar.estimators.data import FrameData
 from rollingstar.estimators.identifiers.base import Identifier
 from rollingstar.estimators.identifiers.camera_fit import RadialCamera, fit_camera
-from rollingstar.estimators.identifiers.integrity import check_identification
+from rollingstar.estimators.identifiers.integrity import check_frame
 from rollingstar.estimators.identifiers.tetra3_database import solver_database
 from rollingstar.estimators.identifiers.tracking import (
     TrackingIdentifier,
@@ -250,10 +250,8 @@ class LostInSpaceIdentifier(Identifier):
 
     def _verified(self, out: FrameData) -> bool:
         """True when the tracked matches pass the false-match bound (integrity.py) on the tracking camera."""
-        gyro = out.gyro.omega_rad_s
-        check = check_identification(out.stars, out.unmatched, self._track_model.camera(self.context.camera),
-                                     self.context.catalog, self.params.max_false_match_prob,
-                                     omega_rad_s=gyro.mean(axis=0) if len(gyro) else None)
+        check = check_frame(out, self._track_model.camera(self.context.camera), self.context.catalog,
+                            self.params.max_false_match_prob)
         return check.passed
 
     def _with_camera(self, out: FrameData) -> FrameData:

@@ -1,8 +1,6 @@
 """Tracking identifier: prediction from the prior attitude and mutual-nearest matching in a gate."""
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -90,8 +88,7 @@ def test_permutation_invariance(seed):
     rng = np.random.default_rng(seed)
     det = detections(scene, 0, rng, sigma_px=0.5)
     extra = StarTable.build(rng.uniform(0, 319, 5), rng.uniform(0, 255, 5), t_ns=np.zeros(5, dtype=np.int64))
-    full = StarTable(**{f.name: np.concatenate([getattr(det, f.name), getattr(extra, f.name)])
-                        for f in dataclasses.fields(StarTable)})
+    full = StarTable.concat(det, extra)
     perm = rng.permutation(full.n)
     t = _ident(scene)
     a = t.process(FrameData(index=0, t0_ns=0, stars=full))
