@@ -5,7 +5,8 @@ Figures (matplotlib, Agg):
 - ``img/error_vs_rate_<scenario>.png`` for every scenario with more than one variant: attitude error
   RMSE per axis, star-pair distance error RMSE and (when estimated) rate error RMSE per axis against
   the variant's |rate| or |(w_x, w_y)| (config ``plot_x``), one line per pipeline (mean over seeds, bars = std), the single-frame
-  Cramér-Rao bounds dashed;
+  Cramér-Rao bounds dashed (centroid-level: the scenario's centroid sigma taken as given) and
+  dotted (pixel-level: the information in the rendered pixels, image-level recordings);
 - ``img/update_rate_vs_accuracy.png``: attitude updates per second against the attitude error
   (RMS over the three axes' RMSE), one marker per (variant, pipeline);
 - ``img/cpu_time.png``: CPU time per frame of the run stage, per pipeline and scenario.
@@ -33,6 +34,12 @@ def _fmt(mean, std=None, digits=3) -> str:
     return text + (f" ± {std:.2g}" if std and std > 1e-9 * abs(mean) else "")  # not float round-off
 
 
+def _valid_percent(row: dict) -> str:
+    """Valid attitude estimates per frame (%, mean over seeds)."""
+    valid, frames = _m(row, "attitude_updates")[0], _m(row, "frames")[0]
+    return "n/a" if valid is None or not frames else f"{100.0 * valid / frames:.3g}"
+
+
 def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("_")
 
@@ -43,9 +50,10 @@ def tables(results: dict) -> list[tuple[str, list[str], list[list[str]]]]:
     scenarios = list(dict.fromkeys(r["scenario"] for r in results["results"]))
     for sc in scenarios:
         rows = [r for r in results["results"] if r["scenario"] == sc]
-        header = ["variant", "pipeline", "seeds", "att. RMSE x / y / z (arcsec)", "CRB x / y / z (arcsec)",
-                  "efficiency x / y / z", "rate RMSE x / y / z (deg/s)", "rate CRB x / y / z (deg/s)",
-                  "pair dist. RMSE (px)", "updates (Hz)", "CPU ms/frame"]
+        header = ["variant", "pipeline", "seeds", "valid (%)", "att. RMSE x / y / z (arcsec)", "CRB x / y / z (arcsec)",
+                  "efficiency x / y / z", "pixel CRB x / y / z (arcsec)", "pixel efficiency x / y / z",
+                  "rate RMSE x / y / z (deg/s)", "rate CRB x / y / z (deg/s)", "pixel rate CRB x / y / z (deg/s)",
+                  "pixel rate efficiency x / y / z", "pair dist. RMSE (px)", "updates (Hz)", "CPU ms/frame"]
         body = []
         for r in rows:
             def trio(prefix, suffix=""):
@@ -53,14 +61,21 @@ def tables(results: dict) -> list[tuple[str, list[str], list[list[str]]]]:
             cpu = r["timing"]["cpu_s_per_frame"]["mean"]
             body.append([
                 r["variant"], r["pipeline"], str(len(r["seeds"])) + (f" ({len(r['errors'])} failed)" if r["errors"] else ""),
+                _valid_percent(r),
                 trio("attitude_error_arcsec.", "_rmse"), trio("attitude_crb_arcsec."), trio("efficiency.attitude_"),
-                trio("rate_error_deg_s.", "_rmse"), trio("rate_crb_deg_s."),
+                trio("pixel_crb_arcsec."), trio("efficiency_pixel.attitude_"),
+                trio("rate_error_deg_s.", "_rmse"), trio("rate_crb_deg_s."), trio("pixel_rate_crb_deg_s."),
+                trio("efficiency_pixel.rate_"),
                 _fmt(*_m(r, "star_pair_distance_error_px.rmse")), _fmt(*_m(r, "update_rate_hz")),
                 "n/a" if cpu is None else f"{1e3 * cpu:.3g}",
             ])
         out.append((sc, header, body))
     return out
 
+
+# the pixel-level bound drawn beside each centroid-level one
+_PIXEL_BOUND = {f"attitude_crb_arcsec.{a}": f"pixel_crb_arcsec.{a}" for a in AXES} | {
+    f"rate_crb_deg_s.{a}": f"pixel_rate_crb_deg_s.{a}" for a in AXES}
 
 _X_KEY = {"rate_norm": ("rate_norm_deg_s", "|rate| (deg/s)"), "rate_xy_norm": ("rate_xy_norm_deg_s", "|(w_x, w_y)| (deg/s)")}
 
@@ -123,11 +138,12 @@ def _error_vs_rate_figure(sc: str, sub: list[dict], pipelines: list[str], colour
             if pts:
                 x, m, s = map(np.array, zip(*pts))
                 ax.errorbar(x, m, yerr=s, marker="o", ms=3, capsize=2, color=colours[p], label=p)
-            if bound:
-                bpts = [(_x_of(r), _m(r, bound)[0]) for r in pr if _m(r, bound)[0] is not None and _m(r, key)[0] is not None]
+            for bkey, style in ((bound, "--"), (_PIXEL_BOUND.get(bound), ":")):
+                bpts = [(_x_of(r), _m(r, bkey)[0]) for r in pr
+                        if bkey and _m(r, bkey)[0] is not None and _m(r, key)[0] is not None]
                 if bpts:
                     bx, bm = zip(*bpts)
-                    ax.plot(bx, bm, ls="--", lw=1, color=colours[p], alpha=0.7)
+                    ax.plot(bx, bm, ls=style, lw=1, color=colours[p], alpha=0.7)
         ax.set_title(title, fontsize=9)
         ax.set_xlabel(x_label)
         if ax.has_data():
@@ -137,7 +153,8 @@ def _error_vs_rate_figure(sc: str, sub: list[dict], pipelines: list[str], colour
         if not ax.has_data():
             ax.set_visible(False)
     axs[0][0].legend(fontsize=7)
-    fig.suptitle(f"{sc}: error vs rate (mean ± std over seeds; dashed: single-frame Cramér–Rao bound)", fontsize=10)
+    fig.suptitle(f"{sc}: error vs rate (mean ± std over seeds; dashed: single-frame Cramér–Rao bound, "
+                 f"centroid-level; dotted: pixel-level)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -192,11 +209,15 @@ def _cpu_time_figure(rows: list[dict], pipelines: list[str], colours: dict, path
     plt.close(fig)
 
 
+_LEGEND = ("valid = frames with a valid attitude estimate; CRB = single-frame Cramér–Rao bound, centroid-level "
+           "(the scenario's centroid sigma taken as given); pixel CRB = the bound from the rendered pixels "
+           "(image-level recordings); efficiency = RMSE / bound.")
+
+
 def markdown(results: dict, images: list[tuple[str, str]], command: str) -> str:
     c = results["comparison"]
     lines = [f"# Comparison `{c['name']}`", "", c["description"], "", f"Command: `{command}`", "",
-             f"Seeds: {c['seeds']}; mean ± std over seeds; CRB = single-frame Cramér–Rao bound; "
-             "efficiency = RMSE / CRB.", ""]
+             f"Seeds: {c['seeds']}; mean ± std over seeds; {_LEGEND}", ""]
     for title, header, body in tables(results):
         lines += [f"## {title}", "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         lines += ["| " + " | ".join(row) + " |" for row in body]
@@ -217,7 +238,7 @@ def html_report(results: dict, images: list[tuple[str, str]], command: str) -> s
              "img{max-width:100%}</style></head><body>",
              f"<h1>Comparison {html.escape(c['name'])}</h1><p>{html.escape(c['description'])}</p>",
              f"<p>Command: <code>{html.escape(command)}</code>; seeds {c['seeds']}; mean ± std over seeds; "
-             "CRB = single-frame Cramér–Rao bound; efficiency = RMSE / CRB.</p>"]
+             f"{html.escape(_LEGEND)}</p>"]
     for title, header, body in tables(results):
         parts.append(f"<h2>{html.escape(title)}</h2><table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>")
         parts += ["<tr>" + "".join(f"<td>{html.escape(v)}</td>" for v in row) + "</tr>" for row in body]
