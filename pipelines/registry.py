@@ -42,6 +42,7 @@ BUILTIN: dict[str, str] = {
     "none": "rollingstar.estimators.corrections.none:NoCorrection",
     "rate-correction": "rollingstar.estimators.corrections.rate:RateCorrection",
     "quest": "rollingstar.estimators.attitude.quest:QuestSolver",
+    "rs-bundle": "rollingstar.estimators.attitude.rs_bundle:RsBundleSolver",
     # he2021a plugins:
     "kf-cv": "rollingstar.estimators.filters.kf_cv:KfCvFilter",
     "time-domain": "rollingstar.estimators.corrections.time_domain:TimeDomainCorrection",
