@@ -18,8 +18,9 @@ with ``G, C, N`` the (position-and-velocity, nuisance) blocks of ``J^T W J``, ``
 at the solution is the Fisher information of ``theta`` in the pixels (the frame-level pixel bound).
 Stars whose window leaves the detector contribute their position term instead
 (:func:`rollingstar.estimators.attitude.frame_fit.position_normal`); a star the model does not
-explain (non-positive flux, or a reduced chi-square above ``MAX_STAR_CHI2``: a wrong
-identification, a blend) is left out and counted in the frame flag ``pixel_outliers:N``.
+explain (non-positive flux, or a reduced chi-square above ``MAX_STAR_CHI2`` after the first step,
+above ``START_STAR_CHI2`` before it: a wrong identification, a blend) is left out and counted in
+the frame flag ``pixel_outliers:N``.
 """
 from __future__ import annotations
 
@@ -35,6 +36,7 @@ from rollingstar.sensors.so3 import skew
 from rollingstar.sensors.streak_model import streak_mu_jac
 
 MAX_STAR_CHI2 = 4.0  # reduced chi-square above which a star's pixels contradict the model
+START_STAR_CHI2 = 100.0  # the same at the starting point, where the positions may still be off by a pixel
 BACKGROUND_STRIDE = 4  # pixel stride of the frame's background-noise sample
 
 
@@ -179,8 +181,8 @@ def refine_on_pixels(frame, context, camera, stars, R: Rotation, omega, info, fi
     for it in range(params.pixel_iterations + 1):
         pv, A, _ = kin(R, omega)
         b = _Blocks(pv[inside], A[inside], nuis, data, live, bg_var, *win)
-        if it == 0:
-            keep = (nuis[:, 0] > 0) & (b.chi2 / b.dof <= MAX_STAR_CHI2)
+        if it <= 1:  # a loose screen at the start, the strict one after the first step
+            keep = (nuis[:, 0] > 0) & (b.chi2 / b.dof <= (START_STAR_CHI2 if it == 0 else MAX_STAR_CHI2))
         normal = np.sum(b.normal[keep][:, :k, :k], axis=0)
         rhs = np.sum(b.rhs[keep][:, :k], axis=0)
         if d_out is not None:
