@@ -8,7 +8,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from rollingstar.sensors.conventions import S_PER_NS
-from rollingstar.sensors.so3 import skew
+from rollingstar.sensors.so3 import rotate_at_rate, skew
 
 
 def star_times(stars, t_ref_ns: int) -> np.ndarray:
@@ -17,8 +17,8 @@ def star_times(stars, t_ref_ns: int) -> np.ndarray:
 
 
 def predicted_directions(R: Rotation, omega: np.ndarray, ref: np.ndarray, dt: np.ndarray) -> np.ndarray:
-    """Camera directions ``w_i = (R Exp(omega dt_i))^T r_i`` (n, 3)."""
-    return (R * Rotation.from_rotvec(dt[:, None] * omega[None, :])).inv().apply(ref)
+    """Camera directions ``w_i = (R Exp(omega dt_i))^T r_i = Exp(-omega dt_i) R^T r_i`` (n, 3)."""
+    return rotate_at_rate(-np.asarray(omega, dtype=float), R.inv().apply(ref), dt)
 
 
 def position_normal(R: Rotation, omega: np.ndarray, ref: np.ndarray, dt: np.ndarray, d, k: int

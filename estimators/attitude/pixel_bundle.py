@@ -37,7 +37,7 @@ from rollingstar.sensors.streak_model import streak_mu_jac
 
 MAX_STAR_CHI2 = 4.0  # reduced chi-square above which a star's pixels contradict the model
 START_STAR_CHI2 = 100.0  # the same at the starting point, where the positions may still be off by a pixel
-BACKGROUND_STRIDE = 4  # pixel stride of the frame's background-noise sample
+BACKGROUND_STRIDE = 8  # pixel stride of the frame's background-noise sample
 
 
 def star_kinematics(camera, timing, t0_ns: int, t_ref_ns: int, R: Rotation, omega: np.ndarray, ref: np.ndarray,
@@ -72,16 +72,13 @@ def star_kinematics(camera, timing, t0_ns: int, t_ref_ns: int, R: Rotation, omeg
     return np.column_stack([x, y, v]), A, dt
 
 
-def frame_electrons(image: np.ndarray, gain_e_per_adu: float, bit_depth: int | None):
-    """The image in electrons (bias included: each star's background absorbs it), the mask of
-    saturated pixels, and the background noise variance (e^2; robust scatter of a pixel sample)."""
-    img = np.asarray(image)
-    electrons = img.astype(np.float64) * gain_e_per_adu
-    saturated = img >= ((1 << int(bit_depth)) - 1) if bit_depth else np.zeros(img.shape, dtype=bool)
-    sample = electrons[::BACKGROUND_STRIDE, ::BACKGROUND_STRIDE]
+def background_variance(image: np.ndarray, gain_e_per_adu: float) -> float:
+    """The frame's background noise variance (e^2): the robust scatter of every
+    ``BACKGROUND_STRIDE``-th pixel (stars cover a small fraction of them)."""
+    sample = np.asarray(image)[::BACKGROUND_STRIDE, ::BACKGROUND_STRIDE].astype(np.float64)
     med = np.median(sample)
-    var = (1.4826 * np.median(np.abs(sample - med))) ** 2
-    return electrons, saturated, max(float(var), 1e-6)
+    sigma = 1.4826 * np.median(np.abs(sample - med)) * gain_e_per_adu
+    return max(float(sigma) ** 2, 1e-6)
 
 
 def _windows(pv: np.ndarray, shape: tuple[int, int], exposure_s: float, params):
@@ -98,11 +95,14 @@ def _windows(pv: np.ndarray, shape: tuple[int, int], exposure_s: float, params):
     return row0, col0, nr, nc, inside
 
 
-def _cut(electrons: np.ndarray, saturated: np.ndarray, row0, col0, nr: int, nc: int):
-    """The stars' windows of pixels (n, nr, nc) and their saturation masks."""
+def _cut(image: np.ndarray, gain_e_per_adu: float, bit_depth: int | None, row0, col0, nr: int, nc: int):
+    """The stars' windows (n, nr, nc) in electrons (bias included: each star's background absorbs
+    it) and the masks of their unsaturated pixels."""
     rr = row0[:, None, None] + np.arange(nr)[None, :, None]
     cc = col0[:, None, None] + np.arange(nc)[None, None, :]
-    return electrons[rr, cc], saturated[rr, cc]
+    adu = np.asarray(image)[rr, cc]
+    live = adu < ((1 << int(bit_depth)) - 1) if bit_depth else np.ones(adu.shape, dtype=bool)
+    return adu.astype(np.float64) * gain_e_per_adu, live
 
 
 class _Blocks:
@@ -162,15 +162,15 @@ def refine_on_pixels(frame, context, camera, stars, R: Rotation, omega, info, fi
     windows keep their position term)."""
     timing = context.timing
     exposure_s, ld_s = timing.exposure_ns * S_PER_NS, timing.effective_line_delay_ns * S_PER_NS
-    electrons, saturated, bg_var = frame_electrons(frame.image, context.gain_e_per_adu or 1.0, context.bit_depth)
+    gain = context.gain_e_per_adu or 1.0
+    bg_var = background_variance(frame.image, gain)
     ref = stars.ref_icrs / np.linalg.norm(stars.ref_icrs, axis=1, keepdims=True)
     kin = partial(star_kinematics, camera, timing, frame.t0_ns, t_ref, ref=ref, t_ns=stars.t_ns)
     pv, A, _ = kin(R, omega)
-    row0, col0, nr, nc, inside = _windows(pv, electrons.shape, exposure_s, params)
+    row0, col0, nr, nc, inside = _windows(pv, frame.image.shape, exposure_s, params)
     if not inside.any():
         return R, omega, info, frame.flags
-    data, sat = _cut(electrons, saturated, row0[inside], col0[inside], nr, nc)
-    live = ~sat
+    data, live = _cut(frame.image, gain, context.bit_depth, row0[inside], col0[inside], nr, nc)
     win = (row0[inside], col0[inside], nr, nc, params, exposure_s, ld_s)
     nuis = _initial_nuisance(pv[inside], data, live, bg_var, *win)
     k = 6 if fit_rate else 3

@@ -48,12 +48,12 @@ class RsBundleParams(RobustParams):
     sigma_px: float | None = Field(
         default=None, gt=0, description="1-sigma centroid error (px) of stars without their own covariance; "
         "None: the sensor context's centroid_sigma_px, else 0.05 px.")
-    iterations: int = Field(default=4, ge=1, le=20, description="Gauss-Newton iterations of the position step.")
+    iterations: int = Field(default=2, ge=1, le=20, description="Gauss-Newton iterations of the position step.")
     min_rate_stars: int = Field(default=4, ge=3, description="Fewest identified stars at distinct times for which "
                                 "the rate is fitted; below it the frame's rate (or zero) is held.")
     pixels: bool = Field(default=True, description="Refine attitude and rate on the image's pixels (image-level "
                          "recordings) with the rolling-shutter smear model; False: positions only.")
-    pixel_iterations: int = Field(default=3, ge=1, le=20, description="Gauss-Newton iterations of the pixel step.")
+    pixel_iterations: int = Field(default=2, ge=1, le=20, description="Gauss-Newton iterations of the pixel step.")
     psf_sigma_px: float = Field(default=1.0, gt=0, description="Gaussian PSF sigma of the pixel model (px).")
     window_sigmas: float = Field(default=4.0, gt=1, description="Half width of each star's pixel window beyond "
                                  "its streak, in PSF sigmas.")
