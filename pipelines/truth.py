@@ -7,6 +7,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.effects.chain import predict
 from rollingstar.sensors.effects.context import context_from_attitude
+from rollingstar.sensors.pixel_crb import FrameDetector, frame_crb
 from rollingstar.sensors.so3 import skew
 
 
@@ -103,3 +104,17 @@ def rate_crb_rad2(camera, w_cam: np.ndarray, dt_s: np.ndarray, sigma_px, timing_
         S = S + timing_sigma_s**2 * v[:, :, None] * v[:, None, :]
     fisher = np.einsum("nki,nkl,nlj->ij", jac, np.linalg.inv(S), jac)
     return np.linalg.pinv(fisher)[3:, 3:]
+
+
+def pixel_frame_crb_rad2(camera, det: FrameDetector, truth: TruthTrajectory, t_ref_ns: int, t0_ns: int,
+                         unit_icrs: np.ndarray, electrons: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel-level Cramér–Rao bounds of one frame (row 0 starting at ``t0_ns``) on the attitude at
+    ``t_ref_ns`` (3x3, rad^2) and the body rate (3x3, (rad/s)^2), both unknown, from the pixels of
+    the stars ``unit_icrs`` (n, 3) with ``electrons`` (n,) each
+    (:func:`rollingstar.sensors.pixel_crb.frame_crb`, linearised at the truth at ``t_ref_ns`` with
+    the rate held constant over the frame). The stars are imaged through the camera alone: the
+    scenario's effects move them by far less than they change the bound.
+    """
+    cov = frame_crb(camera, truth.attitude(t_ref_ns), truth.angular_velocity(t_ref_ns), unit_icrs, electrons,
+                    (int(t0_ns) - int(t_ref_ns)) * S_PER_NS, det)
+    return cov[:3, :3], cov[3:, 3:]

@@ -1,11 +1,31 @@
-"""Pixel-level Cramér–Rao bound of one star's position: known answers and an estimator that reaches it."""
+"""Pixel-level Cramér–Rao bounds: one star's position (known answers and an estimator that reaches it),
+and one frame's attitude and body rate (known answers: the centroid-level bounds it reduces to,
+invariance to the reference time, photon-limited scaling)."""
 from __future__ import annotations
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 from scipy.special import ndtr
 
-from rollingstar.sensors.pixel_crb import _smeared_mu, position_crb_px, smeared_spot_fisher, spot_fisher
+from rollingstar.pipelines.truth import attitude_crb_rad2, rate_crb_rad2
+from rollingstar.sensors.camera import PinholeCamera
+from rollingstar.sensors.image_sim import render_star_electrons
+from rollingstar.sensors.pixel_crb import (
+    FrameDetector,
+    _smeared_mu,
+    frame_crb,
+    frame_fisher,
+    position_crb_px,
+    schur_information,
+    smeared_spot_fisher,
+    spot_fisher,
+    star_fisher,
+    track_jacobian,
+    track_parameters,
+)
+from rollingstar.sensors.streak_model import streak_mu_jac, streak_window
+from rollingstar.sensors.timing import DetectorTiming
 
 
 def test_well_sampled_photon_limited_spot_has_the_closed_form_bound():
@@ -118,3 +138,209 @@ def test_a_fit_of_smeared_spots_reaches_the_bound():
     var = np.var(np.array(est), axis=0, ddof=1)
     crb = np.diag(_position_block(smeared_spot_fisher(0.2, -0.3, 0.0, vy, flux, s, exposure, 0.0, b)))
     np.testing.assert_allclose(var / crb, 1.0, atol=0.2)
+
+
+# --- frame bound on attitude and body rate -------------------------------------------------------------------
+
+CAMERA = PinholeCamera(24.09e-3, 5.5e-6, 1024, 1024)  # he2021a's sensor: f = 4380 px
+ATTITUDE = Rotation.from_rotvec([0.3, -0.2, 1.0])
+EXPOSURE_S, LINE_DELAY_S = 0.0449, 43.9e-6
+
+
+def _field(n=12, seed=1, integer=True):
+    """Catalogue directions of ``n`` stars spread over the detector (at pixel centres when ``integer``,
+    where a spot's information is isotropic), and their electrons (magnitudes 2.5 to 6)."""
+    rng = np.random.default_rng(seed)
+    px = rng.uniform(40.0, 980.0, (n, 2))
+    px = np.round(px) if integer else px
+    electrons = 2e7 * 10.0 ** (-0.4 * rng.uniform(2.5, 6.0, n)) * EXPOSURE_S
+    return ATTITUDE.apply(CAMERA.unproject(px[:, 0], px[:, 1])), electrons
+
+
+def _detector(line_delay_s=LINE_DELAY_S, background_e=2.5, read_noise_e=5.0):
+    return FrameDetector(1.0, EXPOSURE_S, line_delay_s, background_e, read_noise_e, 1.0, 3995.0)
+
+
+def _static_position_sigma2(params, electrons, det):
+    """Each star's position variance from its own (motionless) Fisher information, flux and background unknown."""
+    out = []
+    for p, flux in zip(params, electrons):
+        info = star_fisher(np.array([*p, flux, det.background_e]), det)[np.ix_([0, 1, 4, 5], [0, 1, 4, 5])]
+        cov = np.linalg.inv(schur_information(info, [0, 1]))
+        assert abs(cov[0, 1]) < 1e-6 * cov[0, 0] and np.isclose(cov[0, 0], cov[1, 1], rtol=1e-6)  # isotropic
+        out.append(cov[0, 0])
+    return np.array(out)
+
+
+def test_global_shutter_static_attitude_bound_is_the_centroid_bound_with_each_stars_pixel_sigma():
+    """Global shutter, no motion, velocities known: the frame's attitude information is the sum of the
+    centroid-level informations ``attitude_crb_rad2(camera, w_j, sigma_j)^+`` of its stars, sigma_j^2
+    the star's own pixel-level position bound (isotropic at a pixel centre); with every star equally
+    bright it is ``attitude_crb_rad2(camera, w, sigma)`` itself. The per-star bound is within 1 % of
+    the pixel-integrated :func:`position_crb_px`."""
+    det = _detector(line_delay_s=0.0)
+    unit, electrons = _field()
+    t0_s = -0.5 * EXPOSURE_S  # t_ref at mid-exposure
+    params, jac = track_jacobian(CAMERA, ATTITUDE, np.zeros(3), unit, t0_s, det)
+    w = ATTITUDE.inv().apply(unit)
+    sigma2 = _static_position_sigma2(params, electrons, det)
+    fisher = frame_fisher(params, jac, electrons, det, velocity=False)
+    expected = sum(np.linalg.pinv(attitude_crb_rad2(CAMERA, w[j:j + 1], np.sqrt(sigma2[j]))) for j in range(len(w)))
+    np.testing.assert_allclose(np.linalg.inv(fisher[:3, :3]), np.linalg.inv(expected), rtol=1e-6)
+    np.testing.assert_allclose(fisher[3:, 3:], 0.0, atol=1e-9 * np.abs(fisher).max())  # no rate information
+    same = np.full(len(w), electrons[0])
+    fisher = frame_fisher(params, jac, same, det, velocity=False)
+    sigma = np.sqrt(_static_position_sigma2(params, same, det)[0])
+    np.testing.assert_allclose(np.linalg.inv(fisher[:3, :3]), attitude_crb_rad2(CAMERA, w, sigma), rtol=1e-6)
+    pix = position_crb_px(params[0, 0], params[0, 1], electrons[0], 1.0, det.background_e, det.read_noise_e)
+    np.testing.assert_allclose(sigma**2, pix[0, 0], rtol=0.01)
+
+
+def test_rolling_shutter_rate_bound_from_positions_is_the_centroid_rate_bound():
+    """Rolling shutter, no motion, velocities known: the joint bound's rate block is
+    ``rate_crb_rad2`` with each star's pixel-level sigma and its own row's mid-exposure time."""
+    det = _detector()
+    unit, electrons = _field(seed=2)
+    t_ref_after_t0 = 0.5 * EXPOSURE_S + 511.5 * LINE_DELAY_S
+    params, jac = track_jacobian(CAMERA, ATTITUDE, np.zeros(3), unit, -t_ref_after_t0, det)
+    cov = np.linalg.inv(frame_fisher(params, jac, electrons, det, velocity=False))
+    sigma = np.sqrt(_static_position_sigma2(params, electrons, det))
+    dt = params[:, 1] * LINE_DELAY_S + 0.5 * EXPOSURE_S - t_ref_after_t0
+    expected = rate_crb_rad2(CAMERA, ATTITUDE.inv().apply(unit), dt, sigma)
+    np.testing.assert_allclose(cov[3:, 3:], expected, rtol=1e-6)
+
+
+def _shift_map(omega, shift_s):
+    """d theta' / d theta for moving the reference time by ``shift_s``: theta' = (delta', eps) with
+    Exp(delta') = Exp(-omega shift) Exp(delta) Exp((omega + eps) shift), by central differences."""
+    def delta_new(theta):
+        r = (Rotation.from_rotvec(-omega * shift_s) * Rotation.from_rotvec(theta[:3])
+             * Rotation.from_rotvec((omega + theta[3:]) * shift_s))
+        return r.as_rotvec()
+    m = np.eye(6)
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = 1e-7
+        m[:3, k] = (delta_new(d) - delta_new(-d)) / 2e-7
+    return m
+
+
+def test_moving_the_reference_time_maps_the_attitude_bound_and_keeps_the_rate_bound():
+    """At 5 deg/s: the bound with the reference 30 ms later is M C M^T, M the first-order map of
+    the perturbations (the attitude at the new time is the old one carried along by the rate); the
+    rate block does not move; at rest the attitude block is C_aa + s (C_ar + C_ra) + s^2 C_rr."""
+    det = _detector()
+    unit, electrons = _field(seed=3, integer=False)
+    for omega in (np.radians([5.0, -2.0, 1.0]), np.zeros(3)):
+        t0_s, shift = -0.07, 0.03
+        cov = frame_crb(CAMERA, ATTITUDE, omega, unit, electrons, t0_s, det)
+        later = frame_crb(CAMERA, ATTITUDE * Rotation.from_rotvec(omega * shift), omega, unit, electrons,
+                          t0_s - shift, det)
+        m = _shift_map(omega, shift)
+        np.testing.assert_allclose(later, m @ cov @ m.T, rtol=1e-4, atol=1e-6 * np.abs(later).max())
+        np.testing.assert_allclose(later[3:, 3:], cov[3:, 3:], rtol=1e-5)
+    c = cov
+    at_rest = c[:3, :3] + shift * (c[:3, 3:] + c[3:, :3]) + shift**2 * c[3:, 3:]
+    np.testing.assert_allclose(later[:3, :3], at_rest, rtol=1e-5)
+
+
+def test_more_light_shrinks_the_photon_limited_bound_as_one_over_root_flux():
+    """No background, no read noise, no quantisation, no saturation: 100 times the light gives a
+    bound 10 times smaller on every axis of attitude and rate, with the stars moving at 3 deg/s."""
+    det = FrameDetector(1.0, EXPOSURE_S, LINE_DELAY_S, background_e=1e-6)
+    unit, electrons = _field(seed=4, integer=False)
+    omega = np.radians([3.0, 0.0, 1.0])
+    dim = np.sqrt(np.diag(frame_crb(CAMERA, ATTITUDE, omega, unit, electrons, -0.05, det)))
+    bright = np.sqrt(np.diag(frame_crb(CAMERA, ATTITUDE, omega, unit, 100.0 * electrons, -0.05, det)))
+    np.testing.assert_allclose(bright / dim, 0.1, rtol=2e-3)
+
+
+def test_track_parameters_are_at_the_stars_own_row_time_and_move_with_the_image():
+    """At 10 deg/s: each star's (x, y) is its projection at t0 + y ld + E/2 (the own-row fixed point),
+    and (vx, vy) is the time derivative of its projection there."""
+    det = _detector()
+    unit, _ = _field(seed=5, integer=False)
+    omega, t0_s = np.radians([10.0, 3.0, -2.0]), -0.04
+    p = track_parameters(CAMERA, ATTITUDE, omega, unit, t0_s, det)
+
+    def at(t):
+        return np.stack([CAMERA.project((ATTITUDE * Rotation.from_rotvec(omega * ti)).inv().apply(u))[:2]
+                         for u, ti in zip(unit, t)])
+
+    t = t0_s + p[:, 1] * LINE_DELAY_S + 0.5 * EXPOSURE_S
+    np.testing.assert_allclose(at(t), p[:, :2], atol=1e-8)
+    velocity = (at(t + 1e-5) - at(t - 1e-5)) / 2e-5
+    np.testing.assert_allclose(velocity, p[:, 2:], rtol=1e-6, atol=1e-6)
+
+
+def test_each_stars_information_leaves_its_flux_and_background_unknown():
+    """Moving, off-centre stars (flux and background correlate with the position there): the frame
+    information is sum A^T C^-1 A with C the (x, y, vx, vy) block of each star's inverse Fisher."""
+    det = _detector()
+    unit, electrons = _field(seed=6, integer=False)
+    params, jac = track_jacobian(CAMERA, ATTITUDE, np.radians([4.0, -1.0, 2.0]), unit, -0.05, det)
+    expected = np.zeros((6, 6))
+    for p, a, flux in zip(params, jac, electrons):
+        cov = np.linalg.inv(star_fisher(np.array([*p, flux, det.background_e]), det))[:4, :4]
+        expected += a.T @ np.linalg.inv(cov) @ a
+    np.testing.assert_allclose(frame_fisher(params, jac, electrons, det), expected, rtol=1e-6)
+    known = np.zeros((6, 6))
+    for p, a, flux in zip(params, jac, electrons):
+        known += a.T @ star_fisher(np.array([*p, flux, det.background_e]), det)[:4, :4] @ a
+    assert np.all(np.diag(np.linalg.inv(known)) < np.diag(np.linalg.inv(expected)))  # nuisances cost information
+
+
+def _fit_frame(data, windows, unit, det, attitude, omega, t0_s, n_iter=4):
+    """Gauss-Newton on the pixels of every window for (attitude, rate) and each star's flux and
+    background, weights 1 / (mu + r^2) re-evaluated each step; returns (delta, eps) from the start."""
+    row0, col0, nr, nc = windows
+    n = len(unit)
+    est_att, est_omega = attitude, np.array(omega, dtype=float)
+    flux_b = np.column_stack([data.sum(axis=(1, 2)) - data.min(axis=(1, 2)) * nr * nc, data.min(axis=(1, 2))])
+    for _ in range(n_iter):
+        params, jac = track_jacobian(CAMERA, est_att, est_omega, unit, t0_s, det)
+        mu, dmu = streak_mu_jac(np.column_stack([params, flux_b]), row0, col0, nr, nc, 1.0, EXPOSURE_S, LINE_DELAY_S)
+        design = np.zeros((n, nr * nc, 6 + 2 * n))
+        design[:, :, :6] = np.einsum("nkp,nkt->npt", dmu[:, :4].reshape(n, 4, -1), jac)
+        for j in range(n):
+            design[j, :, 6 + 2 * j] = dmu[j, 4].ravel()
+            design[j, :, 7 + 2 * j] = 1.0
+        design = design.reshape(-1, 6 + 2 * n)
+        weight = 1.0 / (mu.ravel() + det.read_noise_e**2)
+        step = np.linalg.solve(design.T @ (design * weight[:, None]), design.T @ (weight * (data - mu).ravel()))
+        est_att = est_att * Rotation.from_rotvec(step[:3])
+        est_omega = est_omega + step[3:6]
+        flux_b += step[6:].reshape(n, 2)
+    return np.concatenate([(attitude.inv() * est_att).as_rotvec(), est_omega - omega])
+
+
+def test_a_fit_of_rendered_frames_reaches_the_frame_bound():
+    """300 frames of 6 stars at (3, 1, 0.5) deg/s rendered by the simulator's rolling-shutter renderer
+    (pixel-integrated PSF, each row over its own window; not the bound's closed form), Poisson and
+    read noise; Gauss-Newton on the pixels for attitude, rate, fluxes and backgrounds: the variance
+    of each attitude and rate axis is the frame bound within +-25 % (Monte Carlo error 8 %)."""
+    det = FrameDetector(1.0, EXPOSURE_S, LINE_DELAY_S, background_e=2.5, read_noise_e=5.0)
+    px = np.array([[150.0, 120.0], [820.0, 200.0], [500.0, 480.0], [180.0, 860.0], [870.0, 790.0], [480.0, 900.0]])
+    unit = ATTITUDE.apply(CAMERA.unproject(px[:, 0], px[:, 1]))
+    electrons = 2e7 * 10.0 ** (-0.4 * np.array([3.5, 4.0, 4.5, 5.0, 4.2, 3.8])) * EXPOSURE_S
+    omega = np.radians([3.0, 1.0, 0.5])
+    timing = DetectorTiming("rolling", exposure_ns=44_900_000, line_delay_ns=43_900, rows=1024)
+    t_ref_ns = timing.frame_reference_ns(0)
+    t0_s = -t_ref_ns * 1e-9
+    truth = track_parameters(CAMERA, ATTITUDE, omega, unit, t0_s, det)
+
+    def positions(star, t_ns, rows):
+        turn = Rotation.from_rotvec(omega[None, :] * ((t_ns - t_ref_ns) * 1e-9)[:, None])
+        x, y, _ = CAMERA.project((ATTITUDE * turn).inv().apply(unit[star]))
+        return x, y
+
+    image = render_star_electrons(positions, timing, (1024, 1024), 0, unit, electrons, truth[:, 1], 1.0, 0.05)
+    r0, c0, nr, nc = zip(*(streak_window(*p, 1.0, EXPOSURE_S, LINE_DELAY_S) for p in truth))
+    nr, nc = max(nr), max(nc)
+    expected = np.stack([image[a:a + nr, b:b + nc] for a, b in zip(r0, c0)]) + det.background_e
+    windows = (np.array(r0), np.array(c0), nr, nc)
+    rng = np.random.default_rng(11)
+    est = np.array([_fit_frame(rng.poisson(expected) + rng.normal(0.0, det.read_noise_e, expected.shape),
+                               windows, unit, det, ATTITUDE, omega, t0_s) for _ in range(300)])
+    bound = np.diag(frame_crb(CAMERA, ATTITUDE, omega, unit, electrons, t0_s, det))
+    np.testing.assert_allclose(np.var(est, axis=0, ddof=1) / bound, 1.0, atol=0.25)
