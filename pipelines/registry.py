@@ -55,6 +55,8 @@ BUILTIN: dict[str, str] = {
     # liu2013 plugins:
     "windowed": "rollingstar.estimators.centroiders.windowed:WindowedCentroider",
     "gyro-kf": "rollingstar.estimators.filters.gyro_kf:GyroKalmanFilter",
+    # streak-aware centroiding (matched filter along the motion, maximum-likelihood streak fit):
+    "streak": "rollingstar.estimators.centroiders.streak:StreakCentroider",
     # sequential attitude estimators:
     "mekf": "rollingstar.estimators.attitude.mekf:MekfFilter",
     "gtsam": "rollingstar.estimators.attitude.gtsam_smoother:GtsamSmoother",

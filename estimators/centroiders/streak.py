@@ -1,0 +1,507 @@
+"""Streak-aware centroider: matched-filter detection along the expected motion, then a
+maximum-likelihood fit of the rolling-shutter streak model to each star's pixels."""
+from __future__ import annotations
+
+from typing import Literal, NamedTuple
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy import ndimage
+
+from rollingstar.estimators.centroiders.base import Centroider
+from rollingstar.estimators.centroiders.cog import (
+    _interp_matrix,
+    _robust_sigma,
+    _subsample_step,
+    _tile_medians,
+)
+from rollingstar.estimators.centroiders.covariance import effective_gain, isotropic_sigma
+from rollingstar.estimators.centroiders.streak_kernel import normal_equations, star_pixels, window_moments
+from rollingstar.estimators.data import FrameData, StarTable, frame_camera
+from rollingstar.sensors.conventions import S_PER_NS
+from rollingstar.sensors.effects.geometry import image_velocity, rotation_jacobian
+from rollingstar.sensors.streak_model import effective_sigma, streak_mu
+
+LONG_STREAK_PX = 16.0  # streaks at least this long are detected on 4 x 4 bins, shorter ones on 2 x 2
+MARGIN_SIGMAS = 3.0  # PSF widths around the expected streak in a fit window (besides half a detection bin)
+FIT_TOLERANCE_PX = 1e-3  # the fit stops when no star's position step exceeds this
+RIDGE = 1e-12  # added to the damped normal matrix: a star without usable pixels takes zero steps
+FROZEN_VELOCITY_ITERATIONS = 2  # first iterations of the fit with the velocity held at its guess
+MIN_STARS_FOR_RATE = 3  # stars needed to fit the body rate kept for the next frame
+
+
+class StreakParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    threshold_sigma: float = Field(default=5.0, gt=0, description="Detection threshold of the matched filter, in "
+                                   "sigmas of its output noise.")
+    min_snr: float = Field(default=5.0, ge=0, description="Smallest fitted flux over its standard deviation kept.")
+    psf_sigma_px: float = Field(default=1.0, gt=0, description="Gaussian PSF sigma of the model (px).")
+    background: Literal["median", "tiles", "map"] = Field(
+        default="median", description="Background model, as the cog centroider's: one global median, bilinear tile "
+        "medians, or tile medians median-filtered over map_filter_tiles tiles.")
+    tile_px: int = Field(default=64, ge=4, description="Tile size (px) for background='tiles' or 'map'.")
+    map_filter_tiles: int = Field(default=3, ge=1, description="Median-filter width (tiles) of background='map'.")
+    gain_e_per_adu: float | None = Field(default=None, gt=0, description="Conversion gain (e-/ADU) of the stars' "
+                                         "shot noise; None: the sensor context's (none when unknown).")
+    saturation_adu: float | None = Field(default=None, description="Saturation level (ADU); None: 2**bit_depth - 1 "
+                                         "from the context, else the image dtype's maximum.")
+    use_gyro: bool = Field(default=True, description="Take the expected motion from the frame's gyro samples "
+                           "when it has any.")
+    search_directions: int = Field(default=8, ge=1, description="Directions (over 180 deg) of the cold-start search.")
+    search_lengths_px: tuple[float, ...] = Field(default=(6.0, 12.0, 24.0, 40.0), description="Streak lengths (px) "
+                                                 "of the cold-start search, besides a motionless star.")
+    detect_tile_px: int = Field(default=256, ge=32, description="Tiles (px) of one matched filter each when the "
+                                "expected motion is known (the velocity at the tile's centre).")
+    max_iterations: int = Field(default=15, ge=1, description="Levenberg-Marquardt iterations of the fit.")
+    velocity_prior_px_s: float = Field(default=5000.0, gt=0, description="Sigma (px/s) of a weak zero-mean prior on "
+                                       "each star's velocity: keeps the fit of a motionless star on a global "
+                                       "shutter well posed.")
+    edge_velocity_sigma_px_s: float = Field(
+        default=20.0, gt=0, description="Sigma (px/s) of the prior on the velocity of a streak the detector edge cuts, "
+        "centred on the expected velocity (gyro or previous frame): the visible part alone cannot tell the streak's "
+        "length from its position.")
+    noise_floor_adu: float = Field(default=float(1.0 / np.sqrt(12.0)), gt=0,
+                                   description="Smallest noise sigma used (ADU): the quantisation noise of integer pixels.")
+
+
+class _Frame(NamedTuple):
+    """What the fit of one frame needs: the image, its background at any pixel, noise and units."""
+
+    raw: np.ndarray
+    background: object  # (rows, cols) -> background (ADU)
+    noise: float
+    saturation: float
+    inv_gain: float
+
+
+class _Candidates(NamedTuple):
+    """Detected stars: centre (px), velocity guess (px/s), whether its sign is known, window size."""
+
+    x: np.ndarray
+    y: np.ndarray
+    vx: np.ndarray
+    vy: np.ndarray
+    signed: np.ndarray
+    nrows: np.ndarray
+    ncols: np.ndarray
+
+
+class StreakCentroider(Centroider):
+    """Detects stars by a matched filter along their expected motion and fits each with the
+    rolling-shutter streak model (:mod:`rollingstar.sensors.streak_model`) by maximum likelihood.
+
+    1. Background and noise as the ``cog`` centroider's (its functions): a global median, or tile
+       medians interpolated bilinearly; the noise sigma ``s`` from a strided subsample.
+    2. Expected motion: the body rate ``omega`` from the frame's gyro samples (their mean), else the
+       rate fitted to the star velocities of the previous frame; image velocity ``P(w)(w x omega)``
+       at each tile's centre. Detection on the background-subtracted image binned ``k x k`` (``k = 4``
+       for streaks of ``LONG_STREAK_PX`` or more, else 2): correlation with the binned model streak of
+       unit flux (the kernel), normalised so that its output is in sigmas of noise. On a cold start
+       (no gyro, no previous frame) ``k = 4`` and the kernels are a motionless star and
+       ``search_directions`` directions times ``search_lengths_px``; each bin keeps its best score.
+       Each bin above ``threshold_sigma`` and not below its 8 neighbours is a candidate, with the
+       velocity of its kernel (its sign unknown on a cold start).
+    3. Fit: per candidate a window holding the expected streak and ``MARGIN_SIGMAS`` PSF widths;
+       ``(x, y, vx, vy, F, b)`` by Levenberg-Marquardt on all windows at once (weighted least
+       squares, pixel variance ``s^2 + (mu - b) / gain``, saturated pixels left out; the normal
+       equations in :mod:`.streak_kernel`), started from the centroid of the window's pixels more than
+       3 ``s`` above the background, the candidate's velocity, the background there and the
+       window's sum above it; the first iterations hold the velocity. A velocity whose sign is unknown is fitted both ways
+       and the lower chi-square wins (the rolling shutter stretches a streak moving down the rows
+       and compresses one moving up).
+    4. Output: ``x, y`` at the mid-exposure of the star's own row, ``row_time_ns`` and ``t_ns`` that
+       row's exposure start and mid-exposure (as ``cog``), ``vx, vy``, ``flux`` (ADU), ``snr = F /
+       sigma_F`` and ``cov_xx, cov_xy, cov_yy`` from the inverse of the Fisher information at the
+       fit (velocity, flux and background marginalised; times the reduced chi-square when that is
+       implausibly large for a right model: a PSF unlike the model's, a blend, a hot pixel),
+       ``peak`` and ``npix`` the fitted star
+       signal's maximum and its pixels above ``s``, ``saturated`` any of those saturated. Kept:
+       ``snr >= min_snr``, inside the detector; one star per streak (the best ``snr``).
+    5. State: the body rate fitted to the kept stars' velocities (robust least squares), the
+       expected motion of the next frame when it has no gyro samples; fewer than
+       ``MIN_STARS_FOR_RATE`` stars clear it (cold search next frame), and a frame whose expected
+       motion finds fewer than that is searched cold again. After a cold search the frame is
+       detected and fitted once more with the rate its stars give (their velocities' signs
+       resolved by that field).
+    """
+
+    name = "streak"
+    Params = StreakParams
+
+    def setup(self, context) -> None:
+        super().setup(context)
+        cam = context.camera
+        self._shape = (int(cam.height), int(cam.width))
+        self._gain = effective_gain(self.params.gain_e_per_adu, context)
+        timing = context.timing
+        self._exposure = timing.exposure_ns * S_PER_NS
+        self._ld = timing.effective_line_delay_ns * S_PER_NS
+        self._se = effective_sigma(self.params.psf_sigma_px)
+        self._omega = None
+        self._kernels = {}
+
+    def process(self, frame: FrameData) -> FrameData:
+        f = self._frame(frame)
+        camera = frame_camera(frame, self.context)
+        omega = self._expected_rate(frame)
+        p, cov = self._stars(f, camera, omega) if omega is not None else (np.zeros((0, 6)), None)
+        if p.shape[0] < MIN_STARS_FOR_RATE:  # cold search; then again with the rate it gives
+            p, cov = self._stars(f, camera, None)
+            omega = self._fitted_rate(camera, p, signed=False)
+            if omega is not None:
+                again = self._stars(f, camera, omega)
+                if again[0].shape[0] >= MIN_STARS_FOR_RATE:
+                    p, cov = again
+        self._omega = self._fitted_rate(camera, p, signed=True)
+        return frame.evolve(stars=self._table(frame, f, p, cov))
+
+    # ------------------------------------------------------------------ frame, background, motion
+    def _frame(self, frame: FrameData) -> _Frame:
+        if frame.image is None:
+            raise ValueError(f"frame {frame.index}: no image; the 'streak' centroider needs image-level recordings")
+        raw = np.asarray(frame.image)
+        if raw.shape != self._shape:
+            raise ValueError(f"frame {frame.index}: image shape {raw.shape} differs from the camera's {self._shape}")
+        if raw.dtype == bool:
+            raw = raw.astype(np.uint8)
+        if not np.issubdtype(raw.dtype, np.integer) and not np.all(np.isfinite(raw)):
+            raise ValueError(f"frame {frame.index}: image has non-finite pixels; cannot centroid")
+        p = self.params
+        step = _subsample_step(raw.shape)
+        sub = raw[::step, ::step].astype(float)
+        if p.background == "median":
+            level = float(np.median(sub))
+
+            def background(rows, cols):
+                return np.full(np.broadcast_shapes(np.shape(rows), np.shape(cols)), level)
+        else:
+            background = self._tile_background(raw)
+        rows, cols = np.arange(0, raw.shape[0], step), np.arange(0, raw.shape[1], step)
+        noise = max(_robust_sigma(sub - background(rows[:, None], cols[None, :])), p.noise_floor_adu)
+        return _Frame(raw, background, noise, self._saturation(raw), 1.0 / self._gain if self._gain else 0.0)
+
+    def _tile_background(self, raw: np.ndarray):
+        """Bilinear interpolation of tile medians (``map``: median-filtered over the tile grid)."""
+        p = self.params
+        tiles = _tile_medians(raw, p.tile_px)
+        if p.background == "map" and p.map_filter_tiles > 1:
+            tiles = ndimage.median_filter(tiles, size=p.map_filter_tiles, mode="nearest")
+        H, W = raw.shape
+        centres_y = np.minimum(np.arange(tiles.shape[0]) * p.tile_px + (p.tile_px - 1) / 2.0, H - 1)
+        centres_x = np.minimum(np.arange(tiles.shape[1]) * p.tile_px + (p.tile_px - 1) / 2.0, W - 1)
+
+        def background(rows, cols):
+            rows, cols = np.broadcast_arrays(np.asarray(rows, dtype=float), np.asarray(cols, dtype=float))
+            uy = np.unique(rows)
+            ux = np.unique(cols)
+            grid = _interp_matrix(uy, centres_y) @ tiles @ _interp_matrix(ux, centres_x).T
+            return grid[np.searchsorted(uy, rows), np.searchsorted(ux, cols)]
+        return background
+
+    def _saturation(self, raw: np.ndarray) -> float:
+        if self.params.saturation_adu is not None:
+            return float(self.params.saturation_adu)
+        bit_depth = getattr(self.context, "bit_depth", None)
+        if bit_depth:
+            return float(2 ** int(bit_depth) - 1)
+        if np.issubdtype(raw.dtype, np.integer):
+            return float(np.iinfo(raw.dtype).max)
+        return np.inf
+
+    def _expected_rate(self, frame: FrameData):
+        """Body rate (rad/s) expected during the frame: the gyro's mean, else the previous frame's fit."""
+        if self.params.use_gyro and frame.gyro is not None and len(frame.gyro.t_ns):
+            return np.mean(np.asarray(frame.gyro.omega_rad_s, dtype=float).reshape(-1, 3), axis=0)
+        return self._omega
+
+    def _fitted_rate(self, camera, p: np.ndarray, signed: bool):
+        """Body rate fitted to the stars' velocities (two passes, the second without 3-sigma
+        outliers). Velocities of unknown sign (``signed`` False) are first turned towards the
+        best star's (the field of a turn across the boresight is nearly uniform), and after the
+        first pass each takes the sign closer to the fitted field."""
+        if p.shape[0] < MIN_STARS_FOR_RATE:
+            return None
+        jac = rotation_jacobian(camera, p[:, 0], p[:, 1])
+        v = p[:, 2:4].copy()
+        if not signed:
+            v *= np.where(v @ v[np.argmax(p[:, 4])] < 0, -1.0, 1.0)[:, None]
+        keep = np.ones(v.shape[0], dtype=bool)
+        for _ in range(2):
+            omega = np.linalg.lstsq(jac[keep].reshape(-1, 3), v[keep].reshape(-1), rcond=None)[0]
+            field = jac @ omega
+            if not signed:
+                v *= np.where(np.sum(v * field, axis=1) < 0, -1.0, 1.0)[:, None]
+            resid = np.hypot(*(field - v).T)
+            keep = resid <= 3.0 * max(1.4826 * np.median(resid), 1.0)
+        return omega
+
+    # ------------------------------------------------------------------ detection
+    def _stars(self, f: _Frame, camera, omega):
+        """Detect and fit: fitted parameters (n, 6) and their covariances (n, 6, 6), one per streak."""
+        cand = self._candidates(f, camera, omega)
+        p, cov = self._fit(f, cand)
+        return _one_per_streak(p, cov, self._se, self._exposure)
+
+    def _candidates(self, f: _Frame, camera, omega) -> _Candidates:
+        H, W = self._shape
+        if omega is None:
+            k = 4
+            velocities = self._search_velocities()
+            score, which = self._search(f, k, velocities)
+        else:
+            k, score, which, velocities = self._tracked(f, camera, omega)
+        best = _peaks(score, self.params.threshold_sigma)
+        bi, bj = np.divmod(best, score.shape[1])
+        x, y = k * bj + (k - 1) / 2.0, k * bi + (k - 1) / 2.0
+        if omega is None:
+            vx, vy = velocities[which.ravel()[best]].T
+        else:
+            vx, vy = image_velocity(camera, x, y, omega)
+        nrows, ncols = self._window_size(vx, vy, k)
+        return _Candidates(x, y, vx, vy, np.full(x.size, omega is not None), nrows, ncols)
+
+    def _window_size(self, vx, vy, k: int):
+        """Rows and columns of the fit windows: the streak (rolling-shutter stretch included) plus
+        ``MARGIN_SIGMAS`` PSF widths and half the detection's bin, rounded up to a multiple of 4."""
+        margin = MARGIN_SIGMAS * self._se + k / 2.0
+        along_y = np.abs(vy) * self._exposure / np.maximum(1.0 - np.abs(vy) * self._ld, 0.5)
+        nrows = 4 * np.ceil((along_y + 2 * margin) / 4.0)
+        ncols = 4 * np.ceil((np.abs(vx) * self._exposure + 2 * margin) / 4.0)
+        return nrows.astype(int), ncols.astype(int)
+
+    def _search_velocities(self) -> np.ndarray:
+        p = self.params
+        angles = np.arange(p.search_directions) * np.pi / p.search_directions
+        lengths = np.asarray(p.search_lengths_px, dtype=float) / self._exposure
+        v = [(0.0, 0.0)] + [(s * np.cos(a), s * np.sin(a)) for s in lengths for a in angles]
+        return np.array(v)
+
+    def _binned(self, f: _Frame, k: int) -> np.ndarray:
+        """The image minus its background, summed over ``k x k`` bins (float32)."""
+        H, W = self._shape
+        Hb, Wb = H // k, W // k
+        img = f.raw[: Hb * k, : Wb * k].reshape(Hb, k, Wb * k).sum(axis=1, dtype=np.float32)
+        img = img.reshape(Hb, Wb, k).sum(axis=2)
+        centres = k * np.arange(max(Hb, Wb)) + (k - 1) / 2.0
+        img -= (k * k * f.background(centres[:Hb, None], centres[None, :Wb])).astype(np.float32)
+        return img
+
+    def _kernel(self, vx: float, vy: float, k: int) -> np.ndarray:
+        """Unit-flux model streak binned ``k x k``, normalised to unit sum of squares (cached by the
+        streak's length in whole pixels)."""
+        key = (int(round(vx * self._exposure)), int(round(vy * self._exposure)), k)
+        if key not in self._kernels:
+            vx, vy = key[0] / self._exposure, key[1] / self._exposure
+            hx = int(np.ceil((abs(vx) * self._exposure / 2 + 3 * self._se) / k))
+            hy = int(np.ceil((abs(vy) * self._exposure / 2 + 3 * self._se) / k))
+            c = (hx * k + (k - 1) / 2.0, hy * k + (k - 1) / 2.0)
+            mu = streak_mu([c[0], c[1], vx, vy, 1.0, 0.0], 0, 0, (2 * hy + 1) * k, (2 * hx + 1) * k,
+                           self.params.psf_sigma_px, self._exposure, self._ld)[0]
+            kern = mu.reshape(2 * hy + 1, k, 2 * hx + 1, k).sum(axis=(1, 3))
+            self._kernels[key] = (kern / np.sqrt(np.sum(kern**2))).astype(np.float32)
+        return self._kernels[key]
+
+    def _search(self, f: _Frame, k: int, velocities: np.ndarray):
+        """Best matched-filter score (sigmas) over ``velocities`` per bin, and which velocity gave it."""
+        img = self._binned(f, k)
+        scale = np.float32(1.0 / (k * f.noise))
+        best = np.full(img.shape, -np.inf, dtype=np.float32)
+        which = np.zeros(img.shape, dtype=np.intp)
+        for i, (vx, vy) in enumerate(velocities):
+            s = ndimage.correlate(img, self._kernel(vx, vy, k), mode="constant")
+            s *= scale
+            better = s > best
+            best[better] = s[better]
+            which[better] = i
+        return best, which
+
+    def _tracked(self, f: _Frame, camera, omega):
+        """Matched filter with the expected motion: one kernel per ``detect_tile_px`` tile."""
+        H, W = self._shape
+        t = self.params.detect_tile_px
+        ty, tx = np.meshgrid(np.arange(0, H, t) + min(t, H) / 2.0, np.arange(0, W, t) + min(t, W) / 2.0, indexing="ij")
+        vx, vy = image_velocity(camera, tx.ravel(), ty.ravel(), omega)
+        length = float(np.max(np.hypot(vx, vy))) * self._exposure
+        k = 4 if length >= LONG_STREAK_PX else 2
+        img = self._binned(f, k)
+        score = np.empty(img.shape, dtype=np.float32)
+        tb = t // k
+        scale = np.float32(1.0 / (k * f.noise))
+        for n, (i0, j0) in enumerate(zip(np.arange(0, img.shape[0], tb).repeat(tx.shape[1]),
+                                         np.tile(np.arange(0, img.shape[1], tb), tx.shape[0]))):
+            kern = self._kernel(vx[n], vy[n], k)
+            hy, hx = kern.shape[0] // 2, kern.shape[1] // 2
+            r0, c0 = max(i0 - hy, 0), max(j0 - hx, 0)
+            part = ndimage.correlate(img[r0: i0 + tb + hy, c0: j0 + tb + hx], kern, mode="constant")
+            score[i0: i0 + tb, j0: j0 + tb] = part[i0 - r0: i0 - r0 + tb, j0 - c0: j0 - c0 + tb] * scale
+        return k, score, None, None
+
+    # ------------------------------------------------------------------ fit
+    def _fit(self, f: _Frame, c: _Candidates):
+        """Fit every candidate (grouped by window size); unknown signs are fitted both ways."""
+        out_p, out_cov = [np.zeros((0, 6))], [np.zeros((0, 6, 6))]
+        for nr, nc in set(zip(c.nrows.tolist(), c.ncols.tolist())):
+            sel = np.flatnonzero((c.nrows == nr) & (c.ncols == nc))
+            flip = sel[~c.signed[sel]]
+            x = np.concatenate([c.x[sel], c.x[flip]])
+            y = np.concatenate([c.y[sel], c.y[flip]])
+            v = np.concatenate([np.column_stack([c.vx[sel], c.vy[sel]]), -np.column_stack([c.vx[flip], c.vy[flip]])])
+            signed = np.concatenate([c.signed[sel], c.signed[flip]])
+            p, cov, chi2, ok = self._fit_windows(f, x, y, v, signed, nr, nc)
+            if flip.size:  # the better sign of each star fitted both ways
+                other = np.full(sel.size, -1)
+                other[np.searchsorted(sel, flip)] = sel.size + np.arange(flip.size)
+                worse = (other >= 0) & (chi2[np.maximum(other, 0)] < chi2[: sel.size])
+                pick = np.where(worse, other, np.arange(sel.size))
+                p, cov, ok = p[pick], cov[pick], ok[pick]
+            out_p.append(p[ok])
+            out_cov.append(cov[ok])
+        return np.concatenate(out_p), np.concatenate(out_cov)
+
+    def _fit_windows(self, f: _Frame, x, y, v, signed, nrows: int, ncols: int):
+        """Levenberg-Marquardt on windows of one size centred on ``(x, y)``: parameters, covariances,
+        chi-squares and which fits are kept (module docstring of :class:`StreakCentroider`, step 4).
+        The velocity's prior: weak and zero-mean, but centred on the expected velocity ``v`` with
+        ``edge_velocity_sigma_px_s`` for a streak the detector edge cuts when ``v`` is ``signed``."""
+        H, W = self._shape
+        row0 = np.rint(y - (nrows - 1) / 2.0).astype(np.int64)
+        col0 = np.rint(x - (ncols - 1) / 2.0).astype(np.int64)
+        cut = signed & ((row0 < 0) | (row0 + nrows > H) | (col0 < 0) | (col0 + ncols > W))
+        v_mean = np.where(cut[:, None], v, 0.0)
+        v_weight = np.where(cut, self.params.edge_velocity_sigma_px_s, self.params.velocity_prior_px_s) ** -2.0
+        b0 = f.background(y, x)
+        start = window_moments(f.raw, row0, col0, nrows, ncols, b0, 3.0 * f.noise)
+        p = np.column_stack([start[:, 1], start[:, 2], v, np.maximum(start[:, 0], 10.0 * f.noise), b0])
+        args = (row0, col0, nrows, ncols, f.raw, f.saturation, f.noise**2, f.inv_gain, self._se, self._exposure,
+                self._ld)
+        p, hess, chi2, used = _levenberg_marquardt(p, args, self.params.max_iterations, v_mean, v_weight)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cov = np.linalg.pinv(hess, hermitian=True)  # a window without a usable pixel has no information
+            cov *= _misfit_scale(chi2, used)[:, None, None]
+            snr = p[:, 4] / np.sqrt(cov[:, 4, 4])
+        ok = (np.all(np.isfinite(p), axis=1) & (cov[:, 0, 0] > 0) & (cov[:, 1, 1] > 0) & (snr >= self.params.min_snr)
+              & (p[:, 0] >= col0) & (p[:, 0] <= col0 + ncols - 1) & (p[:, 1] >= row0) & (p[:, 1] <= row0 + nrows - 1)
+              & (p[:, 0] > -0.5) & (p[:, 0] < W - 0.5) & (p[:, 1] > -0.5) & (p[:, 1] < H - 0.5))
+        return p, cov, chi2, ok
+
+    # ------------------------------------------------------------------ output
+    def _table(self, frame: FrameData, f: _Frame, p: np.ndarray, cov: np.ndarray) -> StarTable:
+        if p.shape[0] == 0:
+            return StarTable.empty()
+        order = np.argsort(-p[:, 4], kind="stable")
+        p, cov = p[order], cov[order]
+        nrows, ncols = self._window_size(p[:, 2], p[:, 3], 0)
+        nr, nc = int(nrows.max()), int(ncols.max())
+        row0 = np.rint(p[:, 1] - (nr - 1) / 2.0).astype(np.int64)
+        col0 = np.rint(p[:, 0] - (nc - 1) / 2.0).astype(np.int64)
+        npix, peak, nsat = star_pixels(np.ascontiguousarray(p), row0, col0, nr, nc, f.raw, f.saturation, f.noise,
+                                       self._se, self._exposure, self._ld)
+        c = np.stack([cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]])
+        timing = self.context.timing
+        return StarTable.build(
+            p[:, 0], p[:, 1], t_ns=timing.row_mid_exposure_ns(frame.t0_ns, p[:, 1]),
+            row_time_ns=timing.row_start_ns(frame.t0_ns, p[:, 1]), flux=p[:, 4], peak=peak, npix=npix,
+            saturated=nsat > 0, snr=p[:, 4] / np.sqrt(cov[:, 4, 4]), sigma_px=isotropic_sigma(c),
+            cov_xx=c[0], cov_xy=c[1], cov_yy=c[2], vx=p[:, 2], vy=p[:, 3])
+
+
+def _levenberg_marquardt(p: np.ndarray, args, iterations: int, v_mean: np.ndarray, v_weight: np.ndarray):
+    """Damped Gauss-Newton on all stars at once; a step is kept per star when it lowers that star's
+    chi-square, the Gaussian prior on its velocity (mean ``v_mean`` (n, 2), weight ``v_weight``
+    (n,), the inverse variance) included. The first ``FROZEN_VELOCITY_ITERATIONS``
+    hold the velocity at its guess (a bright star's first step at a poor flux guess would
+    otherwise explain its wings by a smear). A star stops when a kept step moves its
+    position by less than ``FIT_TOLERANCE_PX`` or its damping has grown a million-fold. Returns
+    parameters, information matrices, chi-squares and the pixels they used at the solution."""
+    prior = np.zeros((p.shape[0], 6, 6))
+    prior[:, 2, 2] = prior[:, 3, 3] = v_weight
+    p = np.ascontiguousarray(p, dtype=float)
+    hess, grad, chi2, used = normal_equations(p, *args)
+    lam = np.full(p.shape[0], 1e-3)
+    active = np.arange(p.shape[0])
+    for it in range(iterations):
+        if active.size == 0:
+            break
+        h = hess[active] + prior[active]
+        g = grad[active]
+        g[:, 2:4] -= (p[active, 2:4] - v_mean[active]) * v_weight[active, None]
+        damped = h + lam[active, None, None] * (np.eye(6) * np.diagonal(h, axis1=1, axis2=2)[:, None, :]) + RIDGE * np.eye(6)
+        frozen = it < FROZEN_VELOCITY_ITERATIONS
+        if frozen:  # position, flux and background first, at the expected velocity
+            damped[:, 2:4, :] = damped[:, :, 2:4] = 0.0
+            damped[:, 2, 2] = damped[:, 3, 3] = 1.0
+            g[:, 2:4] = 0.0
+        step = np.linalg.solve(damped, g[..., None])[..., 0]
+        trial = np.ascontiguousarray(p[active] + step)
+        trial[:, 4] = np.where(trial[:, 4] > 0, trial[:, 4], 0.5 * p[active, 4])
+        t_hess, t_grad, t_chi2, t_used = normal_equations(trial, args[0][active], args[1][active], *args[2:])
+        total = chi2[active] + np.sum((p[active, 2:4] - v_mean[active]) ** 2, axis=1) * v_weight[active]
+        better = t_chi2 + np.sum((trial[:, 2:4] - v_mean[active]) ** 2, axis=1) * v_weight[active] < total
+        lam[active] = np.where(better, lam[active] / 3.0, lam[active] * 5.0)
+        idx = active[better]
+        p[idx], hess[idx], grad[idx], chi2[idx], used[idx] = (trial[better], t_hess[better], t_grad[better],
+                                                              t_chi2[better], t_used[better])
+        done = (better & (np.max(np.abs(step[:, :2]), axis=1) < FIT_TOLERANCE_PX) & (not frozen)) | (lam[active] > 1e3)
+        active = active[~done]
+    return p, hess + prior, chi2, used
+
+
+def _misfit_scale(chi2: np.ndarray, used: np.ndarray) -> np.ndarray:
+    """Covariance scale of each fit: its reduced chi-square when that is implausibly large for a
+    right model (over ``1 + 3 sqrt(2 / dof)``: a PSF unlike the model's, a blended neighbour,
+    a hot pixel), else 1."""
+    dof = np.maximum(used - 6, 1)
+    reduced = chi2 / dof
+    return np.where(reduced > 1.0 + 3.0 * np.sqrt(2.0 / dof), reduced, 1.0)
+
+
+def _peaks(score: np.ndarray, threshold: float) -> np.ndarray:
+    """Flat indices of the bins above ``threshold`` that are not below any of their 8 neighbours
+    (the first of a plateau in raster order)."""
+    Hb, Wb = score.shape
+    flat = np.flatnonzero(score > threshold)
+    if flat.size == 0:
+        return flat
+    padded = np.pad(score, 1, constant_values=-np.inf).ravel()
+    r, c = np.divmod(flat, Wb)
+    centre = (r + 1) * (Wb + 2) + c + 1
+    value = padded[centre]
+    peak = np.ones(flat.size, dtype=bool)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if dr or dc:
+                other = padded[centre + dr * (Wb + 2) + dc]
+                earlier = dr < 0 or (dr == 0 and dc < 0)
+                peak &= (other < value) | ((other == value) & ~np.bool_(earlier))
+    return flat[peak]
+
+
+def _on_streak(p: np.ndarray, se: float, exposure: float) -> np.ndarray:
+    """(n, n): whether star ``j``'s centre lies on star ``i``'s fitted streak (within its half
+    length plus two PSF widths along it, two PSF widths across)."""
+    speed = np.hypot(p[:, 2], p[:, 3])
+    safe = np.where(speed > 0, speed, 1.0)
+    ux, uy = np.where(speed > 0, p[:, 2] / safe, 1.0), np.where(speed > 0, p[:, 3] / safe, 0.0)
+    dx = p[None, :, 0] - p[:, None, 0]
+    dy = p[None, :, 1] - p[:, None, 1]
+    along = np.abs(dx * ux[:, None] + dy * uy[:, None])
+    across = np.abs(dy * ux[:, None] - dx * uy[:, None])
+    return (across < 2.0 * se) & (along < (0.5 * speed * exposure + 2.0 * se)[:, None])
+
+
+def _one_per_streak(p: np.ndarray, cov: np.ndarray, se: float, exposure: float):
+    """One fit per star: a fit that lies on a better fit's streak, or whose own streak runs through
+    a better fit's centre (a window that caught part of a brighter star), is dropped."""
+    if p.shape[0] < 2:
+        return p, cov
+    snr = p[:, 4] / np.sqrt(cov[:, 4, 4])
+    on = _on_streak(p, se, exposure)
+    clash = on | on.T
+    dropped = np.zeros(p.shape[0], dtype=bool)
+    for i in np.argsort(-snr, kind="stable"):
+        if not dropped[i]:
+            later = clash[i] & ~dropped
+            later[i] = False
+            dropped |= later
+    return p[~dropped], cov[~dropped]
