@@ -171,15 +171,21 @@ def print_metrics(m: dict, title: str = "") -> None:
     a, crb = m["attitude_error_arcsec"], m["attitude_crb_arcsec"]
     table.add_row("attitude error RMSE (arcsec)", f(a["x_rmse"]), f(a["y_rmse"]), f(a["z_rmse"]))
     table.add_row("attitude error max (arcsec)", f(a["x_max"]), f(a["y_max"]), f(a["z_max"]))
-    table.add_row("Cramér–Rao bound, per frame (arcsec)", f(crb["x"]), f(crb["y"]), f(crb["z"]))
-    r, rcrb, eff = m["rate_error_deg_s"], m.get("rate_crb_deg_s") or {}, m.get("efficiency") or {}
-    if r.get("x_rmse") is not None:
+    pcrb, prcrb = m.get("pixel_crb_arcsec") or {}, m.get("pixel_rate_crb_deg_s") or {}
+    table.add_row("attitude bound, centroid-level (given sigma) (arcsec)", f(crb["x"]), f(crb["y"]), f(crb["z"]))
+    table.add_row("attitude bound, pixel-level (arcsec)", *(f(pcrb.get(a)) for a in "xyz"))
+    r, rcrb = m["rate_error_deg_s"], m.get("rate_crb_deg_s") or {}
+    has_rate = r.get("x_rmse") is not None
+    if has_rate:
         table.add_row("rate error RMSE (deg/s)", f(r["x_rmse"]), f(r["y_rmse"]), f(r["z_rmse"]))
-        table.add_row("rate Cramér–Rao bound, per frame (deg/s)", f(rcrb.get("x")), f(rcrb.get("y")), f(rcrb.get("z")))
-    if eff:
-        table.add_row("efficiency: attitude RMSE / bound", *(f(eff.get(f"attitude_{a}"), "{:.3g}") for a in "xyz"))
-        if r.get("x_rmse") is not None:
-            table.add_row("efficiency: rate RMSE / bound", *(f(eff.get(f"rate_{a}"), "{:.3g}") for a in "xyz"))
+        table.add_row("rate bound, centroid-level (given sigma) (deg/s)", *(f(rcrb.get(a)) for a in "xyz"))
+    if has_rate or prcrb.get("x") is not None:
+        table.add_row("rate bound, pixel-level (deg/s)", *(f(prcrb.get(a)) for a in "xyz"))
+    for key, level in (("efficiency", "centroid-level"), ("efficiency_pixel", "pixel-level")):
+        eff = m.get(key) or {}
+        table.add_row(f"efficiency: attitude RMSE / {level} bound", *(f(eff.get(f"attitude_{a}"), "{:.3g}") for a in "xyz"))
+        if has_rate:
+            table.add_row(f"efficiency: rate RMSE / {level} bound", *(f(eff.get(f"rate_{a}"), "{:.3g}") for a in "xyz"))
     out.print(table)
     summary = Table(show_header=False)
     summary.add_column("k")
