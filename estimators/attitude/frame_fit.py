@@ -21,18 +21,25 @@ def predicted_directions(R: Rotation, omega: np.ndarray, ref: np.ndarray, dt: np
     return rotate_at_rate(-np.asarray(omega, dtype=float), R.inv().apply(ref), dt)
 
 
-def position_normal(R: Rotation, omega: np.ndarray, ref: np.ndarray, dt: np.ndarray, d, k: int
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Normal equations ``(sum H_i^T W_i H_i, sum H_i^T W_i e_i)`` of the position fit at ``(R,
-    omega)``: ``e_i`` the tangent-plane residual of star ``i`` (``d``: the stars'
+def position_normal(R: Rotation, omega: np.ndarray, ref: np.ndarray, dt: np.ndarray, d, k: int,
+                    huber_k: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Normal equations ``(sum w_i H_i^T W_i H_i, sum w_i H_i^T W_i e_i)`` of the position fit at
+    ``(R, omega)``: ``e_i`` the tangent-plane residual of star ``i`` (``d``: the stars'
     :class:`~rollingstar.estimators.attitude.star_covariance.DirectionCovariance`), ``H_i`` its
-    Jacobian in the first ``k`` of ``(delta, eps)`` (3: attitude only, 6: attitude and rate)."""
+    Jacobian in the first ``k`` of ``(delta, eps)`` (3: attitude only, 6: attitude and rate).
+    ``huber_k``: Huber weights ``w_i = min(1, huber_k / m_i)`` on the Mahalanobis residuals
+    ``m_i = sqrt(e_i^T W_i e_i)`` (iteratively reweighted least squares: a fragment of a streak or a
+    misidentified star pulls with a bounded influence); None: ``w_i = 1``."""
     Et = np.swapaxes(d.basis, -1, -2)
     w = predicted_directions(R, omega, ref, dt)
     S = Et @ skew(w)  # (n, 2, 3): tangent-plane motion per unit rotation
     H = np.concatenate([S, S * dt[:, None, None]], axis=2)[:, :, :k]
-    HtW = np.swapaxes(H, -1, -2) @ d.info
     e = np.einsum("nki,ni->nk", Et, d.body - w)
+    info = d.info
+    if huber_k is not None:
+        m = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", e, info, e), 1e-300))
+        info = info * np.minimum(1.0, huber_k / m)[:, None, None]
+    HtW = np.swapaxes(H, -1, -2) @ info
     return np.sum(HtW @ H, axis=0), np.einsum("nik,nk->i", HtW, e)
 
 
@@ -45,13 +52,14 @@ def apply_step(R: Rotation, omega: np.ndarray, step: np.ndarray) -> tuple[Rotati
 
 
 def fit_positions(R: Rotation, omega: np.ndarray, ref: np.ndarray, dt: np.ndarray, d, iterations: int,
-                  fit_rate: bool) -> tuple[Rotation, np.ndarray, np.ndarray]:
+                  fit_rate: bool, huber_k: float | None = None) -> tuple[Rotation, np.ndarray, np.ndarray]:
     """Gauss-Newton fit of the attitude at ``t_ref`` and the rate to the stars' directions
-    (:func:`position_normal`). Returns ``R``, ``omega`` and the information matrix: 6 x 6 (attitude,
-    rate), or 3 x 3 (attitude) when ``fit_rate`` is False and ``omega`` is held."""
+    (:func:`position_normal`, with Huber weights after the first iteration when ``huber_k`` is
+    given). Returns ``R``, ``omega`` and the information matrix (unweighted): 6 x 6 (attitude, rate),
+    or 3 x 3 (attitude) when ``fit_rate`` is False and ``omega`` is held."""
     k = 6 if fit_rate else 3
-    for _ in range(iterations):
-        normal, rhs = position_normal(R, omega, ref, dt, d, k)
+    for it in range(iterations):
+        normal, rhs = position_normal(R, omega, ref, dt, d, k, huber_k if it else None)
         R, omega = apply_step(R, omega, np.linalg.solve(normal, rhs))
     normal, _ = position_normal(R, omega, ref, dt, d, k)
     return R, np.asarray(omega, dtype=float), 0.5 * (normal + normal.T)

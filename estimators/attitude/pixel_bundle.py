@@ -13,14 +13,15 @@ by their Schur complement (each star's ``(F, b)`` couples only to itself):
     S_j = G_j - C_j N_j^-1 C_j^T,  s_j = g_j - C_j N_j^-1 n_j
     (sum A_j^T S_j A_j) theta_step = sum A_j^T s_j
 
-with ``G, C, N`` the (position-and-velocity, nuisance) blocks of ``J^T W J``, ``g, n`` those of
+iterated until a step moves no parameter by more than ``CONVERGED_SIGMAS`` of its sigma (at
+least two steps, at most ``pixel_iterations``), with ``G, C, N`` the (position-and-velocity, nuisance) blocks of ``J^T W J``, ``g, n`` those of
 ``J^T W r``, and ``A_j = d(x_j, y_j, vx_j, vy_j) / d theta``. The information ``sum A_j^T S_j A_j``
 at the solution is the Fisher information of ``theta`` in the pixels (the frame-level pixel bound).
-Stars whose window leaves the detector contribute their position term instead
-(:func:`rollingstar.estimators.attitude.frame_fit.position_normal`); a star the model does not
-explain (non-positive flux, or a reduced chi-square above ``MAX_STAR_CHI2`` after the first step,
-above ``START_STAR_CHI2`` before it: a wrong identification, a blend) is left out and counted in
-the frame flag ``pixel_outliers:N``.
+A window cut by the detector's edge keeps the pixels it has. A star with fewer than
+``MIN_LIVE_PIXELS`` live pixels, or one the model does not explain (non-positive flux, or a
+reduced chi-square above ``MAX_STAR_CHI2`` at the current step, above ``START_STAR_CHI2`` at the
+start: a wrong identification, a blend), is left out of that step; those left out of the last are
+counted in the frame flag ``pixel_outliers:N``.
 """
 from __future__ import annotations
 
@@ -29,13 +30,14 @@ from functools import partial
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from rollingstar.estimators.attitude.frame_fit import apply_step, position_normal, predicted_directions, star_times
-from rollingstar.estimators.attitude.star_covariance import direction_covariance
+from rollingstar.estimators.attitude.frame_fit import apply_step, predicted_directions
 from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.so3 import skew
 from rollingstar.sensors.streak_model import streak_mu_jac
 
 MAX_STAR_CHI2 = 4.0  # reduced chi-square above which a star's pixels contradict the model
+CONVERGED_SIGMAS = 0.05  # a step below this fraction of every parameter's sigma ends the iterations
+MIN_LIVE_PIXELS = 12  # fewest live pixels of a star's window for it to take part
 START_STAR_CHI2 = 100.0  # the same at the starting point, where the positions may still be off by a pixel
 BACKGROUND_STRIDE = 8  # pixel stride of the frame's background-noise sample
 
@@ -81,9 +83,8 @@ def background_variance(image: np.ndarray, gain_e_per_adu: float) -> float:
     return max(float(sigma) ** 2, 1e-6)
 
 
-def _windows(pv: np.ndarray, shape: tuple[int, int], exposure_s: float, params):
-    """Equal-size windows covering every star's streak: ``row0, col0, nrows, ncols`` and the
-    mask of stars whose window lies on the detector."""
+def _windows(pv: np.ndarray, exposure_s: float, params):
+    """Equal-size windows covering every star's streak: ``row0, col0, nrows, ncols``."""
     half = params.window_sigmas * params.psf_sigma_px + 1.0
     ext_x = 0.5 * np.abs(pv[:, 2]) * exposure_s * 1.1 + half
     ext_y = 0.5 * np.abs(pv[:, 3]) * exposure_s * 1.1 + half
@@ -91,17 +92,20 @@ def _windows(pv: np.ndarray, shape: tuple[int, int], exposure_s: float, params):
     nc = 2 * int(np.ceil(ext_x.max())) + 1
     row0 = np.rint(pv[:, 1]).astype(np.int64) - nr // 2
     col0 = np.rint(pv[:, 0]).astype(np.int64) - nc // 2
-    inside = (row0 >= 0) & (col0 >= 0) & (row0 + nr <= shape[0]) & (col0 + nc <= shape[1])
-    return row0, col0, nr, nc, inside
+    return row0, col0, nr, nc
 
 
 def _cut(image: np.ndarray, gain_e_per_adu: float, bit_depth: int | None, row0, col0, nr: int, nc: int):
     """The stars' windows (n, nr, nc) in electrons (bias included: each star's background absorbs
-    it) and the masks of their unsaturated pixels."""
+    it) and the masks of their live pixels: on the detector and not saturated (a window cut by the
+    detector's edge keeps the pixels it has, so an edge star is fitted without the bias a
+    truncated centroid has)."""
+    img = np.asarray(image)
     rr = row0[:, None, None] + np.arange(nr)[None, :, None]
     cc = col0[:, None, None] + np.arange(nc)[None, None, :]
-    adu = np.asarray(image)[rr, cc]
-    live = adu < ((1 << int(bit_depth)) - 1) if bit_depth else np.ones(adu.shape, dtype=bool)
+    on = (rr >= 0) & (rr < img.shape[0]) & (cc >= 0) & (cc < img.shape[1])
+    adu = img[np.clip(rr, 0, img.shape[0] - 1), np.clip(cc, 0, img.shape[1] - 1)]
+    live = on & (adu < ((1 << int(bit_depth)) - 1) if bit_depth else on)
     return adu.astype(np.float64) * gain_e_per_adu, live
 
 
@@ -154,12 +158,9 @@ def _initial_nuisance(pv, data, live, bg_var, row0, col0, nr, nc, params, exposu
     return np.column_stack([flux, background])
 
 
-def refine_on_pixels(frame, context, camera, stars, R: Rotation, omega, info, fit_rate: bool, t_ref: int, params,
-                     sigma_px: float):
+def refine_on_pixels(frame, context, camera, stars, R: Rotation, omega, info, fit_rate: bool, t_ref: int, params):
     """Attitude, rate, information and flags after the pixel step (module docstring); the position
-    solution ``(R, omega, info)`` is returned unchanged when no star's window lies on the detector.
-    ``sigma_px``: the position sigma of stars without their own covariance (those off the detector's
-    windows keep their position term)."""
+    solution ``(R, omega, info)`` is returned unchanged when no star has enough live pixels."""
     timing = context.timing
     exposure_s, ld_s = timing.exposure_ns * S_PER_NS, timing.effective_line_delay_ns * S_PER_NS
     gain = context.gain_e_per_adu or 1.0
@@ -167,34 +168,29 @@ def refine_on_pixels(frame, context, camera, stars, R: Rotation, omega, info, fi
     ref = stars.ref_icrs / np.linalg.norm(stars.ref_icrs, axis=1, keepdims=True)
     kin = partial(star_kinematics, camera, timing, frame.t0_ns, t_ref, ref=ref, t_ns=stars.t_ns)
     pv, A, _ = kin(R, omega)
-    row0, col0, nr, nc, inside = _windows(pv, frame.image.shape, exposure_s, params)
-    if not inside.any():
-        return R, omega, info, frame.flags
-    data, live = _cut(frame.image, gain, context.bit_depth, row0[inside], col0[inside], nr, nc)
-    win = (row0[inside], col0[inside], nr, nc, params, exposure_s, ld_s)
-    nuis = _initial_nuisance(pv[inside], data, live, bg_var, *win)
+    row0, col0, nr, nc = _windows(pv, exposure_s, params)
+    data, live = _cut(frame.image, gain, context.bit_depth, row0, col0, nr, nc)
+    usable = np.count_nonzero(live.reshape(len(pv), -1), axis=1) >= MIN_LIVE_PIXELS
+    if not usable.any():
+        return R, omega, info, frame.flags + ("pixel_step_skipped:no_live_pixels",)
+    data, live = data[usable], live[usable]
+    win = (row0[usable], col0[usable], nr, nc, params, exposure_s, ld_s)
+    nuis = _initial_nuisance(pv[usable], data, live, bg_var, *win)
     k = 6 if fit_rate else 3
-    outside = ~inside
-    d_out = direction_covariance(camera, stars.x[outside], stars.y[outside],
-                                 stars.position_covariance(sigma_px)[outside]) if outside.any() else None
-    keep = np.ones(int(inside.sum()), dtype=bool)
+    converged = False
     for it in range(params.pixel_iterations + 1):
         pv, A, _ = kin(R, omega)
-        b = _Blocks(pv[inside], A[inside], nuis, data, live, bg_var, *win)
-        if it <= 1:  # a loose screen at the start, the strict one after the first step
-            keep = (nuis[:, 0] > 0) & (b.chi2 / b.dof <= (START_STAR_CHI2 if it == 0 else MAX_STAR_CHI2))
+        b = _Blocks(pv[usable], A[usable], nuis, data, live, bg_var, *win)
+        # a loose screen at the start, the strict one after every step (a star the start left out
+        # comes back once the fit explains it)
+        keep = (nuis[:, 0] > 0) & (b.chi2 / b.dof <= (START_STAR_CHI2 if it == 0 else MAX_STAR_CHI2))
         normal = np.sum(b.normal[keep][:, :k, :k], axis=0)
-        rhs = np.sum(b.rhs[keep][:, :k], axis=0)
-        if d_out is not None:
-            dt_out = star_times(stars, t_ref)[outside]
-            n_out, r_out = position_normal(R, omega, ref[outside], dt_out, d_out, k)
-            normal, rhs = normal + n_out, rhs + r_out
-        if it == params.pixel_iterations:
+        if it == params.pixel_iterations or (it >= 2 and converged):
             break
-        step = np.linalg.solve(normal, rhs)
-        nuis = nuis + b.nuisance_step(A[inside], step)
+        step = np.linalg.solve(normal, np.sum(b.rhs[keep][:, :k], axis=0))
+        converged = bool(np.all(np.abs(step) <= CONVERGED_SIGMAS * np.sqrt(np.diag(np.linalg.inv(normal)))))
+        nuis = nuis + b.nuisance_step(A[usable], step)
         R, omega = apply_step(R, omega, step)
-    flags = frame.flags
-    if not keep.all():
-        flags = flags + (f"pixel_outliers:{int((~keep).sum())}",)
+    dropped = int((~keep).sum()) + int((~usable).sum())
+    flags = frame.flags + ((f"pixel_outliers:{dropped}",) if dropped else ())
     return R, np.asarray(omega, dtype=float), 0.5 * (normal + normal.T), flags

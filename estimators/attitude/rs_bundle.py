@@ -41,6 +41,8 @@ from rollingstar.estimators.attitude.robust import RobustParams, apply_robust
 from rollingstar.estimators.attitude.star_covariance import direction_covariance
 from rollingstar.estimators.data import AttitudeEstimate, FrameData, RateEstimate, default_sigma_px, frame_camera
 
+HUBER_K = 3.0  # Huber threshold (Mahalanobis sigmas) of the position step that starts the pixel step
+
 
 class RsBundleParams(RobustParams):
     model_config = ConfigDict(extra="forbid")
@@ -53,7 +55,8 @@ class RsBundleParams(RobustParams):
                                 "the rate is fitted; below it the frame's rate (or zero) is held.")
     pixels: bool = Field(default=True, description="Refine attitude and rate on the image's pixels (image-level "
                          "recordings) with the rolling-shutter smear model; False: positions only.")
-    pixel_iterations: int = Field(default=2, ge=1, le=20, description="Gauss-Newton iterations of the pixel step.")
+    pixel_iterations: int = Field(default=8, ge=1, le=30, description="Most Gauss-Newton iterations of the pixel "
+                                  "step (it stops earlier once a step moves no parameter by 5 % of its sigma).")
     psf_sigma_px: float = Field(default=1.0, gt=0, description="Gaussian PSF sigma of the pixel model (px).")
     window_sigmas: float = Field(default=4.0, gt=1, description="Half width of each star's pixel window beyond "
                                  "its streak, in PSF sigmas.")
@@ -89,7 +92,8 @@ class RsBundleSolver(AttitudeSolver):
         d = direction_covariance(camera, stars.x, stars.y, stars.position_covariance(self._sigma_px))
         body0 = Rotation.from_rotvec(dt[:, None] * omega0[None, :]).apply(d.body)
         R0, _ = Rotation.align_vectors(ref, body0)
-        R, omega, info = fit_positions(R0, omega0, ref, dt, d, p.iterations, fit_rate)
+        huber = HUBER_K if p.pixels and frame.image is not None else None  # a robust start for the pixel step
+        R, omega, info = fit_positions(R0, omega0, ref, dt, d, p.iterations + (2 if huber else 0), fit_rate, huber)
         flags = frame.flags
         if p.pixels and frame.image is not None:
             R, omega, info, flags = self._refine_on_pixels(frame, camera, stars, R, omega, info, fit_rate, t_ref)
@@ -102,8 +106,7 @@ class RsBundleSolver(AttitudeSolver):
         return np.zeros(3) if from_velocities is None else from_velocities
 
     def _refine_on_pixels(self, frame, camera, stars, R, omega, info, fit_rate, t_ref):
-        return refine_on_pixels(frame, self.context, camera, stars, R, omega, info, fit_rate, t_ref, self.params,
-                                self._sigma_px)
+        return refine_on_pixels(frame, self.context, camera, stars, R, omega, info, fit_rate, t_ref, self.params)
 
     def _estimates(self, frame: FrameData, t_ref: int, n: int, R: Rotation, omega, info, fit_rate: bool) -> FrameData:
         try:

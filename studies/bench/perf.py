@@ -29,7 +29,12 @@ Lines (full sizes; ``--quick`` shrinks every one to a few seconds):
    are ~20 GB and too slow to simulate for a benchmark): frames per CPU second, the process's peak
    RSS, and the peak memory allocated during the replay (tracemalloc, separate runs), whose
    long/short ratio must stay <= 1.1 (streamed, not loaded).
-7. ``compare``: ``rollingstar compare configs/compare/scaling.yaml`` on dask with 2 workers vs serial,
+7. ``chain_<pipeline>_<rate>``: the per-frame chain (detection, centroiding, identification,
+   correction, attitude, the identification check) of the ``high_dynamic`` pipeline and of the
+   ``baseline`` before it, on he2021a 1024 x 1024 frames at 0.5 and 10 deg/s, median CPU time per
+   frame after the cold start vs ``frame.sum()`` (:mod:`rollingstar.studies.bench.chain`; budgets:
+   5 ms at low rate, 20 ms at 10 deg/s, in the note).
+8. ``compare``: ``rollingstar compare configs/compare/scaling.yaml`` on dask with 2 workers vs serial,
    two interleaved runs of each, the faster of each (target >= 1.7x).
 """
 from __future__ import annotations
@@ -68,6 +73,7 @@ from rollingstar.sensors.conventions import ARCSEC_TO_RAD, DEG_TO_RAD, S_PER_NS
 from rollingstar.sensors.image_sim import ImageModel, digitise, mean_electrons, render_star_electrons
 from rollingstar.sensors.scenario import load_scenario
 from rollingstar.sensors.timing import DetectorTiming
+from rollingstar.studies.bench.chain import ISSUE_TARGET_MS, chain_times, kept_lock, render_frames
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -80,6 +86,7 @@ SIZES = {
     "replay_centroid": ((1_000, 10_000), (20, 60)),
     "replay_image": ((1_000, 10_000), (4, 12)), "replay_image_px": (256, 64),
     "repeats": (15, 3),
+    "chain_frames": (12, 4),
 }
 
 
@@ -366,6 +373,32 @@ def bench_frames(quick: bool) -> list[dict]:
     return lines
 
 
+def bench_chain(quick: bool) -> list[dict]:
+    """The per-frame chain of the high-dynamic and the baseline pipelines on he2021a frames at 0.5 and
+    10 deg/s against ``frame.sum()`` (:mod:`rollingstar.studies.bench.chain`)."""
+    n_frames = _size("chain_frames", quick)
+    lines = []
+    for rate in (0.5, 10.0):
+        frames, context = render_frames(rate, n_frames)
+        t_sum, _ = _best(lambda: frames[0].image.sum(), 20)
+        label = f"{rate:g}"
+        for pipeline in ("high_dynamic", "baseline"):
+            times, out = chain_times(pipeline, frames, context)
+            searched, invalid = kept_lock(out)
+            ms = 1e3 * float(np.median(times))
+            lock = [_check("frames that searched lost-in-space again", searched, 0.0),
+                    _check("frames without a valid attitude", invalid, 0.0)]
+            note = f"budget {ISSUE_TARGET_MS[label]:g} ms per frame; measured {ms:.3g} ms"
+            if pipeline == "baseline":  # the chain before: its lock is a finding, not a check
+                lock, note = [], f"{note}; {searched:.0f} frames searched again, {invalid:.0f} without a valid attitude"
+            lines.append(_line(
+                f"chain_{pipeline}_{label.replace('.', '_')}", f"per-frame chain, {pipeline}, {label} deg/s, vs frame.sum()",
+                f"he2021a 1024 x 1024, {len(out)} frames (median of {len(times)} after the cold start)",
+                (f"{pipeline} chain", float(np.median(times))), ("frame.sum()", t_sum), "over_floor", None, lock,
+                note=note))
+    return lines
+
+
 def _noise_checks(model) -> list[dict]:
     """Same distribution before/after: mean and variance of a flat field and of a bright one."""
     checks = []
@@ -507,7 +540,8 @@ def run_perf(quick: bool = False, show_progress: bool = True, only: list[str] | 
     """Run every line (or those whose id starts with one of ``only``); returns the JSON document."""
     steps = [("quest", lambda: [bench_quest(quick)]), ("kf", lambda: [bench_kf(quick)]),
              ("rate", lambda: [bench_rate(quick)]), ("centroid", lambda: bench_frames(quick)),
-             ("replay", lambda: bench_replay(quick)), ("compare", lambda: [bench_compare(quick)])]
+             ("chain", lambda: bench_chain(quick)), ("replay", lambda: bench_replay(quick)),
+             ("compare", lambda: [bench_compare(quick)])]
     if only:
         names = [name for name, _ in steps]
         unknown = [o for o in only if o not in names]

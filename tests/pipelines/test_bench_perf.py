@@ -17,7 +17,8 @@ from rollingstar.cli import app
 pytestmark = pytest.mark.slow  # whole reproductions, benchmarks or killed processes: `-m 'not slow'` skips them
 
 EXPECTED = {"quest", "kf", "rate", "centroid_full", "centroid_windowed", "render", "render_speedup",
-            "replay_centroid", "replay_image", "compare"}
+            "replay_centroid", "replay_image", "compare",
+            "chain_high_dynamic_0_5", "chain_baseline_0_5", "chain_high_dynamic_10", "chain_baseline_10"}
 
 
 @pytest.fixture(scope="module")
