@@ -39,8 +39,9 @@ parameters ``(x, y, vx, vy)`` (:func:`track_parameters`) are functions of ``thet
 ``(x, y)`` the projection at its own row's mid-exposure ``t = t0 + y ld + E/2`` (a fixed point in
 ``y``, solved by iteration: it contracts by ``|vy ld|`` per step), ``(vx, vy) = P(w) (w x omega)``
 (``P`` the projection Jacobian). With ``A_j = d(x, y, vx, vy)/d theta`` (central differences,
-:func:`track_jacobian`) and ``S_j`` the star's smear Fisher information with its flux and the
-background eliminated (the Schur complement onto ``(x, y, vx, vy)``), the frame's information is
+:func:`track_jacobian`) and ``S_j`` the star's smear Fisher information (:func:`star_fisher`) with
+its flux and the background eliminated (the Schur complement onto ``(x, y, vx, vy)``), the frame's
+information is
 ``F = sum_j A_j^T S_j A_j`` and its inverse the joint bound on ``(delta, eps)``: the attitude at
 ``t_ref`` with the rate unknown, and the rate. The rate block does not depend on ``t_ref``.
 """
