@@ -151,8 +151,7 @@ def fit_residuals(ident: StarTable, camera, omega_rad_s=None, cov=None) -> tuple
     # R^T r_i = Exp(phi_i) b_i: the stars referred to the middle time, then Wahba's problem
     R, _ = Rotation.align_vectors(ref, Rotation.from_rotvec(phi).apply(body), weights=weights)
     if rate_fitted(ident):
-        for _ in range(2):  # the second step removes the first's linearisation error
-            phi = _rate_step(R, body, ref, dt, phi, np.sqrt(weights))
+        phi, _ = fit_rate(R, body, ref, dt, np.sqrt(weights))
     # predicted camera vectors: w_i = (R Exp(phi_i))^T r_i
     w = (R * Rotation.from_rotvec(phi)).inv().apply(ref) if ident.n else np.zeros((0, 3))
     px, py, front = camera.project(w)
@@ -161,17 +160,33 @@ def fit_residuals(ident: StarTable, camera, omega_rad_s=None, cov=None) -> tuple
     return resid, R, dx
 
 
+def fit_rate(R: Rotation, body: np.ndarray, ref: np.ndarray, dt: np.ndarray, root_weights: np.ndarray,
+             steps: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """The attitude-and-rate fit ``R(t_i) = R Exp(delta + omega dt_i)`` to camera directions
+    ``body`` of catalogue vectors ``ref`` seen ``dt`` seconds from the reference time, from ``R``:
+    ``steps`` linearised weighted least-squares steps (the second removes the first's
+    linearisation error). Returns the per-star rotation vectors ``phi_i = delta + omega dt_i``
+    (n, 3) and the body rate ``omega`` (3,), rad/s in the camera frame."""
+    phi = np.zeros((len(dt), 3))
+    omega = np.zeros(3)
+    for _ in range(steps):
+        phi, d_omega = _rate_step(R, body, ref, dt, phi, root_weights)
+        omega = omega + d_omega
+    return phi, omega
+
+
 def _rate_step(R: Rotation, body: np.ndarray, ref: np.ndarray, dt: np.ndarray, phi: np.ndarray,
-               root_weights: np.ndarray) -> np.ndarray:
+               root_weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-star rotation vectors ``phi_i = delta + omega dt_i`` after one linearised weighted
     least-squares step of the attitude-and-rate fit from ``phi``: ``b_i - w_i = [w_i]x (d delta +
-    d omega dt_i)`` with ``w_i = (R Exp(phi_i))^T r_i``, each star's rows scaled by ``root_weights``."""
+    d omega dt_i)`` with ``w_i = (R Exp(phi_i))^T r_i``, each star's rows scaled by ``root_weights``;
+    and the step's rate change ``d omega``."""
     w = (R * Rotation.from_rotvec(phi)).inv().apply(ref)
     S = skew(w)  # (n, 3, 3)
     rw = np.repeat(root_weights, 3)
     A = np.concatenate([S, S * dt[:, None, None]], axis=2).reshape(-1, 6) * rw[:, None]
     sol, *_ = np.linalg.lstsq(A, (body - w).reshape(-1) * rw, rcond=None)
-    return phi + sol[:3][None, :] + dt[:, None] * sol[3:][None, :]
+    return phi + sol[:3][None, :] + dt[:, None] * sol[3:][None, :], sol[3:]
 
 
 def predicted_count(attitude: Rotation, camera, catalog) -> int:

@@ -13,12 +13,16 @@ from scipy.stats import binom
 from rollingstar.estimators.data import FrameData
 from rollingstar.estimators.identifiers.base import Identifier
 from rollingstar.estimators.identifiers.camera_fit import RadialCamera, fit_camera
-from rollingstar.estimators.identifiers.integrity import check_frame
+from rollingstar.estimators.identifiers.integrity import RATE_FIT_MIN_MATCHES, check_frame, fit_rate
 from rollingstar.estimators.identifiers.tetra3_database import solver_database
 from rollingstar.estimators.identifiers.tracking import (
+    BodyMotion,
     TrackingIdentifier,
     TrackingParams,
+    predict_at_rows,
 )
+from rollingstar.sensors.conventions import S_PER_NS
+from rollingstar.sensors.so3 import skew
 
 
 class LostInSpaceParams(BaseModel):
@@ -77,6 +81,12 @@ class LostInSpaceParams(BaseModel):
     fit_principal_point: bool = Field(default=False, description="With fit_distortion='radial', also fit the principal point.")
     distortion_min_matches: int = Field(default=8, ge=4, description="Fewest matches the distortion is fitted with; below, "
                                                                      "the known k1, k2 are kept and only the attitude is fitted.")
+    refer_motion: bool = Field(default=True, description="Refer the detections to the frame's reference time with the "
+                               "body rate fitted to their image velocities (vx, vy) before the pattern search, and "
+                               "re-match each star at its own row time with that rate, or with the rate fitted to the "
+                               "matches (see the class docstring).")
+    motion_threshold_px: float = Field(default=1.0, ge=0, description="A rate fitted to the matches is used when the "
+                                       "motion it implies between the matched stars' times exceeds this (px).")
 
 
 @dataclass(frozen=True)
@@ -100,6 +110,8 @@ class LostInSpaceSolution:
     focal_px: float = float("nan")
     camera: RadialCamera | None = None
     camera_sigma: dict = field(default_factory=dict)
+    rate_rad_s: np.ndarray | None = None
+    t_ns: int | None = None
 
 
 class LostInSpaceIdentifier(Identifier):
@@ -237,8 +249,8 @@ class LostInSpaceIdentifier(Identifier):
             if out.stars.n >= least and self._verified(out):
                 self.last_mode = "tracking"
                 return self._with_camera(out)
-            self._tracker = None
             flags = flags + ("track_lost",)
+        lost, self._tracker = self._tracker, None
         self.last_mode = "lost-in-space"
         out, sol = self._lost_in_space(frame.evolve(flags=flags))
         self.last_solution = sol
@@ -246,6 +258,10 @@ class LostInSpaceIdentifier(Identifier):
             self._track_model = sol.camera
         if sol.accepted and self.params.track:
             self._tracker = self._tracking_identifier(sol.attitude, self.params.tracking, sol.camera.camera(self.context.camera))
+            # the rate: the one the solution found, else the one the lost tracker held
+            omega = sol.rate_rad_s if sol.rate_rad_s is not None else (lost.motion().omega if lost is not None else None)
+            if omega is not None:
+                self._tracker.seed(sol.attitude, sol.t_ns, omega)
         return self._with_camera(out) if sol.accepted else out
 
     def _verified(self, out: FrameData) -> bool:
@@ -284,24 +300,72 @@ class LostInSpaceIdentifier(Identifier):
         ok = front & cam.contains(x, y, margin_px=-self.params.gate_px)
         return idx[ok], x[ok], y[ok]
 
-    def _rematch(self, det, R: Rotation, model: RadialCamera):
-        """Match every detection to the catalogue predicted with ``R`` and ``model``, exactly as the
-        ``tracking`` identifier does (mutual nearest neighbours within ``gate_px``, attitude refit,
-        second pass with the gate ``max(refine_gate_px, 5 * 1.4826 * median residual)``).
-        Returns (detection indices, catalogue indices, attitude fitted to the first pass, n predicted)."""
+    def _predict_moving(self, R: Rotation, model: RadialCamera, motion: BodyMotion, t0_ns: int):
+        """As :meth:`_predict` for ``R`` at the motion's origin, each star at its own row time."""
+        if motion.static:
+            return self._predict(R, model)
+        cam, cat, timing = self.context.camera, self.context.catalog, self.context.timing
+        sweep = float(np.linalg.norm(motion.omega)) * timing.frame_period_ns * S_PER_NS
+        radius = cam.half_diagonal_rad + np.radians(self._matcher_params.margin_deg) + sweep
+        center = (R * Rotation.from_rotvec(motion.phi(np.int64(timing.frame_reference_ns(t0_ns))))).apply([0.0, 0.0, 1.0])
+        idx = np.asarray(cat.cone(center, radius), dtype=np.intp)
+        if self.params.magnitude_limit is not None:
+            idx = idx[cat.magnitude[idx] <= self.params.magnitude_limit]
+        w0 = R.inv().apply(cat.unit_icrs[idx]) if idx.size else np.zeros((0, 3))
+        x, y, front, _, _ = predict_at_rows(w0, motion, model.project, timing, t0_ns)
+        ok = front & cam.contains(x, y, margin_px=-self.params.gate_px)
+        return idx[ok], x[ok], y[ok]
+
+    @staticmethod
+    def _referred(det, rows: np.ndarray, model: RadialCamera, motion: BodyMotion) -> np.ndarray:
+        """Camera directions of detections ``rows`` referred to the motion's origin, ``Exp(phi(t_i)) b_i``."""
+        body = model.unproject(det.x[rows], det.y[rows])
+        return body if motion.static else Rotation.from_rotvec(motion.phi(det.t_ns[rows])).apply(body)
+
+    def _rematch(self, det, R: Rotation, model: RadialCamera, motion: BodyMotion, t0_ns: int):
+        """Match every detection to the catalogue predicted with ``R`` (at the motion's origin), the
+        motion and ``model``, as the ``tracking`` identifier does (mutual nearest neighbours within
+        ``gate_px``, attitude refit, second pass with the gate ``max(refine_gate_px, 5 * 1.4826 *
+        median residual)``). Returns (detection indices, catalogue indices, attitude fitted to the
+        first pass, n predicted)."""
         match = TrackingIdentifier._match
         cat = self.context.catalog
         gate = self.params.gate_px
-        idx, px, py = self._predict(R, model)
+        idx, px, py = self._predict_moving(R, model, motion, t0_ns)
         d, j = match(det, px, py, gate)
         if d.size >= 3:
-            R, _ = Rotation.align_vectors(cat.unit_icrs[idx[j]], model.unproject(det.x[d], det.y[d]))
-            idx, px, py = self._predict(R, model)
+            R, _ = Rotation.align_vectors(cat.unit_icrs[idx[j]], self._referred(det, d, model, motion))
+            idx, px, py = self._predict_moving(R, model, motion, t0_ns)
             d, j = match(det, px, py, gate)
             resid = np.hypot(det.x[d] - px[j], det.y[d] - py[j])
             g2 = max(self._matcher_params.refine_gate_px, 5.0 * 1.4826 * float(np.median(resid))) if resid.size else gate
             d, j = match(det, px, py, min(g2, gate))
         return d, idx[j], R, idx.size
+
+    def _velocity_motion(self, det, model: RadialCamera, t_ref: int) -> BodyMotion:
+        """The rigid body rate fitted to the detections' image velocities (:func:`fit_body_rate`) from
+        ``t_ref``; no motion without ``refer_motion`` or three stars with a finite velocity."""
+        if not self.params.refer_motion:
+            return BodyMotion()
+        omega = fit_body_rate(model.camera(self.context.camera), det.x, det.y, det.vx, det.vy)
+        return BodyMotion() if omega is None else BodyMotion(t_ref, omega=omega)
+
+    def _matched_motion(self, det, d: np.ndarray, c: np.ndarray, model: RadialCamera, t_ref: int):
+        """The attitude at ``t_ref`` and body rate fitted to matches ``d`` (detections) / ``c``
+        (catalogue) at their own times (integrity.fit_rate), when there are enough of them at
+        distinct times and the motion the rate implies between them exceeds ``motion_threshold_px``;
+        else None."""
+        t = det.t_ns[d].astype(np.int64)
+        if not self.params.refer_motion or d.size < RATE_FIT_MIN_MATCHES or np.ptp(t) == 0:
+            return None
+        body, ref = model.unproject(det.x[d], det.y[d]), self.context.catalog.unit_icrs[c]
+        dt = (t - t_ref) * S_PER_NS
+        R0, _ = Rotation.align_vectors(ref, body)
+        phi, omega = fit_rate(R0, body, ref, dt, np.ones(d.size))
+        if np.linalg.norm(omega) * np.ptp(dt) * model.focal_px <= self.params.motion_threshold_px:
+            return None
+        delta = np.mean(phi - dt[:, None] * omega[None, :], axis=0)
+        return R0 * Rotation.from_rotvec(delta), BodyMotion(t_ref, omega=omega)
 
     def _lost_in_space(self, frame: FrameData) -> tuple[FrameData, LostInSpaceSolution]:
         det = frame.stars
@@ -309,18 +373,10 @@ class LostInSpaceIdentifier(Identifier):
         finite = np.flatnonzero(np.isfinite(det.x) & np.isfinite(det.y))
         if finite.size < self.params.min_matches:
             return self._reject(frame, f"too_few_detections({finite.size}<{self.params.min_matches})")
-        flux = np.where(np.isfinite(det.flux[finite]), det.flux[finite], 0.0)
-        order = finite[np.argsort(-flux, kind="stable")]
         model = RadialCamera.from_pinhole(cam, self.params.k1, self.params.k2)
-        xu, yu = model.undistort(det.x[order], det.y[order])  # the pattern search sees a pinhole image
-        cents = np.nan_to_num(np.column_stack([xu - cam.cx, yu - cam.cy, np.maximum(det.flux[order], 0.0)]))
-        start = time.perf_counter()
-        res = self._database().solve_from_centroids(
-            cents, camera_model=self._camera_model, fov_max_error_deg=self._fov_deg * self.params.fov_tolerance,
-            match_threshold=self.params.match_threshold, solve_timeout_ms=None,
-            max_patterns_checked=self.params.max_patterns_checked,
-            pattern_checking_stars=self.params.pattern_checking_stars, match_max_error=self.params.pattern_match_max_error)
-        seconds = time.perf_counter() - start
+        t_ref = int(self.context.timing.frame_reference_ns(frame.t0_ns))
+        motion = self._velocity_motion(det, model, t_ref)
+        res, order, seconds = self._pattern_solve(det, finite, model, motion)
         if not res:
             return self._reject(frame, f"solver_{res.status}", solve_seconds=seconds)
         diag = dict(solver_matches=int(res.num_matches), solver_probability=float(res.probability),
@@ -334,32 +390,74 @@ class LostInSpaceIdentifier(Identifier):
         ok = cat_idx >= 0
         if ok.sum() < 3:
             return self._reject(frame, "solver_ids_not_in_catalogue", **diag)
-        R, _ = Rotation.align_vectors(self._catalog.unit_icrs[cat_idx[ok]], model.unproject(det.x[det_idx[ok]], det.y[det_idx[ok]]))
-        # re-match every detection against our catalogue and camera model; with fit_distortion the
-        # intrinsics are refitted to the matches and the matching repeated until the set is stable
+        R, _ = Rotation.align_vectors(self._catalog.unit_icrs[cat_idx[ok]], self._referred(det, det_idx[ok], model, motion))
+        d, c, R, model, motion, sigma = self._match_all(det, R, model, motion, frame.t0_ns, t_ref)
+        return self._verify(frame, d, c, model, motion, sigma, diag)
+
+    def _pattern_solve(self, det, finite: np.ndarray, model: RadialCamera, motion: BodyMotion):
+        """tetra3rs' pattern search on the detections (brightest first; referred to the motion's
+        origin when a motion is known). Returns (result, detection order, seconds)."""
+        cam = self.context.camera
+        flux = np.where(np.isfinite(det.flux[finite]), det.flux[finite], 0.0)
+        order = finite[np.argsort(-flux, kind="stable")]
+        if motion.static:
+            xu, yu = model.undistort(det.x[order], det.y[order])  # the pattern search sees a pinhole image
+        else:
+            w = self._referred(det, order, model, motion)
+            xu, yu = model.cx - model.focal_px * w[:, 0] / w[:, 2], model.cy - model.focal_px * w[:, 1] / w[:, 2]
+        cents = np.nan_to_num(np.column_stack([xu - cam.cx, yu - cam.cy, np.maximum(det.flux[order], 0.0)]))
+        start = time.perf_counter()
+        res = self._database().solve_from_centroids(
+            cents, camera_model=self._camera_model, fov_max_error_deg=self._fov_deg * self.params.fov_tolerance,
+            match_threshold=self.params.match_threshold, solve_timeout_ms=None,
+            max_patterns_checked=self.params.max_patterns_checked,
+            pattern_checking_stars=self.params.pattern_checking_stars, match_max_error=self.params.pattern_match_max_error)
+        return res, order, time.perf_counter() - start
+
+    def _match_all(self, det, R: Rotation, model: RadialCamera, motion: BodyMotion, t0_ns: int, t_ref: int):
+        """Re-match every detection against our catalogue and camera model; with fit_distortion the
+        intrinsics are refitted to the matches and the matching repeated until the set is stable;
+        without a known motion, then with the rate fitted to the matches (:meth:`_matched_motion`).
+        Returns (detections, catalogue indices, attitude, camera model, motion, camera sigmas)."""
         fitting = self._fitting
-        names = self._fit_names
         sigma: dict = {}
         previous = None
         for _ in range(6 if fitting else 1):
-            d, c, R, n_pred = self._rematch(det, R, model)
+            d, c, R, _ = self._rematch(det, R, model, motion, t0_ns)
             key = (tuple(d), tuple(c))
             if d.size < 3 or key == previous:
                 break
             previous = key
-            obs = [(det.x[d], det.y[d], self.context.catalog.unit_icrs[c])]
+            ref = self.context.catalog.unit_icrs[c]
             if fitting and d.size >= self.params.distortion_min_matches:
-                cf = fit_camera(obs, [R], model, fit=names)
+                x, y = (det.x[d], det.y[d]) if motion.static else model.project(self._referred(det, d, model, motion))[:2]
+                cf = fit_camera([(x, y, ref)], [R], model, fit=self._fit_names)
                 model, R, sigma = cf.camera, cf.attitudes[0], cf.sigma
             else:
-                R, _ = Rotation.align_vectors(obs[0][2], model.unproject(obs[0][0], obs[0][1]))
+                R, _ = Rotation.align_vectors(ref, self._referred(det, d, model, motion))
+        if motion.static:
+            for _ in range(2):  # the second pass fits the rate to the stars the first one added
+                got = self._matched_motion(det, d, c, model, t_ref)
+                if got is None:
+                    break
+                R, motion = got
+                d, c, R, _ = self._rematch(det, R, model, motion, t0_ns)
+        return d, c, R, model, motion, sigma
+
+    def _verify(self, frame: FrameData, d: np.ndarray, c: np.ndarray, model: RadialCamera, motion: BodyMotion,
+                sigma: dict, diag: dict) -> tuple[FrameData, LostInSpaceSolution]:
+        """The verification of the class docstring (3) on matches ``d`` / ``c``, each star at its own time."""
+        det, cam = frame.stars, self.context.camera
         k, n = d.size, det.n
         if k < 3:
             return self._reject(frame, f"too_few_matches({k}<{self.params.min_matches})", n_matched=k, **diag)
         ref = self.context.catalog.unit_icrs[c]
-        R, _ = Rotation.align_vectors(ref, model.unproject(det.x[d], det.y[d]))
+        R, _ = Rotation.align_vectors(ref, self._referred(det, d, model, motion))
         n_pred = self._predict(R, model)[0].size
-        px, py, _ = model.project(R.inv().apply(ref))
+        if motion.static:
+            px, py, _ = model.project(R.inv().apply(ref))
+        else:
+            px, py, _ = model.project((R * Rotation.from_rotvec(motion.phi(det.t_ns[d]))).inv().apply(ref))
         r = np.hypot(px - det.x[d], py - det.y[d])
         rms = float(np.sqrt(np.mean(r**2)))
         gate = max(float(r.max()), self._matcher_params.refine_gate_px)
@@ -374,8 +472,34 @@ class LostInSpaceIdentifier(Identifier):
         if not p_false <= self.params.max_false_match_prob:
             return self._reject(frame, f"false_match_probability({p_false:.1e}>{self.params.max_false_match_prob:.0e})", **diag)
         sol = LostInSpaceSolution(accepted=True, reason="", attitude=R, n_detections=n, focal_px=model.focal_px,
-                                  camera=model, camera_sigma=sigma, **diag)
+                                  camera=model, camera_sigma=sigma, rate_rad_s=None if motion.static else motion.omega,
+                                  t_ns=int(self.context.timing.frame_reference_ns(frame.t0_ns)), **diag)
         stars = det.take(d).with_columns(catalog_id=self.context.catalog.ids[c], ref_icrs=ref)
         rest = np.ones(n, dtype=bool)
         rest[d] = False
         return frame.evolve(stars=stars, unmatched=det.take(rest)), sol
+
+
+def fit_body_rate(camera, x, y, vx, vy, iterations: int = 8) -> np.ndarray | None:
+    """The body rate (camera frame, rad/s) of a rigid rotation that best explains the image
+    velocities ``vx, vy`` (px/s) of stars at ``x, y``: ``v_i = P(w_i) [w_i]x omega`` with
+    ``w_i = camera.unproject(x_i, y_i)`` (a camera turning at ``omega`` moves the direction ``w``
+    of a fixed star at ``w x omega``), linear least squares in ``omega`` made robust by
+    iteratively reweighting (Huber, at twice the robust scatter ``1.4826 median |r|`` of the
+    per-star residuals): a blend or a spurious streak does not pull the others. None with fewer
+    than three finite velocities."""
+    ok = np.flatnonzero(np.isfinite(x) & np.isfinite(y) & np.isfinite(vx) & np.isfinite(vy))
+    if ok.size < 3:
+        return None
+    w = camera.unproject(x[ok], y[ok])
+    A = camera.projection_jacobian(w) @ skew(w)  # (n, 2, 3)
+    v = np.column_stack([vx[ok], vy[ok]])
+    weight = np.ones(ok.size)
+    omega = np.zeros(3)
+    for _ in range(iterations):
+        rw = np.repeat(np.sqrt(weight), 2)
+        omega, *_ = np.linalg.lstsq(A.reshape(-1, 3) * rw[:, None], v.reshape(-1) * rw, rcond=None)
+        r = np.linalg.norm(v - A @ omega, axis=1)
+        scale = 2.0 * 1.4826 * float(np.median(r)) + 1e-12
+        weight = np.minimum(1.0, scale / np.maximum(r, 1e-300))
+    return omega
