@@ -436,12 +436,19 @@ class LostInSpaceIdentifier(Identifier):
             else:
                 R, _ = Rotation.align_vectors(ref, self._referred(det, d, model, motion))
         if motion.static:
+            # the field of view solved on (or the intrinsics fitted to) a frame stretched by the rolling
+            # shutter hold part of the stretch: a rate is fitted with the nominal camera instead
+            nominal = RadialCamera.from_pinhole(self.context.camera, self.params.k1, self.params.k2)
             for _ in range(2):  # the second pass fits the rate to the stars the first one added
-                got = self._matched_motion(det, d, c, model, t_ref)
+                got = self._matched_motion(det, d, c, nominal, t_ref)
                 if got is None:
                     break
-                R, motion = got
+                (R, motion), model, sigma = got, nominal, {}
                 d, c, R, _ = self._rematch(det, R, model, motion, t0_ns)
+            if not motion.static and fitting and d.size >= self.params.distortion_min_matches:
+                x, y = model.project(self._referred(det, d, model, motion))[:2]
+                cf = fit_camera([(x, y, self.context.catalog.unit_icrs[c])], [R], model, fit=self._fit_names)
+                model, sigma = cf.camera, cf.sigma
         return d, c, R, model, motion, sigma
 
     def _verify(self, frame: FrameData, d: np.ndarray, c: np.ndarray, model: RadialCamera, motion: BodyMotion,
@@ -485,9 +492,10 @@ def fit_body_rate(camera, x, y, vx, vy, iterations: int = 8) -> np.ndarray | Non
     velocities ``vx, vy`` (px/s) of stars at ``x, y``: ``v_i = P(w_i) [w_i]x omega`` with
     ``w_i = camera.unproject(x_i, y_i)`` (a camera turning at ``omega`` moves the direction ``w``
     of a fixed star at ``w x omega``), linear least squares in ``omega`` made robust by
-    iteratively reweighting (Huber, at twice the robust scatter ``1.4826 median |r|`` of the
-    per-star residuals): a blend or a spurious streak does not pull the others. None with fewer
-    than three finite velocities."""
+    iteratively reweighting the stars by their residual ``r`` against the robust scatter
+    ``s = 1.4826 median |r|``: Huber weights (``min(1, 2 s / r)``) for the first half of the
+    iterations, then Tukey's biweight (``(1 - (r / 4.685 s)^2)^2``, zero beyond), so that a blend or
+    a spurious streak does not pull the others. None with fewer than three finite velocities."""
     ok = np.flatnonzero(np.isfinite(x) & np.isfinite(y) & np.isfinite(vx) & np.isfinite(vy))
     if ok.size < 3:
         return None
@@ -496,10 +504,13 @@ def fit_body_rate(camera, x, y, vx, vy, iterations: int = 8) -> np.ndarray | Non
     v = np.column_stack([vx[ok], vy[ok]])
     weight = np.ones(ok.size)
     omega = np.zeros(3)
-    for _ in range(iterations):
+    for k in range(iterations):
         rw = np.repeat(np.sqrt(weight), 2)
         omega, *_ = np.linalg.lstsq(A.reshape(-1, 3) * rw[:, None], v.reshape(-1) * rw, rcond=None)
         r = np.linalg.norm(v - A @ omega, axis=1)
-        scale = 2.0 * 1.4826 * float(np.median(r)) + 1e-12
-        weight = np.minimum(1.0, scale / np.maximum(r, 1e-300))
+        scale = 1.4826 * float(np.median(r)) + 1e-12
+        if k < iterations // 2:
+            weight = np.minimum(1.0, 2.0 * scale / np.maximum(r, 1e-300))
+        else:
+            weight = np.clip(1.0 - (r / (4.685 * scale)) ** 2, 0.0, None) ** 2
     return omega

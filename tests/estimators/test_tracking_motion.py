@@ -199,3 +199,24 @@ def test_gyro_propagates_the_prior(context):
     assert all(wrong == 0 for _, wrong, _ in res) and all(n >= total - 1 for n, _, total in res[1:]), res
     blind = _run(context, frames, rng, feed, gate_px=10.0, use_gyro=False)
     assert sum(n for n, _, _ in blind[1:]) < 0.2 * sum(total for _, _, total in blind[1:])
+
+
+def test_covariance_gate_rejects_what_the_fixed_gate_takes(context):
+    """Once estimates with honest covariances are passed back, a spot 5 px from a star's prediction
+    (the star itself missing) is many sigma off and stays unmatched; the fixed 10 px circle takes it."""
+    rng = np.random.default_rng(12)
+    frames = motion_frames(context, pointing(rng), np.radians([3.0, 0.0, 0.0]), 4, seed=13, velocities=False)
+    frame, truth_ids, _, (tx, ty, _) = frames[3]
+    moved = frame.stars.with_columns(x=frame.stars.x + np.where(np.arange(frame.stars.n) == 0, 5.0, 0.0))
+    frames[3] = (frame.evolve(stars=moved), truth_ids, frames[3][2], (tx, ty, None))
+
+    def feed(frame, motion):
+        t_ref = TIMING.frame_reference_ns(frame.t0_ns)
+        return frame.evolve(attitudes=(_estimate(motion, t_ref, rng, 3.0),), rate=RateEstimate(
+            t_ref, motion.angular_velocity(np.int64(t_ref)) + rng.normal(0, 0.005 * DEG, 3),
+            covariance=(0.005 * DEG) ** 2 * np.eye(3)))
+
+    gated = _run(context, frames, rng, feed, refine=False, gate_px=10.0)
+    fixed = _run(context, frames, rng, feed, refine=False, gate_px=10.0, gate="fixed")
+    assert gated[3] == (truth_ids.size - 1, 0, truth_ids.size)  # all but the moved one, none wrong
+    assert fixed[3][0] == truth_ids.size  # the moved spot matched too (5 px off its star)
