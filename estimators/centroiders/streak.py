@@ -28,6 +28,12 @@ FIT_TOLERANCE_PX = 1e-3  # the fit stops when no star's position step exceeds th
 RIDGE = 1e-12  # added to the damped normal matrix: a star without usable pixels takes zero steps
 FROZEN_VELOCITY_ITERATIONS = 2  # first iterations of the fit with the velocity held at its guess
 MIN_STARS_FOR_RATE = 3  # stars needed to fit the body rate kept for the next frame
+SIGN_MATCH_PX = 5.0  # a star moved from the previous frame lands this close to one of this frame's
+# A fit with an expected velocity must come within this fraction of it plus VELOCITY_SLACK_PX of
+# streak length over the exposure (a fit across two collinear streaks, or onto a neighbour, is much
+# longer or turned; a PSF 30 % wider than the model's passes for a 3 px smear)
+VELOCITY_TOLERANCE = 0.2
+VELOCITY_SLACK_PX = 4.0
 
 
 class StreakParams(BaseModel):
@@ -117,13 +123,19 @@ class StreakCentroider(Centroider):
        implausibly large for a right model: a PSF unlike the model's, a blend, a hot pixel),
        ``peak`` and ``npix`` the fitted star
        signal's maximum and its pixels above ``s``, ``saturated`` any of those saturated. Kept:
-       ``snr >= min_snr``, inside the detector; one star per streak (the best ``snr``).
+       ``snr >= min_snr``, inside the detector and its window, with an expected velocity within
+       ``VELOCITY_TOLERANCE`` of it (plus ``VELOCITY_SLACK_PX`` over the exposure); one star per streak (the best
+       ``snr``).
     5. State: the body rate fitted to the kept stars' velocities (robust least squares), the
        expected motion of the next frame when it has no gyro samples; fewer than
        ``MIN_STARS_FOR_RATE`` stars clear it (cold search next frame), and a frame whose expected
        motion finds fewer than that is searched cold again. After a cold search the frame is
-       detected and fitted once more with the rate its stars give (their velocities' signs
-       resolved by that field).
+       detected and fitted once more with the rate its stars give (their velocities' signs made
+       consistent with that field). The sign of motion along the columns is not in one frame's
+       pixels (the rolling shutter stretches a streak of one sign as it would a slower streak of
+       the other sign), so without a gyro the next frame settles it: the previous stars moved by
+       ``+v dt`` must land on the new ones (:meth:`_resolve_sign`); until then the velocities'
+       overall sign may be reversed (positions are not affected).
     """
 
     name = "streak"
@@ -139,22 +151,61 @@ class StreakCentroider(Centroider):
         self._ld = timing.effective_line_delay_ns * S_PER_NS
         self._se = effective_sigma(self.params.psf_sigma_px)
         self._omega = None
+        self._sign_known = False
+        self._previous = None
         self._kernels = {}
 
     def process(self, frame: FrameData) -> FrameData:
         f = self._frame(frame)
         camera = frame_camera(frame, self.context)
-        omega = self._expected_rate(frame)
+        gyro = self._gyro_rate(frame)
+        omega = gyro if gyro is not None else self._omega
         p, cov = self._stars(f, camera, omega) if omega is not None else (np.zeros((0, 6)), None)
-        if p.shape[0] < MIN_STARS_FOR_RATE:  # cold search; then again with the rate it gives
-            p, cov = self._stars(f, camera, None)
-            omega = self._fitted_rate(camera, p, signed=False)
-            if omega is not None:
-                again = self._stars(f, camera, omega)
-                if again[0].shape[0] >= MIN_STARS_FOR_RATE:
-                    p, cov = again
+        if p.shape[0] < MIN_STARS_FOR_RATE:
+            p, cov = self._cold(f, camera)
+        elif gyro is None and not self._sign_known:
+            p, cov = self._resolve_sign(f, camera, frame.t0_ns, p, cov, omega)
+        self._sign_known |= gyro is not None
         self._omega = self._fitted_rate(camera, p, signed=True)
+        self._previous = (frame.t0_ns, p[:, :4].copy())
         return frame.evolve(stars=self._table(frame, f, p, cov))
+
+    def _cold(self, f: _Frame, camera):
+        """Cold search; then detection and fit again with the rate its stars give (whose overall
+        sign the next frame settles)."""
+        self._sign_known = False
+        p, cov = self._stars(f, camera, None)
+        omega = self._fitted_rate(camera, p, signed=False)
+        if omega is not None:
+            again = self._stars(f, camera, omega)
+            if again[0].shape[0] >= MIN_STARS_FOR_RATE:
+                return again
+        return p, cov
+
+    def _resolve_sign(self, f: _Frame, camera, t0_ns: int, p: np.ndarray, cov: np.ndarray, omega):
+        """The sign of a streak's motion along the columns is not in one frame's pixels (the rolling
+        shutter's stretch of one sign is a slower streak of the other). Between two frames it is:
+        the previous frame's stars moved by ``+v dt`` land on this frame's stars, by ``-v dt`` not.
+        When the reverse matches more stars, the frame is fitted again with the rate reversed."""
+        if self._previous is None:
+            return p, cov
+        dt = (t0_ns - self._previous[0]) * S_PER_NS
+        q = self._previous[1]
+        if q.shape[0] < MIN_STARS_FOR_RATE or np.median(np.hypot(q[:, 2], q[:, 3])) * dt < SIGN_MATCH_PX:
+            return p, cov  # too slow to tell (and too slow to matter)
+        hits = []
+        for sign in (1.0, -1.0):
+            pred = q[:, :2] + sign * q[:, 2:4] * dt
+            d = np.hypot(pred[:, None, 0] - p[None, :, 0], pred[:, None, 1] - p[None, :, 1])
+            hits.append(int(np.sum(d.min(axis=1, initial=np.inf) < SIGN_MATCH_PX)))
+        if max(hits) < MIN_STARS_FOR_RATE or hits[0] == hits[1]:
+            return p, cov
+        self._sign_known = True
+        if hits[1] > hits[0]:
+            again = self._stars(f, camera, -omega)
+            if again[0].shape[0] >= MIN_STARS_FOR_RATE:
+                return again
+        return p, cov
 
     # ------------------------------------------------------------------ frame, background, motion
     def _frame(self, frame: FrameData) -> _Frame:
@@ -209,11 +260,11 @@ class StreakCentroider(Centroider):
             return float(np.iinfo(raw.dtype).max)
         return np.inf
 
-    def _expected_rate(self, frame: FrameData):
-        """Body rate (rad/s) expected during the frame: the gyro's mean, else the previous frame's fit."""
+    def _gyro_rate(self, frame: FrameData):
+        """Body rate (rad/s) of the frame's gyro samples (their mean), None without."""
         if self.params.use_gyro and frame.gyro is not None and len(frame.gyro.t_ns):
             return np.mean(np.asarray(frame.gyro.omega_rad_s, dtype=float).reshape(-1, 3), axis=0)
-        return self._omega
+        return None
 
     def _fitted_rate(self, camera, p: np.ndarray, signed: bool):
         """Body rate fitted to the stars' velocities (two passes, the second without 3-sigma
@@ -382,7 +433,9 @@ class StreakCentroider(Centroider):
             snr = p[:, 4] / np.sqrt(cov[:, 4, 4])
         ok = (np.all(np.isfinite(p), axis=1) & (cov[:, 0, 0] > 0) & (cov[:, 1, 1] > 0) & (snr >= self.params.min_snr)
               & (p[:, 0] >= col0) & (p[:, 0] <= col0 + ncols - 1) & (p[:, 1] >= row0) & (p[:, 1] <= row0 + nrows - 1)
-              & (p[:, 0] > -0.5) & (p[:, 0] < W - 0.5) & (p[:, 1] > -0.5) & (p[:, 1] < H - 0.5))
+              & (p[:, 0] > -0.5) & (p[:, 0] < W - 0.5) & (p[:, 1] > -0.5) & (p[:, 1] < H - 0.5)
+              & (~signed | (np.hypot(*(p[:, 2:4] - v).T) <= VELOCITY_TOLERANCE * np.hypot(*v.T)
+                             + VELOCITY_SLACK_PX / self._exposure)))
         return p, cov, chi2, ok
 
     # ------------------------------------------------------------------ output
@@ -491,17 +544,23 @@ def _on_streak(p: np.ndarray, se: float, exposure: float) -> np.ndarray:
 
 
 def _one_per_streak(p: np.ndarray, cov: np.ndarray, se: float, exposure: float):
-    """One fit per star: a fit that lies on a better fit's streak, or whose own streak runs through
-    a better fit's centre (a window that caught part of a brighter star), is dropped."""
+    """One fit per star. A fit whose streak runs through the centres of two fits that are not one
+    star (a window across the ends of two collinear streaks) is a blend and dropped; then a fit
+    that lies on a better fit's streak, or whose own streak runs through a better fit's centre
+    (a window that caught part of a brighter star), is dropped."""
     if p.shape[0] < 2:
         return p, cov
     snr = p[:, 4] / np.sqrt(cov[:, 4, 4])
     on = _on_streak(p, se, exposure)
+    np.fill_diagonal(on, False)
     clash = on | on.T
     dropped = np.zeros(p.shape[0], dtype=bool)
+    for i in np.flatnonzero(on.sum(axis=1) >= 2):
+        inside = np.flatnonzero(on[i])
+        apart = ~clash[np.ix_(inside, inside)]
+        np.fill_diagonal(apart, False)
+        dropped[i] = apart.any()
     for i in np.argsort(-snr, kind="stable"):
         if not dropped[i]:
-            later = clash[i] & ~dropped
-            later[i] = False
-            dropped |= later
+            dropped |= clash[i] & ~dropped
     return p[~dropped], cov[~dropped]
