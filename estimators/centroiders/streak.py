@@ -22,6 +22,7 @@ from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.effects.geometry import image_velocity, rotation_jacobian
 from rollingstar.sensors.streak_model import effective_sigma, streak_mu
 
+SLOW_STREAK_PX = 1.0  # an expected streak shorter than this starts its fit at rest
 LONG_STREAK_PX = 16.0  # streaks at least this long are detected on 4 x 4 bins, shorter ones on 2 x 2
 MARGIN_SIGMAS = 3.0  # PSF widths around the expected streak in a fit window (besides half a detection bin)
 FIT_TOLERANCE_PX = 1e-3  # the fit stops when no star's position step exceeds this
@@ -33,6 +34,7 @@ SIGN_MATCH_PX = 5.0  # a star moved from the previous frame lands this close to 
 # streak length over the exposure (a fit across two collinear streaks, or onto a neighbour, is much
 # longer or turned; a PSF 30 % wider than the model's passes for a 3 px smear)
 VELOCITY_TOLERANCE = 0.2
+SEPARABLE_RANK_TOLERANCE = 1e-3  # singular values of a matched filter below this fraction are left out
 VELOCITY_SLACK_PX = 4.0
 
 
@@ -91,6 +93,35 @@ class _Candidates(NamedTuple):
     signed: np.ndarray
     nrows: np.ndarray
     ncols: np.ndarray
+
+
+class _Kernel(NamedTuple):
+    """A matched filter: the full 2-D kernel and its separable terms ``(column, row)`` (the SVD's
+    terms above ``SEPARABLE_RANK_TOLERANCE`` of the largest); a motionless star's or a streak along
+    a detector axis is one term, then two 1-D passes cost far less than the 2-D correlation."""
+
+    full: np.ndarray
+    terms: tuple
+
+    @classmethod
+    def of(cls, kern: np.ndarray) -> "_Kernel":
+        u, sv, vt = np.linalg.svd(kern)
+        keep = sv > SEPARABLE_RANK_TOLERANCE * sv[0]
+        terms = tuple(((u[:, i] * sv[i]).astype(np.float32), vt[i].astype(np.float32)) for i in np.flatnonzero(keep))
+        if len(terms) * sum(kern.shape) >= kern.size:
+            terms = ()
+        return cls(kern.astype(np.float32), terms)
+
+    def correlate(self, img: np.ndarray) -> np.ndarray:
+        """``img`` correlated with the kernel, zero outside (float32)."""
+        if not self.terms:
+            return ndimage.correlate(img, self.full, mode="constant")
+        out = None
+        for col, row in self.terms:
+            part = ndimage.correlate1d(ndimage.correlate1d(img, col, axis=0, mode="constant"), row, axis=1,
+                                       mode="constant")
+            out = part if out is None else out + part
+        return out
 
 
 class StreakCentroider(Centroider):
@@ -309,6 +340,8 @@ class StreakCentroider(Centroider):
             vx, vy = velocities[which.ravel()[best]].T
         else:
             vx, vy = image_velocity(camera, x, y, omega)
+            slow = np.hypot(vx, vy) * self._exposure < SLOW_STREAK_PX  # start at rest: no sign preferred
+            vx, vy = np.where(slow, 0.0, vx), np.where(slow, 0.0, vy)
         nrows, ncols = self._window_size(vx, vy, k)
         return _Candidates(x, y, vx, vy, np.full(x.size, omega is not None), nrows, ncols)
 
@@ -332,13 +365,18 @@ class StreakCentroider(Centroider):
         """The image minus its background, summed over ``k x k`` bins (float32)."""
         H, W = self._shape
         Hb, Wb = H // k, W // k
-        img = f.raw[: Hb * k, : Wb * k].reshape(Hb, k, Wb * k).sum(axis=1, dtype=np.float32)
-        img = img.reshape(Hb, Wb, k).sum(axis=2)
+        raw = f.raw[: Hb * k, : Wb * k]
+        rows = raw[0::k].astype(np.float32)
+        for i in range(1, k):
+            rows += raw[i::k]
+        img = np.ascontiguousarray(rows[:, 0::k])
+        for j in range(1, k):
+            img += rows[:, j::k]
         centres = k * np.arange(max(Hb, Wb)) + (k - 1) / 2.0
         img -= (k * k * f.background(centres[:Hb, None], centres[None, :Wb])).astype(np.float32)
         return img
 
-    def _kernel(self, vx: float, vy: float, k: int) -> np.ndarray:
+    def _kernel(self, vx: float, vy: float, k: int) -> _Kernel:
         """Unit-flux model streak binned ``k x k``, normalised to unit sum of squares (cached by the
         streak's length in whole pixels)."""
         key = (int(round(vx * self._exposure)), int(round(vy * self._exposure)), k)
@@ -350,7 +388,7 @@ class StreakCentroider(Centroider):
             mu = streak_mu([c[0], c[1], vx, vy, 1.0, 0.0], 0, 0, (2 * hy + 1) * k, (2 * hx + 1) * k,
                            self.params.psf_sigma_px, self._exposure, self._ld)[0]
             kern = mu.reshape(2 * hy + 1, k, 2 * hx + 1, k).sum(axis=(1, 3))
-            self._kernels[key] = (kern / np.sqrt(np.sum(kern**2))).astype(np.float32)
+            self._kernels[key] = _Kernel.of(kern / np.sqrt(np.sum(kern**2)))
         return self._kernels[key]
 
     def _search(self, f: _Frame, k: int, velocities: np.ndarray):
@@ -360,7 +398,7 @@ class StreakCentroider(Centroider):
         best = np.full(img.shape, -np.inf, dtype=np.float32)
         which = np.zeros(img.shape, dtype=np.intp)
         for i, (vx, vy) in enumerate(velocities):
-            s = ndimage.correlate(img, self._kernel(vx, vy, k), mode="constant")
+            s = self._kernel(vx, vy, k).correlate(img)
             s *= scale
             better = s > best
             best[better] = s[better]
@@ -382,9 +420,9 @@ class StreakCentroider(Centroider):
         for n, (i0, j0) in enumerate(zip(np.arange(0, img.shape[0], tb).repeat(tx.shape[1]),
                                          np.tile(np.arange(0, img.shape[1], tb), tx.shape[0]))):
             kern = self._kernel(vx[n], vy[n], k)
-            hy, hx = kern.shape[0] // 2, kern.shape[1] // 2
+            hy, hx = kern.full.shape[0] // 2, kern.full.shape[1] // 2
             r0, c0 = max(i0 - hy, 0), max(j0 - hx, 0)
-            part = ndimage.correlate(img[r0: i0 + tb + hy, c0: j0 + tb + hx], kern, mode="constant")
+            part = kern.correlate(img[r0: i0 + tb + hy, c0: j0 + tb + hx])
             score[i0: i0 + tb, j0: j0 + tb] = part[i0 - r0: i0 - r0 + tb, j0 - c0: j0 - c0 + tb] * scale
         return k, score, None, None
 
