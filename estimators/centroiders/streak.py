@@ -10,6 +10,7 @@ from scipy import ndimage
 
 from rollingstar.estimators.centroiders.base import Centroider
 from rollingstar.estimators.centroiders.cog import (
+    CogCentroider,
     _interp_matrix,
     _robust_sigma,
     _subsample_step,
@@ -71,6 +72,10 @@ class StreakParams(BaseModel):
         "length from its position.")
     noise_floor_adu: float = Field(default=float(1.0 / np.sqrt(12.0)), gt=0,
                                    description="Smallest noise sigma used (ADU): the quantisation noise of integer pixels.")
+    cog_below_px: float = Field(default=0.0, ge=0, description="When the expected motion is known and no star's "
+                                "streak is expected longer than this (px over one exposure), centroid the frame with "
+                                "the cog centroider (same background model) instead: faster, and as good for "
+                                "round spots. 0: never.")
 
 
 class _Frame(NamedTuple):
@@ -157,8 +162,11 @@ class StreakCentroider(Centroider):
        ``snr >= min_snr``, inside the detector and its window, with an expected velocity within
        ``VELOCITY_TOLERANCE`` of it (plus ``VELOCITY_SLACK_PX`` over the exposure); one star per streak (the best
        ``snr``).
-    5. State: the body rate fitted to the kept stars' velocities (robust least squares), the
-       expected motion of the next frame when it has no gyro samples; fewer than
+    5. State: the body rate a later stage estimated for the frame (taken by :meth:`update_prior`,
+       which the runner calls after every frame), else the body rate fitted to the kept stars'
+       velocities (robust least squares): the expected motion of the next frame when it has no gyro
+       samples. With ``cog_below_px`` a frame whose expected streaks are all shorter is centroided
+       by ``cog`` instead (a spot that moves less than a pixel is round); fewer than
        ``MIN_STARS_FOR_RATE`` stars clear it (cold search next frame), and a frame whose expected
        motion finds fewer than that is searched cold again. After a cold search the frame is
        detected and fitted once more with the rate its stars give (their velocities' signs made
@@ -185,12 +193,36 @@ class StreakCentroider(Centroider):
         self._sign_known = False
         self._previous = None
         self._kernels = {}
+        p = self.params
+        self._cog = CogCentroider(threshold_sigma=p.threshold_sigma, background=p.background, tile_px=p.tile_px,
+                                  map_filter_tiles=p.map_filter_tiles, gain_e_per_adu=p.gain_e_per_adu,
+                                  saturation_adu=p.saturation_adu)
+        self._cog.setup(context)
+
+    def _longest_streak_px(self, camera, omega) -> float:
+        """The longest streak ``|v| E`` expected at the detector's corners and centre (px)."""
+        x = np.array([0.0, camera.width - 1.0, 0.0, camera.width - 1.0, 0.5 * (camera.width - 1.0)])
+        y = np.array([0.0, 0.0, camera.height - 1.0, camera.height - 1.0, 0.5 * (camera.height - 1.0)])
+        v = rotation_jacobian(camera, x, y) @ np.asarray(omega, dtype=float)
+        return float(np.max(np.hypot(v[:, 0], v[:, 1]))) * self._exposure
+
+    def update_prior(self, frame: FrameData) -> bool:
+        """Take the frame's body-rate estimate, when a later stage made a valid one, as the expected
+        motion of the next frame (it also settles the sign of motion along the columns)."""
+        rate = frame.rate
+        if rate is None or not rate.valid or not np.all(np.isfinite(rate.omega_rad_s)):
+            return False
+        self._omega = np.asarray(rate.omega_rad_s, dtype=float)
+        self._sign_known = True
+        return True
 
     def process(self, frame: FrameData) -> FrameData:
-        f = self._frame(frame)
         camera = frame_camera(frame, self.context)
         gyro = self._gyro_rate(frame)
         omega = gyro if gyro is not None else self._omega
+        if omega is not None and self._longest_streak_px(camera, omega) < self.params.cog_below_px:
+            return self._cog.process(frame)
+        f = self._frame(frame)
         p, cov = self._stars(f, camera, omega) if omega is not None else (np.zeros((0, 6)), None)
         if p.shape[0] < MIN_STARS_FOR_RATE:
             p, cov = self._cold(f, camera)
