@@ -14,9 +14,13 @@ from rollingstar.estimators.centroiders.window_gyro import FastGyroIntegrator
 from rollingstar.estimators.data import FrameData, default_sigma_px
 from rollingstar.estimators.identifiers.base import Identifier
 from rollingstar.sensors.conventions import S_PER_NS, attitude_from_radec_roll
-from rollingstar.sensors.so3 import skew
+from rollingstar.sensors.so3 import cross, skew
 
 ARCSEC = np.pi / (180.0 * 3600.0)
+#: Extra radius (rad) of the catalogue cone the tracker caches and reuses between frames.
+CONE_SLACK_RAD = np.radians(1.0)
+#: Largest detections x predictions product matched by all pairwise distances (else k-d trees).
+BRUTE_FORCE_PAIRS = 40_000
 
 
 class RaDecRoll(BaseModel):
@@ -101,19 +105,32 @@ class BodyMotion:
         return self.omega * dt + 0.5 * self.alpha * dt * dt
 
 
+def rotate(rotvec: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``Exp(rotvec_i) w_i`` (n, 3) by Rodrigues' formula (:func:`rollingstar.sensors.so3.rotate_by_rotvec`
+    with the fast cross product: a few tens of stars per call, where numpy's overhead dominates)."""
+    th = np.sqrt(np.einsum("ij,ij->i", rotvec, rotvec))[:, None]
+    small = th < 1e-8
+    safe = np.where(small, 1.0, th)
+    a = np.where(small, 1.0 - th**2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    kxv = cross(rotvec, w)
+    return w + a * kxv + b * cross(rotvec, kxv)
+
+
 def predict_at_rows(w0: np.ndarray, motion: BodyMotion, project, timing, t0_ns: int, row_times: bool = True,
-                    iterations: int = 2):
+                    iterations: int = 2, t_start: np.ndarray | None = None):
     """Pixel positions of directions ``w0`` (camera frame at the motion's origin, (n, 3)) seen at their
     own row's mid-exposure: the fixed point ``t = t0 + y(t) ld + E / 2``, ``w(t) = Exp(phi(t))^T w0``,
-    started at the frame's reference time; each iteration shrinks the time error by ``|v_y| ld``
-    (0.03 at 10 deg/s on he2021a). Returns ``(x, y, front, t_ns, w)``.
+    started at ``t_start`` (default: the frame's reference time); each iteration shrinks the time
+    error by ``|v_y| ld`` (0.03 at 10 deg/s on he2021a). Returns ``(x, y, front, t_ns, w)``, ``t_ns``
+    the times the positions refer to.
     """
     n = w0.shape[0]
-    t = np.full(n, timing.frame_reference_ns(t0_ns), dtype=np.int64)
+    t = np.full(n, timing.frame_reference_ns(t0_ns), dtype=np.int64) if t_start is None else t_start
     rows_max = float(timing.rows - 1)
     steps = iterations if row_times and timing.effective_line_delay_ns > 0 and not motion.static else 0
     for k in range(steps + 1):
-        w = w0 if motion.static else Rotation.from_rotvec(motion.phi(t)).inv().apply(w0)
+        w = w0 if motion.static else rotate(-motion.phi(t), w0)
         x, y, front = project(w)
         if k < steps:
             t = timing.row_mid_exposure_ns(t0_ns, np.clip(np.nan_to_num(y, nan=rows_max / 2), 0.0, rows_max))
@@ -132,6 +149,14 @@ def prediction_covariance(camera, w: np.ndarray, dt: np.ndarray, att_cov: np.nda
     return jac @ p @ np.swapaxes(jac, 1, 2)
 
 
+def wahba(ref: np.ndarray, body: np.ndarray) -> np.ndarray:
+    """The rotation matrix ``R`` minimising ``sum |ref_i - R body_i|^2`` (Wahba's problem by SVD,
+    Markley 1988; ``Rotation.align_vectors`` without its per-call overhead, tens of microseconds here)."""
+    u, _, vt = np.linalg.svd(ref.T @ body)
+    d = np.sign(np.linalg.det(u @ vt))
+    return (u * np.array([1.0, 1.0, d])) @ vt
+
+
 def match_mahalanobis(dpos: np.ndarray, dcov: np.ndarray, ppos: np.ndarray, pcov: np.ndarray, chi2_gate: float,
                       gate_px: float) -> tuple[np.ndarray, np.ndarray]:
     """Mutual nearest neighbours in Mahalanobis distance: (detection indices, prediction indices).
@@ -145,6 +170,16 @@ def match_mahalanobis(dpos: np.ndarray, dcov: np.ndarray, ppos: np.ndarray, pcov
     fin = np.flatnonzero(np.isfinite(dpos).all(axis=1))
     if fin.size == 0 or ppos.shape[0] == 0:
         return empty, empty
+    if fin.size * ppos.shape[0] <= BRUTE_FORCE_PAIRS:  # every pair at once (a frame's few tens of stars)
+        r = dpos[fin, None, :] - ppos[None, :, :]
+        s = dcov[fin, None] + pcov[None]
+        det = s[..., 0, 0] * s[..., 1, 1] - s[..., 0, 1] * s[..., 1, 0]
+        d2 = (s[..., 1, 1] * r[..., 0] ** 2 - 2.0 * s[..., 0, 1] * r[..., 0] * r[..., 1] + s[..., 0, 0] * r[..., 1] ** 2) / det
+        d2[(d2 > chi2_gate) | (r[..., 0] ** 2 + r[..., 1] ** 2 > gate_px * gate_px)] = np.inf
+        rows = np.arange(fin.size)
+        j = np.argmin(d2, axis=1)
+        both = np.isfinite(d2[rows, j]) & (np.argmin(d2, axis=0)[j] == rows)
+        return fin[both], j[both]
     pairs = cKDTree(dpos[fin]).sparse_distance_matrix(cKDTree(ppos), gate_px, output_type="ndarray")
     if pairs.size == 0:
         return empty, empty
@@ -338,20 +373,38 @@ class TrackingIdentifier(Identifier):
         idx = np.asarray(self.context.catalog.cone(boresight, radius), dtype=np.intp)
         return idx[self._cat_keep[idx]]
 
-    def predict_frame(self, t0_ns: int, attitude: Rotation | None = None, motion: BodyMotion | None = None):
+    def _cone_cached(self, boresight: np.ndarray, radius: float) -> np.ndarray:
+        """:meth:`_cone` with ``CONE_SLACK_RAD`` more radius, reused while the boresight stays within
+        the slack of the cached one (the stars beyond the detector are dropped by the projection)."""
+        cached = getattr(self, "_cone_cache", None)
+        if cached is not None and cached[1] >= radius and np.dot(cached[0], boresight) >= np.cos(cached[1] - radius):
+            return cached[2]
+        idx = self._cone(boresight, radius + CONE_SLACK_RAD)
+        self._cone_cache = (np.asarray(boresight, dtype=float), radius + CONE_SLACK_RAD, idx)
+        return idx
+
+    def predict_frame(self, t0_ns: int, attitude: Rotation | np.ndarray | None = None, motion: BodyMotion | None = None,
+                      t_start: np.ndarray | None = None, stars: np.ndarray | None = None):
         """The catalogue stars the frame starting at ``t0_ns`` images, each at its own row time:
-        ``(idx, x, y, t_ns, w)`` for ``attitude`` at the origin of ``motion`` (defaults: the prior and
-        :meth:`motion`), ``w`` the camera-frame directions at those times."""
+        ``(idx, x, y, t_ns, w)`` for ``attitude`` (a Rotation or its 3 x 3 matrix) at the origin of
+        ``motion`` (defaults: the prior and :meth:`motion`), ``w`` the camera-frame directions at those times. ``stars`` and
+        ``t_start``: the catalogue indices to project (instead of a cone query) and their first
+        times, e.g. of a prediction for an attitude arcseconds away (no fixed-point iteration then: a
+        star moved by ``d`` px changes its time by ``d ld``, its position by ``d |v_y| ld``)."""
         R = self._last_attitude if attitude is None else attitude
+        R = R.as_matrix() if isinstance(R, Rotation) else R
         motion = self.motion() if motion is None else motion
         cam, timing = self.context.camera, self.context.timing
-        ends = np.array([t0_ns, timing.frame_reference_ns(t0_ns), timing.frame_end_ns(t0_ns)], dtype=np.int64)
-        phi = motion.phi(ends)
-        sweep = float(max(np.linalg.norm(phi[0] - phi[1]), np.linalg.norm(phi[2] - phi[1])))
-        center = (R * Rotation.from_rotvec(phi[1])).apply([0.0, 0.0, 1.0])
-        idx = self._cone(center, self._radius + sweep)
-        w0 = R.inv().apply(self.context.catalog.unit_icrs[idx]) if idx.size else np.zeros((0, 3))
-        x, y, front, t, w = predict_at_rows(w0, motion, cam.project, timing, t0_ns, self.params.row_times)
+        if stars is None:
+            ends = np.array([t0_ns, timing.frame_reference_ns(t0_ns), timing.frame_end_ns(t0_ns)], dtype=np.int64)
+            phi = motion.phi(ends)
+            sweep = float(max(np.linalg.norm(phi[0] - phi[1]), np.linalg.norm(phi[2] - phi[1])))
+            center = R @ rotate(phi[1:2], np.array([[0.0, 0.0, 1.0]]))[0]
+            stars = self._cone_cached(center, self._radius + sweep)
+        idx = stars
+        w0 = self.context.catalog.unit_icrs[idx] @ R  # R^T r for every star
+        x, y, front, t, w = predict_at_rows(w0, motion, cam.project, timing, t0_ns, self.params.row_times,
+                                            iterations=2 if t_start is None else 0, t_start=t_start)
         ok = front & cam.contains(x, y, margin_px=-self.params.gate_px)
         return idx[ok], x[ok], y[ok], t[ok], w[ok]
 
@@ -366,7 +419,7 @@ class TrackingIdentifier(Identifier):
         matched_det, matched_star = self._first_match(det, px, py, pt, w, motion)
         if self.params.refine and matched_det.size >= 3:
             fit = self._refit(det, matched_det, idx[matched_star], motion)
-            idx, px, py, _, _ = self.predict_frame(frame.t0_ns, fit, motion)
+            idx, px, py, _, _ = self.predict_frame(frame.t0_ns, fit, motion, t_start=pt, stars=idx)
             first = self._match(det, px, py, self.params.gate_px)
             resid = np.hypot(det.x[first[0]] - px[first[1]], det.y[first[0]] - py[first[1]])
             gate = max(self.params.refine_gate_px, 5.0 * 1.4826 * float(np.median(resid))) if resid.size else self.params.gate_px
@@ -409,18 +462,20 @@ class TrackingIdentifier(Identifier):
             return self._match(det, px, py, self.params.gate_px)
         return d, s
 
-    def _refit(self, det, matched_det: np.ndarray, cat_idx: np.ndarray, motion: BodyMotion) -> Rotation:
+    def _refit(self, det, matched_det: np.ndarray, cat_idx: np.ndarray, motion: BodyMotion) -> np.ndarray:
         """The attitude at the motion's origin that best fits the matches, each detection referred
         back by its own time: ``R^T r_i = Exp(phi(t_i)) b_i``."""
         body = self.context.camera.unproject(det.x[matched_det], det.y[matched_det])
         if not motion.static:
-            body = Rotation.from_rotvec(motion.phi(det.t_ns[matched_det])).apply(body)
-        fit, _ = Rotation.align_vectors(self.context.catalog.unit_icrs[cat_idx], body)
-        return fit
+            body = rotate(motion.phi(det.t_ns[matched_det]), body)
+        return wahba(self.context.catalog.unit_icrs[cat_idx], body)
 
     @staticmethod
     def _match(det, px, py, gate: float) -> tuple[np.ndarray, np.ndarray]:
-        """Mutual nearest neighbours within ``gate``: (detection indices, prediction indices)."""
+        """Mutual nearest neighbours within ``gate``: (detection indices, prediction indices).
+
+        All pairwise distances for up to :data:`BRUTE_FORCE_PAIRS` pairs (a frame's few tens of
+        stars: cheaper than building trees), else ``scipy.spatial.cKDTree`` both ways."""
         idx_size = px.size
         n = det.n
         matched_det = np.zeros(0, dtype=np.intp)
@@ -429,6 +484,15 @@ class TrackingIdentifier(Identifier):
             dpos = np.column_stack([det.x, det.y])
             finite = np.isfinite(dpos).all(axis=1)
             ppos = np.column_stack([px, py])
+            if n * idx_size <= BRUTE_FORCE_PAIRS:
+                d2 = (dpos[:, None, 0] - ppos[None, :, 0]) ** 2 + (dpos[:, None, 1] - ppos[None, :, 1]) ** 2
+                d2[~finite] = np.inf
+                j = np.argmin(d2, axis=1)
+                back = np.argmin(d2, axis=0)
+                rows = np.arange(n)
+                mutual = finite & (d2[rows, j] <= gate * gate) & (back[j] == rows)
+                matched_det = np.flatnonzero(mutual)
+                return matched_det, j[matched_det]
             # detection -> nearest prediction
             d1, j = cKDTree(ppos).query(np.where(finite[:, None], dpos, 0.0), k=1, distance_upper_bound=gate)
             # prediction -> nearest (finite) detection
