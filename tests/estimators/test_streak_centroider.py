@@ -10,7 +10,7 @@ import pytest
 from rollingstar.estimators.centroiders.cog import CogCentroider
 from rollingstar.estimators.centroiders.streak import StreakCentroider
 from rollingstar.estimators.conformance import check_plugin
-from rollingstar.estimators.data import FrameData, GyroSamples, SensorContext
+from rollingstar.estimators.data import FrameData, GyroSamples, RateEstimate, SensorContext
 from rollingstar.sensors.camera import PinholeCamera
 from rollingstar.sensors.effects.geometry import image_velocity
 from rollingstar.sensors.image_sim import ImageModel, digitise, mean_electrons, render_star_electrons
@@ -150,3 +150,26 @@ def test_a_psf_wider_than_the_model_still_finds_the_stars_and_widens_their_covar
         e = np.column_stack([stars.x[i] - x[j], stars.y[i] - y[j]])
         chi2.append(np.einsum("ni,nij,nj->n", e, np.linalg.inv(stars.position_covariance(0.05)[i]), e))
     assert np.mean(np.concatenate(chi2)) / 2.0 < 1.5
+
+
+def test_a_rate_estimate_sets_the_expected_motion_and_short_streaks_go_to_cog():
+    """update_prior takes a later stage's rate; with every expected streak shorter than
+    cog_below_px the frame is the cog centroider's (same stars, same positions), longer ones are fitted."""
+    ctx, model = _context()
+    rng = np.random.default_rng(11)
+    x, y = _grid_stars(rng, 4, 4, 30.0)
+    slow, fast = 0.2 * PX_PER_S_PER_DEG_S, 6.0 * PX_PER_S_PER_DEG_S  # 0.7 px and 21 px streaks
+    for vy, expect_cog in ((slow, True), (fast, False)):
+        frame = _render(ctx, model, x, y, 0.0, vy, np.full(x.size, 3.0e4), rng)
+        streak = StreakCentroider(cog_below_px=3.0, background="median")
+        streak.setup(ctx)
+        rate = RateEstimate(t_ns=frame.t0_ns, omega_rad_s=_rate_about_x(ctx, vy))
+        assert streak.update_prior(FrameData(index=0, t0_ns=0, rate=rate))
+        out = streak.process(frame).stars
+        cog = CogCentroider(background="median")
+        cog.setup(ctx)
+        ref = cog.process(frame).stars
+        same = out.n == ref.n and np.allclose(out.x, ref.x) and np.allclose(out.y, ref.y)
+        assert same == expect_cog
+        assert np.unique(_matched(out, x, y, 1.0)[0]).size == x.size  # every star, once
+        assert np.isfinite(out.vx).all() != expect_cog  # only the streak fit measures velocities
