@@ -93,7 +93,9 @@ class LostInSpaceParams(BaseModel):
 class LostInSpaceSolution:
     """Diagnostics of the last lost-in-space attempt (also for the real-data figures).
 
-    ``attitude`` is the camera-to-ICRS fit to the verified matches (None when rejected).
+    ``attitude`` is the camera-to-ICRS fit to the verified matches (None when rejected), at
+    ``t_ns`` (the frame's reference time) when a body rate was used (``rate_rad_s``, camera frame,
+    rad/s; None: the frame was treated as motionless).
     """
 
     accepted: bool
@@ -164,6 +166,23 @@ class LostInSpaceIdentifier(Identifier):
        0.5-1 % off the lens' (tetra3 images: 11.53 deg nominal, 11.43 deg fitted); with stars off the
        image centre a scale error tilts the attitude a solver fits, so ``auto`` fits the focal
        length on every field and the radial terms on wide ones.
+
+    6. Motion (``refer_motion``). A rolling-shutter frame of a turning camera images its stars at
+       different times (up to ``rows x line delay``, 45 ms on he2021a: 34 px at 10 deg/s), which
+       stretches and shears the pattern. When the detections carry image velocities (``vx, vy``,
+       a streak centroider's), the body rate of the rigid rotation that explains them
+       (:func:`fit_body_rate`, robust) refers every detection to the frame's reference time,
+       ``R(t_ref)^T r_i = Exp(omega (t_i - t_ref)) b_i``, before the pattern search; without
+       velocities the search sees the detections as they are, and once five or more stars at
+       distinct times are matched the attitude and rate are fitted to them
+       (:func:`rollingstar.estimators.identifiers.integrity.fit_rate`, with the nominal camera: a
+       field of view solved on a stretched frame holds part of the stretch) and used when the
+       motion they imply between the stars exceeds ``motion_threshold_px``. With a rate, the
+       re-matching predicts each catalogue star at its own row time (tracking's
+       ``predict_at_rows``) and the verification's residuals are taken there; the accepted
+       solution (``rate_rad_s``, ``t_ns``) seeds the tracker, which then predicts the next frame
+       with that rate (else with the rate the lost tracker held). A lost track is re-acquired
+       lost-in-space in the same frame (4).
 
     Output: as every identifier, ``frame.stars`` = identified detections with ``catalog_id`` and
     ``ref_icrs``, ``frame.unmatched`` = the rest. :attr:`last_solution` holds the diagnostics of

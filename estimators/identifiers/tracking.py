@@ -222,7 +222,11 @@ class TrackingIdentifier(Identifier):
     else from the two estimates', plus ``rate_sigma_deg_s^2``) times ``dt^2`` and an unmodelled
     acceleration (``accel_sigma_deg_s2``) times ``dt^4 / 4``; a detection with its own 2 x 2
     covariance (``StarTable.position_covariance``) matches within the chi-square gate
-    ``gate_probability`` (2 degrees of freedom) of the sum, never beyond ``gate_px``.
+    ``gate_probability`` (2 degrees of freedom) of the sum, never beyond ``gate_px``. The gate
+    needs a rate (a rate estimate, two attitude estimates or the gyro; without one the prediction
+    ignores the motion and the ``gate_px`` circle is used), and when it keeps fewer than half the
+    stars it could (a prediction off its stated covariance: an estimator that understates its
+    errors, a rate outlier) the frame is matched again within ``gate_px``.
 
     Matching: mutual nearest neighbours (Euclidean, ``scipy.spatial.cKDTree`` both ways, or
     Mahalanobis, :func:`match_mahalanobis`): a detection is matched to star ``j`` iff ``j`` is its
@@ -241,11 +245,16 @@ class TrackingIdentifier(Identifier):
     identifying). ``extrapolate: false`` predicts every frame at the last attitude.
 
     Verification (``refine``): with at least three first-pass matches, the attitude that best fits
-    them, each detection referred to the motion's origin by its own time (Wahba's problem, SVD via
-    ``Rotation.align_vectors``), re-predicts the catalogue, and matching runs again with the gate
+    them, each detection referred to the motion's origin by its own time (Wahba's problem, SVD,
+    :func:`wahba`), re-predicts the catalogue, and matching runs again with the gate
     ``max(refine_gate_px, 5 * 1.4826 * median residual)`` (at most ``gate_px``): a detection
     matched to a neighbour of its true star leaves a residual of the neighbours' separation and is
     dropped.
+
+    Cost: about 0.7 ms of CPU per frame of 38 stars (he2021a sensor, 3-10 deg/s, one core): the
+    catalogue cone is cached with ``CONE_SLACK_RAD`` of slack and
+    reused while the boresight stays within it; a frame's few tens of stars are matched over all
+    pairs (k-d trees beyond ``BRUTE_FORCE_PAIRS``).
     """
 
     name = "tracking"

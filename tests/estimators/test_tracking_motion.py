@@ -9,7 +9,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from rollingstar.estimators.data import AttitudeEstimate, RateEstimate
+from rollingstar.estimators.data import AttitudeEstimate, RateEstimate, StarTable
+from rollingstar.estimators.identifiers import tracking
 from rollingstar.estimators.identifiers.tracking import (
     BodyMotion,
     TrackingIdentifier,
@@ -220,3 +221,23 @@ def test_covariance_gate_rejects_what_the_fixed_gate_takes(context):
     fixed = _run(context, frames, rng, feed, refine=False, gate_px=10.0, gate="fixed")
     assert gated[3] == (truth_ids.size - 1, 0, truth_ids.size)  # all but the moved one, none wrong
     assert fixed[3][0] == truth_ids.size  # the moved spot matched too (5 px off its star)
+
+
+def test_all_pairs_and_tree_matching_agree(monkeypatch):
+    """The all-pairs matching used for a frame's few tens of stars and the k-d tree one used beyond
+    agree pair for pair (Euclidean and Mahalanobis), with spurious spots and a non-finite detection."""
+    rng = np.random.default_rng(14)
+    ppos = rng.uniform(0, 300, (50, 2))
+    dpos = np.vstack([ppos[:40] + rng.normal(0, 1.5, (40, 2)), rng.uniform(0, 300, (20, 2)), [[np.nan, 5.0]]])
+    pcov = np.broadcast_to(np.eye(2) * 1.5, (50, 2, 2)).copy()
+    dcov = np.broadcast_to(np.eye(2) * 0.5, (61, 2, 2)).copy()
+    det = StarTable.build(dpos[:, 0], dpos[:, 1], 0)
+    dense = (match_mahalanobis(dpos, dcov, ppos, pcov, chi2.ppf(0.9999, 2), 8.0),
+             TrackingIdentifier._match(det, ppos[:, 0], ppos[:, 1], 8.0))
+    monkeypatch.setattr(tracking, "BRUTE_FORCE_PAIRS", 0)
+    trees = (match_mahalanobis(dpos, dcov, ppos, pcov, chi2.ppf(0.9999, 2), 8.0),
+             TrackingIdentifier._match(det, ppos[:, 0], ppos[:, 1], 8.0))
+    for a, b in zip(dense, trees):
+        assert a[0].size >= 35
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_array_equal(a[1], b[1])
