@@ -173,7 +173,8 @@ class LostInSpaceIdentifier(Identifier):
        a streak centroider's), the body rate of the rigid rotation that explains them
        (:func:`fit_body_rate`, robust) refers every detection to the frame's reference time,
        ``R(t_ref)^T r_i = Exp(omega (t_i - t_ref)) b_i``, before the pattern search; without
-       velocities the search sees the detections as they are, and once five or more stars at
+       velocities (or when the velocities' rate and its opposite are both rejected: a cold-start
+       streak's direction of travel is ambiguous) the search sees the detections as they are, and once five or more stars at
        distinct times are matched the attitude and rate are fitted to them
        (:func:`rollingstar.estimators.identifiers.integrity.fit_rate`, with the nominal camera: a
        field of view solved on a stretched frame holds part of the stretch) and used when the
@@ -395,6 +396,18 @@ class LostInSpaceIdentifier(Identifier):
         model = RadialCamera.from_pinhole(cam, self.params.k1, self.params.k2)
         t_ref = int(self.context.timing.frame_reference_ns(frame.t0_ns))
         motion = self._velocity_motion(det, model, t_ref)
+        # a streak's pixels tell its direction of travel only through the rolling shutter: when the
+        # velocities' rate is rejected, its opposite and then no motion are tried
+        tries = [motion] if motion.static else [motion, BodyMotion(t_ref, omega=-motion.omega), BodyMotion()]
+        for motion in tries:
+            out, sol = self._solve(frame, finite, model, motion, t_ref)
+            if sol.accepted:
+                break
+        return out, sol
+
+    def _solve(self, frame: FrameData, finite: np.ndarray, model: RadialCamera, motion: BodyMotion, t_ref: int):
+        """Pattern search, re-matching and verification of ``frame`` with ``motion`` (steps 1-3 and 6)."""
+        det, cam = frame.stars, self.context.camera
         res, order, seconds = self._pattern_solve(det, finite, model, motion)
         if not res:
             return self._reject(frame, f"solver_{res.status}", solve_seconds=seconds)

@@ -122,3 +122,22 @@ def test_reacquires_in_the_frame_tracking_is_lost(context):
         lis.update_prior(out.evolve(attitudes=(AttitudeEstimate(t_ref, att.as_quat(), out.stars.n),),
                                     rate=RateEstimate(t_ref, motion.angular_velocity(np.int64(t_ref)))))
     assert modes == ["lost-in-space", "tracking", "tracking", "lost-in-space", "tracking", "tracking"]
+
+
+def test_cold_start_with_the_velocities_reversed(context):
+    """A streak's direction of travel is ambiguous on a cold start: with every velocity reversed
+    (the rate of the wrong sign) the frames at 10 deg/s are still identified, with the right rate."""
+    rng = np.random.default_rng(50)
+    lis = LostInSpaceIdentifier(track=False)
+    lis.setup(context)
+    tried = 0
+    for seed in range(8):
+        (frame, truth_ids, _, _), = motion_frames(context, pointing(rng), np.radians([10.0, 0.0, 0.0]), 1, seed)
+        if truth_ids.size < 8:
+            continue
+        tried += 1
+        reversed_ = frame.evolve(stars=frame.stars.with_columns(vx=-frame.stars.vx, vy=-frame.stars.vy))
+        out = lis.process(reversed_)
+        assert lis.last_solution.accepted and _wrong(frame, out, truth_ids) == 0
+        assert abs(np.degrees(lis.last_solution.rate_rad_s[0]) - 10.0) < 0.05
+    assert tried >= 5
