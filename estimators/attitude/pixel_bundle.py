@@ -31,11 +31,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from rollingstar.estimators.attitude.frame_fit import apply_step, predicted_directions
+from rollingstar.estimators.centroiders.cog import robust_sigma
 from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.so3 import skew
 from rollingstar.sensors.streak_model import streak_mu_jac
 
-MAX_STAR_CHI2 = 4.0  # reduced chi-square above which a star's pixels contradict the model
+MAX_STAR_CHI2 = 2.0  # reduced chi-square above which a star's pixels contradict the model (a right one: 1 +- 0.1)
 CONVERGED_SIGMAS = 0.05  # a step below this fraction of every parameter's sigma ends the iterations
 MIN_LIVE_PIXELS = 12  # fewest live pixels of a star's window for it to take part
 START_STAR_CHI2 = 100.0  # the same at the starting point, where the positions may still be off by a pixel
@@ -75,12 +76,11 @@ def star_kinematics(camera, timing, t0_ns: int, t_ref_ns: int, R: Rotation, omeg
 
 
 def background_variance(image: np.ndarray, gain_e_per_adu: float) -> float:
-    """The frame's background noise variance (e^2): the robust scatter of every
-    ``BACKGROUND_STRIDE``-th pixel (stars cover a small fraction of them)."""
-    sample = np.asarray(image)[::BACKGROUND_STRIDE, ::BACKGROUND_STRIDE].astype(np.float64)
-    med = np.median(sample)
-    sigma = 1.4826 * np.median(np.abs(sample - med)) * gain_e_per_adu
-    return max(float(sigma) ** 2, 1e-6)
+    """The frame's background noise variance (e^2): the robust scatter
+    (:func:`rollingstar.estimators.centroiders.cog.robust_sigma`, unbiased on integer pixels) of
+    every ``BACKGROUND_STRIDE``-th pixel (stars cover a small fraction of them)."""
+    sample = np.asarray(image)[::BACKGROUND_STRIDE, ::BACKGROUND_STRIDE]
+    return max((robust_sigma(sample) * gain_e_per_adu) ** 2, 1e-6)
 
 
 def _windows(pv: np.ndarray, exposure_s: float, params):

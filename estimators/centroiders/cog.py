@@ -82,7 +82,7 @@ class CogCentroider(Centroider):
        bright star or cluster takes its neighbours' level (gradients and vignetting are smooth on
        the tile scale, stars are not).
     2. Noise ``s``: ``1.4826 * MAD(I - b)``, refined by a clipped standard deviation (see
-       :func:`_robust_sigma`: the MAD of integer pixels is itself quantised), floored at ``noise_floor_adu``
+       :func:`robust_sigma`: the MAD of integer pixels is itself quantised), floored at ``noise_floor_adu``
        (default the quantisation noise ``1/sqrt(12)`` ADU, so a noise-free image still has a
        finite threshold).
     3. Pixels with ``I - b > threshold_sigma * s`` are grouped into connected components
@@ -202,7 +202,7 @@ class CogCentroider(Centroider):
         threshold, the noise sigma, and the background of given flat indices (a function)."""
         p = self.params
         bg = float(np.median(sub))
-        noise = max(_robust_sigma(sub - bg), p.noise_floor_adu)
+        noise = max(robust_sigma(sub - bg), p.noise_floor_adu)
         thr = p.threshold_sigma * noise
         level = bg + thr
         if integer:  # compare in the image's dtype (exact for integers, no float copy of the frame)
@@ -224,7 +224,7 @@ class CogCentroider(Centroider):
         if p.background == "map" and p.map_filter_tiles > 1:
             tiles = ndimage.median_filter(tiles, size=p.map_filter_tiles, mode="nearest")
         bg_sub = (self._wy_sub @ tiles) @ self._wxT_sub
-        noise = max(_robust_sigma(sub - bg_sub), p.noise_floor_adu)
+        noise = max(robust_sigma(sub - bg_sub), p.noise_floor_adu)
         thr = p.threshold_sigma * noise
         A = self._wy @ tiles  # (H, nx) interpolated along y; then linear along x per pixel
         A = np.concatenate([A, A[:, -1:]], axis=1)  # so that column k + 1 exists for the last k
@@ -358,7 +358,7 @@ class CogCentroider(Centroider):
         return out.flagged(f"fragmented_stars:{int(pieces.sum())}") if pieces.any() else out
 
 
-def _robust_sigma(resid: np.ndarray) -> float:
+def robust_sigma(resid: np.ndarray) -> float:
     """Gaussian noise sigma of an image dominated by background, robust to stars.
 
     ``s0 = 1.4826 MAD``; then the standard deviation of the pixels within ``5 s0`` of the median,

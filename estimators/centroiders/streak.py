@@ -12,9 +12,9 @@ from rollingstar.estimators.centroiders.base import Centroider
 from rollingstar.estimators.centroiders.cog import (
     CogCentroider,
     _interp_matrix,
-    _robust_sigma,
     _subsample_step,
     _tile_medians,
+    robust_sigma,
 )
 from rollingstar.estimators.centroiders.covariance import effective_gain, isotropic_sigma
 from rollingstar.estimators.centroiders.streak_kernel import normal_equations, star_pixels, window_moments
@@ -292,7 +292,7 @@ class StreakCentroider(Centroider):
         else:
             background = self._tile_background(raw)
         rows, cols = np.arange(0, raw.shape[0], step), np.arange(0, raw.shape[1], step)
-        noise = max(_robust_sigma(sub - background(rows[:, None], cols[None, :])), p.noise_floor_adu)
+        noise = max(robust_sigma(sub - background(rows[:, None], cols[None, :])), p.noise_floor_adu)
         return _Frame(raw, background, noise, self._saturation(raw), 1.0 / self._gain if self._gain else 0.0)
 
     def _tile_background(self, raw: np.ndarray):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from rollingstar.estimators.centroiders.cog import CogCentroider, _robust_sigma
+from rollingstar.estimators.centroiders.cog import CogCentroider, robust_sigma
 from rollingstar.estimators.conformance.scenes import make_scene, render
 from rollingstar.estimators.data import FrameData
 
@@ -101,4 +101,4 @@ def test_noise_of_a_clipped_dark_frame():
     rng = np.random.default_rng(0)
     raw = np.clip(np.rint(rng.normal(0.0, 3.0, 200_000)), 0, 255)
     assert np.median(np.abs(raw - np.median(raw))) == 0
-    assert 2.7 < _robust_sigma(raw) < 3.3
+    assert 2.7 < robust_sigma(raw) < 3.3
