@@ -52,7 +52,7 @@ the smear.
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import erfcx, jv, ndtr
+from scipy.special import erfcx, j0, j1, ndtr
 
 _MAX_FREQ = 4
 _KL = np.array([(k, m) for k in range(-_MAX_FREQ, _MAX_FREQ + 1) for m in range(-_MAX_FREQ, _MAX_FREQ + 1) if (k, m) != (0, 0)],
@@ -83,7 +83,9 @@ def clipped_cog_sigma_px(flux: np.ndarray, n_saturated: np.ndarray, saturation_a
     r = np.maximum(r0[:, None] + _RADIUS_OFFSETS[None], 0.05)[:, :, None]  # (spots, radii, 1)
     k = 2.0 * np.pi * _RHO[None, None]  # (1, 1, freqs)
     z = k * r
-    dC = 4.0 * np.pi**2 * slope[:, None, None] * r * (r * jv(1, z) / k**2 - 4.0 * jv(2, z) / k**3)
+    bessel_1 = j1(z)  # J1 and J2 = 2 J1 / z - J0 (the recurrence): the order-specific kernels are ~8x faster than jv
+    bessel_2 = 2.0 * bessel_1 / z - j0(z)
+    dC = 4.0 * np.pi**2 * slope[:, None, None] * r * (r * bessel_1 / k**2 - 4.0 * bessel_2 / k**3)
     var = np.mean(np.sum(_AXIS_WEIGHT * dC**2, axis=2), axis=1) / (2.0 * np.pi * F) ** 2
     out[sat] = np.sqrt(var)
     return out
