@@ -445,7 +445,7 @@ class TrackingIdentifier(Identifier):
 
     def _add_gyro(self, frame: FrameData) -> None:
         """Feed the frame's gyro samples to the integrator the motion is propagated with."""
-        if not self.params.use_gyro or len(frame.gyro.t_ns) == 0:
+        if not self.params.use_gyro or frame.gyro is None or len(frame.gyro.t_ns) == 0:
             return
         if self._gyro is None:
             self._gyro = FastGyroIntegrator()
