@@ -19,10 +19,11 @@ demo: $(STAMP)
 	$(VENV)/bin/rollingstar demo
 
 # Lint and import order first (ruff, configured in pyproject.toml); pytest exit code 5 (no tests
-# collected) must fail the run.
+# collected) must fail the run. Two pytest workers (pytest-xdist), each test file on one of them so
+# that a module's shared fixtures (a study run once for its tests) are computed once.
 test: $(STAMP)
 	$(PY) -m ruff check --no-cache .
-	@$(PY) -m pytest -q -p no:cacheprovider --durations=10; rc=$$?; \
+	@$(PY) -m pytest -q -p no:cacheprovider -n 2 --dist loadfile --durations=10; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; exit 1; fi; exit $$rc
 
 bench: $(STAMP)

@@ -10,11 +10,11 @@ from rollingstar.studies.adversarial import CASES, run_adversarial
 
 @pytest.fixture(scope="module")
 def result():
-    return run_adversarial(frames_per_case=18, seed=7)  # 58 configuration x case runs: 1044 frames
+    return run_adversarial(frames_per_case=14, seed=7)  # 68 configuration x case runs: 952 frames
 
 
 def test_no_valid_attitude_is_wrong(result):
-    assert result["frames"] >= 1000
+    assert result["frames"] >= 900
     assert result["configurations"] >= 5  # every identifier stage shipped in configs/ and diagnose
     wrong = [r for r in result["rows"] if r["wrong"]]
     assert result["wrong_valid"] == 0, wrong

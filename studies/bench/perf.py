@@ -86,7 +86,7 @@ SIZES = {
     "replay_centroid": ((1_000, 10_000), (20, 60)),
     "replay_image": ((1_000, 10_000), (4, 12)), "replay_image_px": (256, 64),
     "repeats": (15, 3),
-    "chain_frames": (12, 4),
+    "chain_frames": (12, 3),
 }
 
 

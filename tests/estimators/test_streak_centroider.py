@@ -20,6 +20,7 @@ from rollingstar.sensors.timing import DetectorTiming
 SIZE = 256
 EXPOSURE_NS, LINE_DELAY_NS = 44_900_000, 43_900  # he2021a
 PX_PER_S_PER_DEG_S = 76.4  # he2021a: 4380 px focal length
+BOUND_FRAMES = 8  # frames whose stars' bounds (exact pixel integration, slow) average the bound: random phases
 
 
 def _context(psf_sigma_px: float = 1.0):
@@ -100,7 +101,7 @@ def test_positions_scatter_as_stated_at_the_pixel_level_bound(rate_deg_s):
         err.append(e)
         chi2.append(np.einsum("ni,nij,nj->n", e, np.linalg.inv(cov), e))
         dv.append(np.column_stack([stars.vx[i], stars.vy[i] - vy]))
-        for a, b in zip(x[j], y[j]):
+        for a, b in zip(x[j], y[j]) if k < BOUND_FRAMES else ():
             info = smeared_spot_fisher(a, b, 0.0, vy, 8000.0, 1.0, EXPOSURE_NS * 1e-9, LINE_DELAY_NS * 1e-9,
                                        background, model.read_noise_e, model.gain_e_per_adu, n_sub=32)
             crb.append(np.diag(np.linalg.inv(info))[:2])
