@@ -17,20 +17,24 @@ from rollingstar.estimators.centroiders.cog import (
     robust_sigma,
 )
 from rollingstar.estimators.centroiders.covariance import effective_gain, isotropic_sigma
-from rollingstar.estimators.centroiders.streak_kernel import normal_equations, star_pixels, window_moments
+from rollingstar.estimators.centroiders.streak_kernel import levenberg_marquardt, star_pixels, window_moments
 from rollingstar.estimators.data import FrameData, StarTable, frame_camera
 from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.effects.geometry import image_velocity, rotation_jacobian
+from rollingstar.sensors.so3 import rotate_at_rate
 from rollingstar.sensors.streak_model import effective_sigma, streak_mu
 
 SLOW_STREAK_PX = 1.0  # an expected streak shorter than this starts its fit at rest
 LONG_STREAK_PX = 16.0  # streaks at least this long are detected on 4 x 4 bins, shorter ones on 2 x 2
 MARGIN_SIGMAS = 3.0  # PSF widths around the expected streak in a fit window (besides half a detection bin)
-FIT_TOLERANCE_PX = 1e-3  # the fit stops when no star's position step exceeds this
+FIT_TOLERANCE_PX = 1e-3  # the fit stops when no star's position step exceeds this,
+STEP_SIGMAS = 0.1  # or none of its position and velocity steps exceeds this fraction of its sigma
+CONVERGED_DAMPING = 0.1  # ... at a damping this low (the step within ~10 % of the Gauss-Newton step)
 RIDGE = 1e-12  # added to the damped normal matrix: a star without usable pixels takes zero steps
 FROZEN_VELOCITY_ITERATIONS = 2  # first iterations of the fit with the velocity held at its guess
 MIN_STARS_FOR_RATE = 3  # stars needed to fit the body rate kept for the next frame
 SIGN_MATCH_PX = 5.0  # a star moved from the previous frame lands this close to one of this frame's
+NOISE_STRIDE = 16  # pixel stride of a tracked frame's noise and background-level sample
 # A fit with an expected velocity must come within this fraction of it plus VELOCITY_SLACK_PX of
 # streak length over the exposure (a fit across two collinear streaks, or onto a neighbour, is much
 # longer or turned; a PSF 30 % wider than the model's passes for a 3 px smear)
@@ -72,17 +76,64 @@ class StreakParams(BaseModel):
         "length from its position.")
     noise_floor_adu: float = Field(default=float(1.0 / np.sqrt(12.0)), gt=0,
                                    description="Smallest noise sigma used (ADU): the quantisation noise of integer pixels.")
+    track_windows: bool = Field(default=True, description="Once a frame's stars and the body rate are known, fit "
+                                "the next frame's stars in windows around their positions moved by the rate, and "
+                                "search only the sky that entered the detector since (a full-frame search again when "
+                                "fewer than redetect_fraction of the last full search's stars remain).")
+    redetect_fraction: float = Field(default=0.75, gt=0, le=1, description="Fraction of the last full-frame "
+                                     "search's stars below which a tracked frame is searched over the full frame.")
+    track_margin_px: float = Field(default=2.0, gt=0, description="Prediction error (px) a tracked star's window "
+                                   "allows besides the streak and 3 PSF widths.")
+    full_search_frames: int = Field(default=16, ge=0, description="A tracked frame is searched in full after this "
+                                    "many tracked frames (a star the last full search missed, e.g. one of two "
+                                    "collinear streaks it took as a blend, is found again). 0: only when stars "
+                                    "are lost.")
+    coast_frames: int = Field(default=2, ge=0, description="Frames a tracked star missing from its window is still "
+                              "looked for (a faint star that dipped below min_snr).")
     cog_below_px: float = Field(default=0.0, ge=0, description="When the expected motion is known and no star's "
                                 "streak is expected longer than this (px over one exposure), centroid the frame with "
                                 "the cog centroider (same background model) instead: faster, and as good for "
                                 "round spots. 0: never.")
 
 
+class _Background(NamedTuple):
+    """The frame's background (ADU): one level, or tile medians interpolated bilinearly (``map``:
+    median-filtered over the tile grid first), as the ``cog`` centroider's."""
+
+    tiles: np.ndarray  # (ny, nx) tile medians; (1, 1) for one global level
+    centres_y: np.ndarray
+    centres_x: np.ndarray
+
+    @classmethod
+    def of(cls, raw: np.ndarray, p: "StreakParams", sub: np.ndarray) -> "_Background":
+        if p.background == "median":
+            return cls(np.array([[float(np.median(sub))]]), np.zeros(1), np.zeros(1))
+        tiles = _tile_medians(raw, p.tile_px)
+        if p.background == "map" and p.map_filter_tiles > 1:
+            tiles = ndimage.median_filter(tiles, size=p.map_filter_tiles, mode="nearest")
+        H, W = raw.shape
+        centres_y = np.minimum(np.arange(tiles.shape[0]) * p.tile_px + (p.tile_px - 1) / 2.0, H - 1)
+        centres_x = np.minimum(np.arange(tiles.shape[1]) * p.tile_px + (p.tile_px - 1) / 2.0, W - 1)
+        return cls(tiles, centres_y, centres_x)
+
+    def grid(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """(len(rows), len(cols)) background on the grid of 1-D ``rows`` x ``cols``."""
+        rows, cols = np.asarray(rows, dtype=float).ravel(), np.asarray(cols, dtype=float).ravel()
+        return _interp_matrix(rows, self.centres_y) @ self.tiles @ _interp_matrix(cols, self.centres_x).T
+
+    def at(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Background at the points ``(rows, cols)`` (any broadcastable shapes)."""
+        rows, cols = np.broadcast_arrays(np.asarray(rows, dtype=float), np.asarray(cols, dtype=float))
+        wy = _interp_matrix(rows.ravel(), self.centres_y)
+        wx = _interp_matrix(cols.ravel(), self.centres_x)
+        return np.einsum("ni,ij,nj->n", wy, self.tiles, wx).reshape(rows.shape)
+
+
 class _Frame(NamedTuple):
     """What the fit of one frame needs: the image, its background at any pixel, noise and units."""
 
     raw: np.ndarray
-    background: object  # (rows, cols) -> background (ADU)
+    background: "_Background"
     noise: float
     saturation: float
     inv_gain: float
@@ -191,7 +242,12 @@ class StreakCentroider(Centroider):
         self._se = effective_sigma(self.params.psf_sigma_px)
         self._omega = None
         self._sign_known = False
-        self._previous = None
+        self._previous = None  # (t0_ns, tracks (n, 4) = x, y, vx, vy at their own rows' mid-exposure)
+        self._misses = np.zeros(0, dtype=np.int64)
+        self._searched_count = 0
+        self._tracked_frames = 0
+        self._background = None
+        self.last_mode = ""  # how the last frame was centroided: tracked, full, cold or cog (diagnostics)
         self._kernels = {}
         p = self.params
         self._cog = CogCentroider(threshold_sigma=p.threshold_sigma, background=p.background, tile_px=p.tile_px,
@@ -220,18 +276,154 @@ class StreakCentroider(Centroider):
         camera = frame_camera(frame, self.context)
         gyro = self._gyro_rate(frame)
         omega = gyro if gyro is not None else self._omega
+        self._sign_known |= gyro is not None
+        if self._can_track(omega):
+            tracked = self._track(frame, camera, omega)
+            if tracked is not None:
+                self.last_mode = "tracked"
+                return tracked
         if omega is not None and self._longest_streak_px(camera, omega) < self.params.cog_below_px:
-            return self._cog.process(frame)
+            self.last_mode = "cog"
+            return self._cog_frame(frame, camera, omega)
         f = self._frame(frame)
+        self.last_mode = "full"
         p, cov = self._stars(f, camera, omega) if omega is not None else (np.zeros((0, 6)), None)
         if p.shape[0] < MIN_STARS_FOR_RATE:
+            self.last_mode = "cold"
             p, cov = self._cold(f, camera)
         elif gyro is None and not self._sign_known:
             p, cov = self._resolve_sign(f, camera, frame.t0_ns, p, cov, omega)
-        self._sign_known |= gyro is not None
         self._omega = self._fitted_rate(camera, p, signed=True)
-        self._previous = (frame.t0_ns, p[:, :4].copy())
+        self._searched(frame.t0_ns, p[:, :4], f.background)
         return frame.evolve(stars=self._table(frame, f, p, cov))
+
+    def _searched(self, t0_ns: int, tracks: np.ndarray, background) -> None:
+        """State after a full-frame search: its stars ``(x, y, vx, vy)`` are the tracks, their count
+        the reference a tracked frame is held to, and its background map the tracked frames'."""
+        self._previous = (t0_ns, np.array(tracks, dtype=float))
+        self._misses = np.zeros(len(tracks), dtype=np.int64)
+        self._searched_count = len(tracks)
+        self._tracked_frames = 0
+        self._background = background
+
+    def _cog_frame(self, frame: FrameData, camera, omega) -> FrameData:
+        """The frame centroided by ``cog`` (round spots); its spots, with the expected velocity, are the tracks."""
+        out = self._cog.process(frame)
+        s = out.stars
+        vx, vy = image_velocity(camera, s.x, s.y, omega)
+        self._searched(frame.t0_ns, np.column_stack([s.x, s.y, vx, vy]), None)
+        return out
+
+    # ------------------------------------------------------------------ tracked frames
+    def _can_track(self, omega) -> bool:
+        p = self.params
+        due = p.full_search_frames and self._tracked_frames >= p.full_search_frames
+        return (p.track_windows and omega is not None and self._sign_known and self._previous is not None
+                and self._previous[1].shape[0] >= MIN_STARS_FOR_RATE and not due)
+
+    def _track(self, frame: FrameData, camera, omega):
+        """A tracked frame (class docstring, step 6); None when fewer than ``redetect_fraction`` of the
+        last full search's stars are found (the frame is then searched in full)."""
+        t_prev, q = self._previous
+        dt = (frame.t0_ns - t_prev) * S_PER_NS
+        x, y = self._moved(camera, q[:, 0], q[:, 1], omega, dt)
+        H, W = self._shape
+        inside = np.isfinite(x) & np.isfinite(y) & (x > -0.5) & (x < W - 0.5) & (y > -0.5) & (y < H - 0.5)
+        x, y, misses = x[inside], y[inside], self._misses[inside]
+        f = self._tracked_frame(frame)
+        nx, ny = self._new_sky(f, camera, omega, dt)
+        vx, vy = image_velocity(camera, np.concatenate([x, nx]), np.concatenate([y, ny]), omega)
+        nrows, ncols = self._window_size(vx, vy, int(np.ceil(2.0 * self.params.track_margin_px)))
+        # a star both tracked and found in the new sky is fitted twice, and one fit kept: a track
+        # from a streak the edge cut may be off by more than its window allows
+        cand = _Candidates(np.concatenate([x, nx]), np.concatenate([y, ny]), vx, vy, np.ones(vx.size, dtype=bool),
+                           nrows, ncols)
+        p, cov = _one_per_streak(*self._fit(f, cand), self._se, self._exposure)
+        if p.shape[0] < max(MIN_STARS_FOR_RATE, self.params.redetect_fraction * self._searched_count):
+            return None
+        # tracked stars whose window kept no star coast for a few frames at their predicted place
+        found = np.any((np.abs(p[None, :, 0] - x[:, None]) < 0.5 * ncols[: x.size, None])
+                       & (np.abs(p[None, :, 1] - y[:, None]) < 0.5 * nrows[: x.size, None]), axis=1)
+        coast = ~found & (misses < self.params.coast_frames)
+        tracks = np.concatenate([p[:, :4], np.column_stack([x, y, vx[: x.size], vy[: x.size]])[coast]])
+        self._previous = (frame.t0_ns, tracks)
+        self._misses = np.concatenate([np.zeros(p.shape[0], dtype=np.int64), misses[coast] + 1])
+        self._tracked_frames += 1
+        self._omega = self._fitted_rate(camera, p, signed=True)
+        return frame.evolve(stars=self._table(frame, f, p, cov))
+
+    def _moved(self, camera, x, y, omega, dt: float):
+        """Where stars seen at ``(x, y)`` (their own rows' mid-exposure) are at this frame's: the line of
+        sight turned by ``Exp(-omega t) w``, ``t = dt + (y' - y) ld`` the time between the two rows'
+        mid-exposures (two fixed-point passes)."""
+        w = camera.unproject(x, y).reshape(-1, 3)
+        t = np.full(w.shape[0], dt)
+        for _ in range(2):
+            x2, y2, _ = camera.project(rotate_at_rate(omega, w, -t))
+            t = dt + (np.nan_to_num(y2) - y) * self._ld
+        return x2, y2
+
+    def _tracked_frame(self, frame: FrameData) -> _Frame:
+        """A tracked frame's fit inputs: the last full search's background map shifted to this frame's
+        level and the noise, both from every ``NOISE_STRIDE``-th pixel (the sky's background varies
+        over the field slowly and over time by its level)."""
+        if self._background is None:
+            return self._frame(frame)
+        raw = self._raw(frame)
+        sub = raw[::NOISE_STRIDE, ::NOISE_STRIDE].astype(float)
+        resid = sub - self._background.grid(np.arange(0, raw.shape[0], NOISE_STRIDE), np.arange(0, raw.shape[1], NOISE_STRIDE))
+        level = float(np.median(resid))
+        noise = max(robust_sigma(resid - level), self.params.noise_floor_adu)
+        background = self._background._replace(tiles=self._background.tiles + level)
+        return _Frame(raw, background, noise, self._saturation(raw), 1.0 / self._gain if self._gain else 0.0)
+
+    def _new_sky(self, f: _Frame, camera, omega, dt: float):
+        """Stars in the sky that entered the detector since the previous frame: the matched filter
+        with the expected motion over a strip along each edge the sky moved in through, as deep as
+        the sky's shift over ``dt`` plus a fit window's half size (the largest along the edge), in
+        ``detect_tile_px`` segments of one kernel each."""
+        H, W = self._shape
+        t = self.params.detect_tile_px
+        xs, ys = [], []
+        for axis, size, across in ((1, W, H), (0, H, W)):  # left/right edges (columns), then top/bottom (rows)
+            starts = np.arange(0, across, t)
+            centres = np.minimum(starts + t / 2.0, across - 1.0)
+            for edge in (0.0, size - 1.0):
+                px, py = (np.full(starts.size, edge), centres) if axis == 1 else (centres, np.full(starts.size, edge))
+                vx, vy = image_velocity(camera, px, py, omega)
+                inward = (vx if axis == 1 else vy) * dt * (1.0 if edge == 0.0 else -1.0)
+                reach = 0.5 * np.hypot(vx, vy) * self._exposure + MARGIN_SIGMAS * self._se + self.params.track_margin_px
+                if not np.any(inward > SLOW_STREAK_PX):
+                    continue
+                depth = int(np.ceil(np.max(np.where(inward > SLOW_STREAK_PX, inward + reach, 0.0))))
+                lo, hi = (0, min(depth, size)) if edge == 0.0 else (max(size - depth, 0), size)
+                keys = [self._kernel_key(a, b, self._bin(a, b)) for a, b in zip(vx, vy)]
+                for i, j in _runs(keys):  # neighbouring segments with one kernel searched as one
+                    a0, a1 = starts[i], min(starts[j - 1] + t, across)
+                    r0, r1, c0, c1 = (a0, a1, lo, hi) if axis == 1 else (lo, hi, a0, a1)
+                    x, y = self._tile_candidates(f, vx[i], vy[i], r0, r1, c0, c1)
+                    xs.append(x)
+                    ys.append(y)
+        return (np.concatenate(xs), np.concatenate(ys)) if xs else (np.zeros(0), np.zeros(0))
+
+    def _bin(self, vx: float, vy: float) -> int:
+        """Detection bin of a streak of velocity ``(vx, vy)``: 4 x 4 for long streaks, else 2 x 2."""
+        return 4 if np.hypot(vx, vy) * self._exposure >= LONG_STREAK_PX else 2
+
+    def _tile_candidates(self, f: _Frame, vx: float, vy: float, r0: int, r1: int, c0: int, c1: int):
+        """Peaks above ``threshold_sigma`` of the matched filter for velocity ``(vx, vy)`` inside the
+        tile ``[r0, r1) x [c0, c1)`` (pixel centres of their bins)."""
+        k = self._bin(vx, vy)
+        kern = self._kernel(vx, vy, k)
+        hy, hx = k * (kern.full.shape[0] // 2 + 1), k * (kern.full.shape[1] // 2 + 1)
+        H, W = self._shape
+        top, left = max(r0 - hy, 0), max(c0 - hx, 0)
+        img = self._binned(f, k, top, min(r1 + hy, H), left, min(c1 + hx, W))
+        score = kern.correlate(img) * np.float32(1.0 / (k * f.noise))
+        bi, bj = np.divmod(_peaks(score, self.params.threshold_sigma), score.shape[1])
+        x, y = left + k * bj + (k - 1) / 2.0, top + k * bi + (k - 1) / 2.0
+        inside = (x >= c0) & (x < c1) & (y >= r0) & (y < r1)
+        return x[inside], y[inside]
 
     def _cold(self, f: _Frame, camera):
         """Cold search; then detection and fit again with the rate its stars give (whose overall
@@ -271,7 +463,7 @@ class StreakCentroider(Centroider):
         return p, cov
 
     # ------------------------------------------------------------------ frame, background, motion
-    def _frame(self, frame: FrameData) -> _Frame:
+    def _raw(self, frame: FrameData) -> np.ndarray:
         if frame.image is None:
             raise ValueError(f"frame {frame.index}: no image; the 'streak' centroider needs image-level recordings")
         raw = np.asarray(frame.image)
@@ -281,37 +473,17 @@ class StreakCentroider(Centroider):
             raw = raw.astype(np.uint8)
         if not np.issubdtype(raw.dtype, np.integer) and not np.all(np.isfinite(raw)):
             raise ValueError(f"frame {frame.index}: image has non-finite pixels; cannot centroid")
+        return raw
+
+    def _frame(self, frame: FrameData) -> _Frame:
+        raw = self._raw(frame)
         p = self.params
         step = _subsample_step(raw.shape)
         sub = raw[::step, ::step].astype(float)
-        if p.background == "median":
-            level = float(np.median(sub))
-
-            def background(rows, cols):
-                return np.full(np.broadcast_shapes(np.shape(rows), np.shape(cols)), level)
-        else:
-            background = self._tile_background(raw)
+        background = _Background.of(raw, p, sub)
         rows, cols = np.arange(0, raw.shape[0], step), np.arange(0, raw.shape[1], step)
-        noise = max(robust_sigma(sub - background(rows[:, None], cols[None, :])), p.noise_floor_adu)
+        noise = max(robust_sigma(sub - background.grid(rows, cols)), p.noise_floor_adu)
         return _Frame(raw, background, noise, self._saturation(raw), 1.0 / self._gain if self._gain else 0.0)
-
-    def _tile_background(self, raw: np.ndarray):
-        """Bilinear interpolation of tile medians (``map``: median-filtered over the tile grid)."""
-        p = self.params
-        tiles = _tile_medians(raw, p.tile_px)
-        if p.background == "map" and p.map_filter_tiles > 1:
-            tiles = ndimage.median_filter(tiles, size=p.map_filter_tiles, mode="nearest")
-        H, W = raw.shape
-        centres_y = np.minimum(np.arange(tiles.shape[0]) * p.tile_px + (p.tile_px - 1) / 2.0, H - 1)
-        centres_x = np.minimum(np.arange(tiles.shape[1]) * p.tile_px + (p.tile_px - 1) / 2.0, W - 1)
-
-        def background(rows, cols):
-            rows, cols = np.broadcast_arrays(np.asarray(rows, dtype=float), np.asarray(cols, dtype=float))
-            uy = np.unique(rows)
-            ux = np.unique(cols)
-            grid = _interp_matrix(uy, centres_y) @ tiles @ _interp_matrix(ux, centres_x).T
-            return grid[np.searchsorted(uy, rows), np.searchsorted(ux, cols)]
-        return background
 
     def _saturation(self, raw: np.ndarray) -> float:
         if self.params.saturation_adu is not None:
@@ -393,25 +565,29 @@ class StreakCentroider(Centroider):
         v = [(0.0, 0.0)] + [(s * np.cos(a), s * np.sin(a)) for s in lengths for a in angles]
         return np.array(v)
 
-    def _binned(self, f: _Frame, k: int) -> np.ndarray:
-        """The image minus its background, summed over ``k x k`` bins (float32)."""
+    def _binned(self, f: _Frame, k: int, top: int = 0, bottom: int | None = None, left: int = 0,
+                right: int | None = None) -> np.ndarray:
+        """The image (or its part ``[top, bottom) x [left, right)``) minus its background, summed over
+        ``k x k`` bins from its top-left corner (float32)."""
         H, W = self._shape
-        Hb, Wb = H // k, W // k
-        raw = f.raw[: Hb * k, : Wb * k]
+        bottom, right = H if bottom is None else bottom, W if right is None else right
+        Hb, Wb = (bottom - top) // k, (right - left) // k
+        raw = f.raw[top: top + Hb * k, left: left + Wb * k]
         rows = raw[0::k].astype(np.float32)
         for i in range(1, k):
             rows += raw[i::k]
         img = np.ascontiguousarray(rows[:, 0::k])
         for j in range(1, k):
             img += rows[:, j::k]
-        centres = k * np.arange(max(Hb, Wb)) + (k - 1) / 2.0
-        img -= (k * k * f.background(centres[:Hb, None], centres[None, :Wb])).astype(np.float32)
+        centres_y = top + k * np.arange(Hb) + (k - 1) / 2.0
+        centres_x = left + k * np.arange(Wb) + (k - 1) / 2.0
+        img -= (k * k * f.background.grid(centres_y, centres_x)).astype(np.float32)
         return img
 
     def _kernel(self, vx: float, vy: float, k: int) -> _Kernel:
         """Unit-flux model streak binned ``k x k``, normalised to unit sum of squares (cached by the
         streak's length in whole pixels)."""
-        key = (int(round(vx * self._exposure)), int(round(vy * self._exposure)), k)
+        key = self._kernel_key(vx, vy, k)
         if key not in self._kernels:
             vx, vy = key[0] / self._exposure, key[1] / self._exposure
             hx = int(np.ceil((abs(vx) * self._exposure / 2 + 3 * self._se) / k))
@@ -422,6 +598,10 @@ class StreakCentroider(Centroider):
             kern = mu.reshape(2 * hy + 1, k, 2 * hx + 1, k).sum(axis=(1, 3))
             self._kernels[key] = _Kernel.of(kern / np.sqrt(np.sum(kern**2)))
         return self._kernels[key]
+
+    def _kernel_key(self, vx: float, vy: float, k: int) -> tuple[int, int, int]:
+        """The streak's length along x and y in whole pixels, and the bin: velocities with one key share a kernel."""
+        return int(round(vx * self._exposure)), int(round(vy * self._exposure)), k
 
     def _search(self, f: _Frame, k: int, velocities: np.ndarray):
         """Best matched-filter score (sigmas) over ``velocities`` per bin, and which velocity gave it."""
@@ -491,7 +671,7 @@ class StreakCentroider(Centroider):
         cut = signed & ((row0 < 0) | (row0 + nrows > H) | (col0 < 0) | (col0 + ncols > W))
         v_mean = np.where(cut[:, None], v, 0.0)
         v_weight = np.where(cut, self.params.edge_velocity_sigma_px_s, self.params.velocity_prior_px_s) ** -2.0
-        b0 = f.background(y, x)
+        b0 = f.background.at(y, x)
         start = window_moments(f.raw, row0, col0, nrows, ncols, b0, 3.0 * f.noise)
         p = np.column_stack([start[:, 1], start[:, 2], v, np.maximum(start[:, 0], 10.0 * f.noise), b0])
         args = (row0, col0, nrows, ncols, f.raw, f.saturation, f.noise**2, f.inv_gain, self._se, self._exposure,
@@ -530,44 +710,22 @@ class StreakCentroider(Centroider):
 
 
 def _levenberg_marquardt(p: np.ndarray, args, iterations: int, v_mean: np.ndarray, v_weight: np.ndarray):
-    """Damped Gauss-Newton on all stars at once; a step is kept per star when it lowers that star's
+    """Damped Gauss-Newton of each star on its own window (compiled, star by star:
+    :func:`rollingstar.estimators.centroiders.streak_kernel.levenberg_marquardt`); a step is kept when it lowers the star's
     chi-square, the Gaussian prior on its velocity (mean ``v_mean`` (n, 2), weight ``v_weight``
     (n,), the inverse variance) included. The first ``FROZEN_VELOCITY_ITERATIONS``
     hold the velocity at its guess (a bright star's first step at a poor flux guess would
-    otherwise explain its wings by a smear). A star stops when a kept step moves its
-    position by less than ``FIT_TOLERANCE_PX`` or its damping has grown a million-fold. Returns
+    otherwise explain its wings by a smear). A star stops when a step moves its
+    position by less than ``FIT_TOLERANCE_PX``, or its position and velocity by less than
+    ``STEP_SIGMAS`` of their standard deviations (what further steps could move is noise's
+    hundredth), at a damping of at most ``CONVERGED_DAMPING``
+    (kept or not: at the minimum the chi-square cannot fall further than its rounding), or when
+    its damping has grown a million-fold. Returns
     parameters, information matrices, chi-squares and the pixels they used at the solution."""
-    prior = np.zeros((p.shape[0], 6, 6))
-    prior[:, 2, 2] = prior[:, 3, 3] = v_weight
     p = np.ascontiguousarray(p, dtype=float)
-    hess, grad, chi2, used = normal_equations(p, *args)
-    lam = np.full(p.shape[0], 1e-3)
-    active = np.arange(p.shape[0])
-    for it in range(iterations):
-        if active.size == 0:
-            break
-        h = hess[active] + prior[active]
-        g = grad[active]
-        g[:, 2:4] -= (p[active, 2:4] - v_mean[active]) * v_weight[active, None]
-        damped = h + lam[active, None, None] * (np.eye(6) * np.diagonal(h, axis1=1, axis2=2)[:, None, :]) + RIDGE * np.eye(6)
-        frozen = it < FROZEN_VELOCITY_ITERATIONS
-        if frozen:  # position, flux and background first, at the expected velocity
-            damped[:, 2:4, :] = damped[:, :, 2:4] = 0.0
-            damped[:, 2, 2] = damped[:, 3, 3] = 1.0
-            g[:, 2:4] = 0.0
-        step = np.linalg.solve(damped, g[..., None])[..., 0]
-        trial = np.ascontiguousarray(p[active] + step)
-        trial[:, 4] = np.where(trial[:, 4] > 0, trial[:, 4], 0.5 * p[active, 4])
-        t_hess, t_grad, t_chi2, t_used = normal_equations(trial, args[0][active], args[1][active], *args[2:])
-        total = chi2[active] + np.sum((p[active, 2:4] - v_mean[active]) ** 2, axis=1) * v_weight[active]
-        better = t_chi2 + np.sum((trial[:, 2:4] - v_mean[active]) ** 2, axis=1) * v_weight[active] < total
-        lam[active] = np.where(better, lam[active] / 3.0, lam[active] * 5.0)
-        idx = active[better]
-        p[idx], hess[idx], grad[idx], chi2[idx], used[idx] = (trial[better], t_hess[better], t_grad[better],
-                                                              t_chi2[better], t_used[better])
-        done = (better & (np.max(np.abs(step[:, :2]), axis=1) < FIT_TOLERANCE_PX) & (not frozen)) | (lam[active] > 1e3)
-        active = active[~done]
-    return p, hess + prior, chi2, used
+    return levenberg_marquardt(p, *args, np.ascontiguousarray(v_mean, dtype=float),
+                               np.ascontiguousarray(v_weight, dtype=float), iterations, FROZEN_VELOCITY_ITERATIONS,
+                               FIT_TOLERANCE_PX, STEP_SIGMAS, CONVERGED_DAMPING, RIDGE)
 
 
 def _misfit_scale(chi2: np.ndarray, used: np.ndarray) -> np.ndarray:
@@ -577,6 +735,12 @@ def _misfit_scale(chi2: np.ndarray, used: np.ndarray) -> np.ndarray:
     dof = np.maximum(used - 6, 1)
     reduced = chi2 / dof
     return np.where(reduced > 1.0 + 3.0 * np.sqrt(2.0 / dof), reduced, 1.0)
+
+
+def _runs(keys: list) -> list[tuple[int, int]]:
+    """``(start, stop)`` of the runs of equal neighbouring ``keys``."""
+    bounds = [0] + [i for i in range(1, len(keys)) if keys[i] != keys[i - 1]] + [len(keys)]
+    return list(zip(bounds[:-1], bounds[1:]))
 
 
 def _peaks(score: np.ndarray, threshold: float) -> np.ndarray:

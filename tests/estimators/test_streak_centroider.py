@@ -85,7 +85,7 @@ def test_positions_scatter_as_stated_at_the_pixel_level_bound(rate_deg_s):
     within 5 px/s (0.07 deg/s) of zero."""
     ctx, model = _context()
     rng = np.random.default_rng(7)
-    centroider = StreakCentroider()
+    centroider = StreakCentroider(track_windows=False)  # every frame is a new scene: each is searched in full
     centroider.setup(ctx)
     vy = rate_deg_s * PX_PER_S_PER_DEG_S
     err, chi2, crb, dv = [], [], [], []
@@ -174,3 +174,65 @@ def test_a_rate_estimate_sets_the_expected_motion_and_short_streaks_go_to_cog():
         assert same == expect_cog
         assert np.unique(_matched(out, x, y, 1.0)[0]).size == x.size  # every star, once
         assert np.isfinite(out.vx).all() != expect_cog  # only the streak fit measures velocities
+
+
+def _moving_sky(rng, vy: float, n_frames: int, jump_at: int | None = None, jump_px: float = 0.0):
+    """Frames of a sky drifting down the rows at ``vy`` px/s (new stars enter at the top), with its
+    true stars per frame; from frame ``jump_at`` on the sky also stands ``jump_px`` to the right
+    (an unpredicted jump)."""
+    ctx, model = _context()
+    cols = (np.arange(5) + 0.5) * (SIZE - 40) / 5 + 20
+    t_first = ctx.timing.frame_start_ns(0)
+    above = vy * (ctx.timing.frame_start_ns(n_frames) - t_first) * 1e-9 + 50.0  # the sky that enters
+    rows = np.arange(-above, SIZE, 44.0)
+    gx, gy = np.meshgrid(cols, rows)
+    gx[1::2] += 0.5 * (SIZE - 40) / 5  # staggered rows: no two streaks collinear and close (a blend)
+    x0, y0 = gx.ravel() + rng.uniform(-4, 4, gx.size), gy.ravel() + rng.uniform(-4, 4, gy.size)
+    frames, truth = [], []
+    for k in range(n_frames):
+        y = y0 + vy * (ctx.timing.frame_start_ns(k) - t_first) * 1e-9
+        x = x0 + (jump_px if jump_at is not None and k >= jump_at else 0.0)
+        on = (y > 6) & (y < SIZE - 6) & (x > 6) & (x < SIZE - 6)
+        frames.append(_render(ctx, model, x[on], y[on], 0.0, vy, np.full(int(on.sum()), 2.0e4), rng, k,
+                              _rate_about_x(ctx, vy)))
+        truth.append((x[on], y[on]))
+    return ctx, frames, truth
+
+
+@pytest.mark.parametrize("rate_deg_s", [0.5, 3.0, 10.0])
+def test_tracked_frames_find_what_a_full_search_finds_including_stars_that_entered(rate_deg_s):
+    """A sky drifting down the rows: after the first frame the tracking centroider fits windows
+    around its stars moved by the rate and searches only the strip of sky that entered. It finds
+    every true star a full search of the same frame finds, stars entering at the top included,
+    and gives the same positions (within a fifth of their stated sigma: both fits stop once a
+    step is below a tenth of it)."""
+    ctx, frames, truth = _moving_sky(np.random.default_rng(3), rate_deg_s * PX_PER_S_PER_DEG_S, 8)
+    tracked, full = StreakCentroider(), StreakCentroider(track_windows=False)
+    tracked.setup(ctx)
+    full.setup(ctx)
+    for k, (frame, (x, y)) in enumerate(zip(frames, truth)):
+        a, b = tracked.process(frame).stars, full.process(frame).stars
+        ja, ia = _matched(a, x, y, 1.5)
+        jb, ib = _matched(b, x, y, 1.5)
+        assert set(jb) <= set(ja), f"frame {k}: the full search found stars {set(jb) - set(ja)} tracking missed"
+        assert ja.size >= 0.8 * x.size
+        for j in np.intersect1d(ja, jb):
+            sa, sb = ia[ja == j][0], ib[jb == j][0]
+            assert abs(a.x[sa] - b.x[sb]) < 0.2 * np.sqrt(a.cov_xx[sa]) + 1e-3
+            assert abs(a.y[sa] - b.y[sb]) < 0.2 * np.sqrt(a.cov_yy[sa]) + 1e-3
+        if k:
+            assert tracked.last_mode == "tracked", f"frame {k}: searched in full"
+
+
+def test_an_unpredicted_jump_sends_the_tracking_centroider_back_to_a_full_search():
+    """The sky jumps 25 px sideways (no rate says so): the windows lose the stars, and the same
+    frame is searched in full, so no star is lost."""
+    ctx, frames, truth = _moving_sky(np.random.default_rng(4), 3.0 * PX_PER_S_PER_DEG_S, 5, jump_at=3, jump_px=25.0)
+    centroider = StreakCentroider()
+    centroider.setup(ctx)
+    modes = []
+    for k, (frame, (x, y)) in enumerate(zip(frames, truth)):
+        stars = centroider.process(frame).stars
+        modes.append(centroider.last_mode)
+        assert np.unique(_matched(stars, x, y, 1.5)[0]).size >= 0.9 * x.size, f"frame {k}"
+    assert modes[1:3] == ["tracked", "tracked"] and modes[3] == "full", modes
