@@ -154,7 +154,8 @@ class StagePipeline:
             start = time.perf_counter()
             frame = stage.process(frame)
             if isinstance(stage, Identifier) and self.context is not None:
-                frame = verify_identification(frame, self.context, self.max_false_match_prob)
+                frame = verify_identification(frame, self.context, self.max_false_match_prob,
+                                              own=stage.verifies_identification)
             released = stage.release() if stage.defers_output else []
             self.stage_seconds[f"{i}:{stage.name}"] += time.perf_counter() - start
         except UserError:
@@ -165,10 +166,13 @@ class StagePipeline:
         return frame, released
 
 
-def verify_identification(frame: FrameData, context: SensorContext, bound: float) -> FrameData:
+def verify_identification(frame: FrameData, context: SensorContext, bound: float, own: bool = False) -> FrameData:
     """``frame`` with its identification check; its identified stars withdrawn when the check fails
-    (see the module docstring)."""
-    check = check_frame(frame, frame_camera(frame, context), context.catalog, bound)
+    (see the module docstring). ``own``: the identifier put its check of this frame in
+    ``frame.identification`` (:attr:`Identifier.verifies_identification`), used when its bound is ``bound``."""
+    check = frame.identification if own else None
+    if check is None or check.bound != float(bound):
+        check = check_frame(frame, frame_camera(frame, context), context.catalog, bound)
     frame = frame.evolve(identification=check)
     if check.passed or check.n_matched < 2:
         return frame

@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.transform import Rotation
 from scipy.stats import binom
 
-from rollingstar.estimators.data import FrameData
+from rollingstar.estimators.data import FrameData, frame_camera
 from rollingstar.estimators.identifiers.base import Identifier
 from rollingstar.estimators.identifiers.camera_fit import RadialCamera, fit_camera
 from rollingstar.estimators.identifiers.integrity import RATE_FIT_MIN_MATCHES, check_frame, fit_rate
@@ -190,6 +190,7 @@ class LostInSpaceIdentifier(Identifier):
     the last lost-in-space attempt.
     """
 
+    verifies_identification = True  # tracked frames carry their check (see _check)
     name = "lost-in-space"
     Params = LostInSpaceParams
 
@@ -263,12 +264,14 @@ class LostInSpaceIdentifier(Identifier):
             raise ValueError(f"frame {frame.index}: no detections (frame.stars is None); "
                              "the 'lost-in-space' identifier needs a centroider or centroid-level recording before it")
         flags = frame.flags
+        frame = frame.evolve(identification=None)
         if self._tracker is not None:
-            out = self._tracker.process(frame)
+            out = self._with_camera(self._tracker.process(frame))
             least = self.params.track_min_matches or self.params.min_matches
-            if out.stars.n >= least and self._verified(out):
+            check = self._check(out) if out.stars.n >= least else None
+            if check is not None and check.passed:
                 self.last_mode = "tracking"
-                return self._with_camera(out)
+                return out.evolve(identification=check)
             flags = flags + ("track_lost",)
         lost, self._tracker = self._tracker, None
         self.last_mode = "lost-in-space"
@@ -284,11 +287,10 @@ class LostInSpaceIdentifier(Identifier):
                 self._tracker.seed(sol.attitude, sol.t_ns, omega)
         return self._with_camera(out) if sol.accepted else out
 
-    def _verified(self, out: FrameData) -> bool:
-        """True when the tracked matches pass the false-match bound (integrity.py) on the tracking camera."""
-        check = check_frame(out, self._track_model.camera(self.context.camera), self.context.catalog,
-                            self.params.max_false_match_prob)
-        return check.passed
+    def _check(self, out: FrameData):
+        """The integrity check (integrity.py) of the tracked matches, on the camera the frame carries
+        to the later stages (the stage mechanics' check of this frame: :attr:`verifies_identification`)."""
+        return check_frame(out, frame_camera(out, self.context), self.context.catalog, self.params.max_false_match_prob)
 
     def _with_camera(self, out: FrameData) -> FrameData:
         """``out`` carrying the fitted camera model when the intrinsics were fitted (class docstring, 5)."""

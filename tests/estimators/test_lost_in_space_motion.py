@@ -141,3 +141,35 @@ def test_cold_start_with_the_velocities_reversed(context):
         assert lis.last_solution.accepted and _wrong(frame, out, truth_ids) == 0
         assert abs(np.degrees(lis.last_solution.rate_rad_s[0]) - 10.0) < 0.05
     assert tried >= 5
+
+
+def test_a_tracked_frame_carries_the_check_the_stage_mechanics_would_compute(context):
+    """Tracked frames carry their identification check (verifies_identification), equal to the one
+    the stage mechanics compute from scratch; an identifier that does not declare it has whatever it
+    put in frame.identification replaced by the stage mechanics' own check."""
+    from dataclasses import replace
+
+    from rollingstar.estimators.data import frame_camera
+    from rollingstar.estimators.identifiers.integrity import check_frame
+    from rollingstar.pipelines.stages import verify_identification
+
+    rng = np.random.default_rng(60)
+    frames = motion_frames(context, pointing(rng), np.radians([3.0, 0.0, 0.0]), 4, seed=61)
+    lis = LostInSpaceIdentifier(track=True)
+    lis.setup(context)
+    bound = lis.params.max_false_match_prob
+    for frame, _, motion, _ in frames:
+        out = lis.process(frame)
+        fresh = check_frame(out, frame_camera(out, context), context.catalog, bound)
+        if lis.last_mode == "tracking":
+            assert out.identification == fresh
+        else:
+            assert out.identification is None
+        t_ref = TIMING.frame_reference_ns(frame.t0_ns)
+        lis.update_prior(out.evolve(attitudes=(AttitudeEstimate(t_ref, motion.attitude(np.int64(t_ref)).as_quat(),
+                                                                out.stars.n),),
+                                    rate=RateEstimate(t_ref, motion.angular_velocity(np.int64(t_ref)))))
+    assert lis.last_mode == "tracking"
+    forged = out.evolve(identification=replace(fresh, passed=False, reason="forged"))
+    assert verify_identification(forged, context, bound, own=False).identification == fresh
+    assert verify_identification(forged, context, bound * 10, own=True).identification.bound == bound * 10
