@@ -226,6 +226,19 @@ class StreakCentroider(Centroider):
        the other sign), so without a gyro the next frame settles it: the previous stars moved by
        ``+v dt`` must land on the new ones (:meth:`_resolve_sign`); until then the velocities'
        overall sign may be reversed (positions are not affected).
+    6. Tracked frames (``track_windows``; once the stars of a full search and the rate, with its
+       sign, are known): each star of the last frame is moved to this frame by the rate (its line
+       of sight turned by ``Exp(-omega t)``, ``t`` the time between its two rows' mid-exposures)
+       and fitted in a window around that place (step 3, the window ``track_margin_px`` wider);
+       the sky that entered the detector since (a strip along each edge the sky moved in through,
+       as deep as its shift plus a window's half size) is searched by the matched filter (step 2)
+       and its stars fitted too; the fits go through :func:`_one_per_streak`. A star whose window
+       kept none is looked for ``coast_frames`` more frames at its predicted place. The frame is
+       searched in full instead when fewer than ``redetect_fraction`` of the last full search's
+       stars are found (an unpredicted jump, a wrong rate), and after ``full_search_frames``
+       tracked frames (a star the last full search missed is found again). ``last_mode`` says which
+       (``tracked``, ``full``, ``cold`` or ``cog``). The sky's background map is the last full
+       search's, shifted to the frame's level; the noise is measured every frame.
     """
 
     name = "streak"
