@@ -35,7 +35,8 @@ from rollingstar.sensors.timing import DetectorTiming
 def build_camera(cfg: ScenarioConfig) -> PinholeCamera:
     s = cfg.sensor
     cx, cy = s.principal_point_px if s.principal_point_px is not None else (None, None)
-    return PinholeCamera(s.focal_length_mm * 1e-3, s.pixel_size_um * 1e-6, s.width_px, s.height_px, cx, cy)
+    return PinholeCamera(s.focal_length_mm * 1e-3, s.pixel_size_um * 1e-6, s.width_px, s.height_px, cx, cy,
+                         projection=s.projection)
 
 
 def build_timing(cfg: ScenarioConfig) -> DetectorTiming:

@@ -1,15 +1,61 @@
-"""Camera model: pinhole projection of camera-frame directions to pixels and back (he2021b eq 2),
-with optional Brown-Conrady radial distortion."""
+"""Camera model: central projection of camera-frame directions to pixels and back, perspective
+(pinhole, he2021b eq 2) or one of the wide-angle projections, with optional radial distortion."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
+
+#: The central projections: the image radius ``r`` (px) of a direction ``theta`` from the
+#: boresight, ``r = f rho(theta)``. Perspective (pinhole): ``tan theta``; equidistant (most
+#: fisheye lenses): ``theta``; equisolid-angle: ``2 sin(theta / 2)``; stereographic:
+#: ``2 tan(theta / 2)``; orthographic: ``sin theta``.
+Projection = Literal["perspective", "equidistant", "equisolid", "stereographic", "orthographic"]
+PROJECTIONS: tuple[str, ...] = ("perspective", "equidistant", "equisolid", "stereographic", "orthographic")
+#: The largest ``theta`` each projection images (rad; open bound): a hemisphere for perspective
+#: and orthographic, all but the backward direction for the others.
+MAX_THETA = {"perspective": np.pi / 2, "equidistant": np.pi, "equisolid": np.pi, "stereographic": np.pi,
+             "orthographic": np.pi / 2}
+
+
+def projection_rho(theta, projection: str) -> tuple[np.ndarray, np.ndarray]:
+    """``rho(theta)`` of ``projection`` (normalised image radius, ``r / f``) and ``d rho / d theta``."""
+    t = np.asarray(theta, dtype=float)
+    if projection == "perspective":
+        return np.tan(t), 1.0 / np.cos(t) ** 2
+    if projection == "equidistant":
+        return t, np.ones_like(t)
+    if projection == "equisolid":
+        return 2.0 * np.sin(0.5 * t), np.cos(0.5 * t)
+    if projection == "stereographic":
+        return 2.0 * np.tan(0.5 * t), 1.0 / np.cos(0.5 * t) ** 2
+    if projection == "orthographic":
+        return np.sin(t), np.cos(t)
+    raise ValueError(f"unknown projection {projection!r}; expected one of {', '.join(PROJECTIONS)}")
+
+
+def projection_theta(rho, projection: str) -> np.ndarray:
+    """The inverse of :func:`projection_rho`: ``theta`` of a normalised radius (NaN outside the image
+    of the projection: ``rho > 2`` for equisolid-angle, ``rho > 1`` for orthographic)."""
+    r = np.asarray(rho, dtype=float)
+    with np.errstate(invalid="ignore"):
+        if projection == "perspective":
+            return np.arctan(r)
+        if projection == "equidistant":
+            return r.copy()
+        if projection == "equisolid":
+            return np.where(r <= 2.0, 2.0 * np.arcsin(np.minimum(0.5 * r, 1.0)), np.nan)
+        if projection == "stereographic":
+            return 2.0 * np.arctan(0.5 * r)
+        if projection == "orthographic":
+            return np.where(r <= 1.0, np.arcsin(np.minimum(r, 1.0)), np.nan)
+    raise ValueError(f"unknown projection {projection!r}; expected one of {', '.join(PROJECTIONS)}")
 
 
 @dataclass(frozen=True)
 class PinholeCamera:
-    """Ideal pinhole camera.
+    """Central camera: an ideal pinhole by default, or a wide-angle projection.
 
     Pixel (x, y) = (column, row) with pixel centres at integer coordinates; the principal point
     ``(cx, cy)`` defaults to the detector centre ``((width - 1) / 2, (height - 1) / 2)``.
@@ -19,9 +65,15 @@ class PinholeCamera:
 
     so a star imaged to the right of the principal point has a negative camera x component.
 
-    Radial distortion (``k1``, ``k2``, default 0: an ideal pinhole) maps the ideal pinhole pixel to
-    the observed one about the principal point, in normalised coordinates ``r^2 = ((x - cx)^2 +
-    (y - cy)^2) / f^2``: ``x' = cx + (x - cx)(1 + k1 r^2 + k2 r^4)`` (same for y), the convention of
+    ``projection`` (default ``perspective``, the pinhole above) sets how far from the principal
+    point a direction at ``theta`` from the boresight is imaged: ``r = f rho(theta)``
+    (:data:`Projection`), along the same azimuth as the pinhole's, so the axes are the pinhole's
+    whatever the projection. Every projection agrees with the pinhole to first order at the
+    boresight (``rho ~ theta``).
+
+    Radial distortion (``k1``, ``k2``, ``k3``, default 0: none) maps the ideal pixel to the observed
+    one about the principal point, in normalised coordinates ``r^2 = ((x - cx)^2 + (y - cy)^2) /
+    f^2``: ``x' = cx + (x - cx)(1 + k1 r^2 + k2 r^4 + k3 r^6)`` (same for y), the convention of
     :class:`rollingstar.sensors.effects.radial_distortion.RadialDistortion`. ``project`` returns
     observed pixels and ``unproject`` takes them; ``k1 < 0`` is barrel distortion.
     """
@@ -34,8 +86,12 @@ class PinholeCamera:
     cy: float | None = None
     k1: float = 0.0
     k2: float = 0.0
+    k3: float = 0.0
+    projection: Projection = "perspective"
 
     def __post_init__(self):
+        if self.projection not in PROJECTIONS:
+            raise ValueError(f"unknown projection {self.projection!r}; expected one of {', '.join(PROJECTIONS)}")
         if self.cx is None:
             object.__setattr__(self, "cx", (self.width - 1) / 2.0)
         if self.cy is None:
@@ -53,31 +109,27 @@ class PinholeCamera:
 
     @property
     def fov_deg(self) -> tuple[float, float]:
-        """Full field of view (horizontal, vertical) in degrees."""
-        half_w = self.width * self.pixel_size_m / 2
-        half_h = self.height * self.pixel_size_m / 2
-        return (
-            float(np.degrees(2 * np.arctan(half_w / self.focal_length_m))),
-            float(np.degrees(2 * np.arctan(half_h / self.focal_length_m))),
-        )
+        """Full field of view (horizontal, vertical) in degrees (without distortion)."""
+        half = np.array([self.width, self.height]) * self.pixel_size_m / 2 / self.focal_length_m
+        return tuple(float(np.degrees(2 * projection_theta(h, self.projection))) for h in half)
 
     @property
     def distorted(self) -> bool:
         """True when the camera has radial distortion."""
-        return self.k1 != 0.0 or self.k2 != 0.0
+        return self.k1 != 0.0 or self.k2 != 0.0 or self.k3 != 0.0
 
     def distort(self, x, y) -> tuple[np.ndarray, np.ndarray]:
-        """Ideal pinhole pixels -> observed pixels."""
-        return radial_distort(x, y, self.cx, self.cy, self.focal_px, self.k1, self.k2)
+        """Ideal pixels -> observed pixels."""
+        return radial_distort(x, y, self.cx, self.cy, self.focal_px, self.k1, self.k2, self.k3)
 
     def undistort(self, x, y) -> tuple[np.ndarray, np.ndarray]:
-        """Observed pixels -> ideal pinhole pixels (NaN where the radial map folds over)."""
-        return radial_undistort(x, y, self.cx, self.cy, self.focal_px, self.k1, self.k2)
+        """Observed pixels -> ideal pixels (NaN where the radial map folds over)."""
+        return radial_undistort(x, y, self.cx, self.cy, self.focal_px, self.k1, self.k2, self.k3)
 
     @property
     def half_diagonal_rad(self) -> float:
         """Angle from the boresight to the farthest detector corner (rad)."""
-        if self.distorted:  # the corners' own directions (barrel distortion widens the field)
+        if self.distorted or self.projection != "perspective":  # the corners' own directions
             corners = self.unproject([-0.5, self.width - 0.5, -0.5, self.width - 0.5],
                                      [-0.5, -0.5, self.height - 0.5, self.height - 0.5])
             if np.all(np.isfinite(corners)):
@@ -89,9 +141,12 @@ class PinholeCamera:
     def project(self, w_cam) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Camera-frame directions (..., 3) to pixel coordinates.
 
-        Returns ``(x, y, in_front)``; ``in_front`` is False (and x, y NaN) where ``w_z <= 0``.
+        Returns ``(x, y, in_front)``; ``in_front`` is False (and x, y NaN) where the projection does
+        not image the direction (:data:`MAX_THETA`: ``w_z <= 0`` for the pinhole).
         """
         w = np.asarray(w_cam, dtype=float)
+        if self.projection != "perspective":
+            return self._project_wide(w)
         wz = w[..., 2]
         in_front = wz > 0
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -102,18 +157,64 @@ class PinholeCamera:
             x, y = self.distort(x, y)
         return x, y, in_front
 
+    def _project_wide(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`project` for the wide-angle projections: ``x = cx - g w_x``, ``y = cy - g w_y`` with
+        ``g = f rho_d(theta) / s``, ``s = |(w_x, w_y)|`` (``g = f / w_z`` on the boresight)."""
+        g, _, in_front = self._radial_gain(w)
+        x = np.where(in_front, self.cx - g * w[..., 0], np.nan)
+        y = np.where(in_front, self.cy - g * w[..., 1], np.nan)
+        return x, y, in_front
+
+    def _radial_gain(self, w: np.ndarray):
+        """``g = f rho_d(theta) / s`` and ``d g / d w`` (..., 3) of unnormalised directions, and which
+        ones the projection images; ``rho_d`` the distorted normalised radius."""
+        wx, wy, wz = w[..., 0], w[..., 1], w[..., 2]
+        s = np.hypot(wx, wy)
+        n2 = s * s + wz * wz
+        theta = np.arctan2(s, wz)
+        in_front = (theta < MAX_THETA[self.projection]) & (n2 > 0)
+        rho, drho = projection_rho(np.where(in_front, theta, 0.0), self.projection)
+        poly = 1.0 + rho**2 * (self.k1 + rho**2 * (self.k2 + rho**2 * self.k3))
+        dpoly = 1.0 + rho**2 * (3.0 * self.k1 + rho**2 * (5.0 * self.k2 + 7.0 * self.k3 * rho**2))
+        f = self.focal_px
+        r, dr = f * rho * poly, f * dpoly * drho  # image radius and d r / d theta
+        axis = s <= 1e-12 * np.sqrt(n2)  # on the boresight: r / s -> f / w_z
+        with np.errstate(divide="ignore", invalid="ignore"):
+            safe = np.where(axis, 1.0, s)
+            g = np.where(axis, f / np.where(wz > 0, wz, 1.0), r / safe)
+            dtheta = np.stack([wz * wx / safe, wz * wy / safe, -s], axis=-1) / n2[..., None]
+            ds = np.stack([wx / safe, wy / safe, np.zeros_like(s)], axis=-1)
+            dg = (dr[..., None] * dtheta * s[..., None] - r[..., None] * ds) / (safe * safe)[..., None]
+        # on the boresight g = f / w_z to first order in s: dg = (0, 0, -f / w_z^2)
+        on_axis = np.stack([np.zeros_like(s), np.zeros_like(s), -f / np.where(wz > 0, wz, 1.0) ** 2], axis=-1)
+        dg = np.where(axis[..., None], on_axis, dg)
+        return g, dg, in_front
+
     def unproject(self, x, y) -> np.ndarray:
-        """Pixel coordinates to unit camera-frame directions (..., 3), he2021b eq (2)."""
+        """Pixel coordinates to unit camera-frame directions (..., 3), he2021b eq (2) for the pinhole
+        (NaN where no direction images there: beyond an equisolid-angle or orthographic image's rim)."""
         x = np.asarray(x, dtype=float)
         y = np.asarray(y, dtype=float)
         if self.distorted:
             x, y = self.undistort(x, y)
+        if self.projection != "perspective":
+            dx, dy = x - self.cx, y - self.cy
+            r = np.hypot(dx, dy)
+            theta = projection_theta(r / self.focal_px, self.projection)
+            safe = np.where(r > 0, r, 1.0)
+            sin = np.sin(theta)
+            return np.stack([-sin * dx / safe, -sin * dy / safe, np.cos(theta)], axis=-1)
         w = np.stack([-(x - self.cx), -(y - self.cy), np.full(np.broadcast(x, y).shape, self.focal_px)], axis=-1)
         return w / np.linalg.norm(w, axis=-1, keepdims=True)
 
     def projection_jacobian(self, w_cam) -> np.ndarray:
         """d(x, y)/d(w) for unnormalised camera vectors, shape (..., 2, 3)."""
         w = np.asarray(w_cam, dtype=float)
+        if self.projection != "perspective":
+            g, dg, _ = self._radial_gain(w)
+            eye = np.zeros(w.shape[:-1] + (2, 3))
+            eye[..., 0, 0] = eye[..., 1, 1] = 1.0
+            return -(g[..., None, None] * eye + w[..., :2, None] * dg[..., None, :])
         wx, wy, wz = w[..., 0], w[..., 1], w[..., 2]
         f = self.focal_px
         zero = np.zeros_like(wz)
@@ -123,8 +224,8 @@ class PinholeCamera:
         if self.distorted:  # chain rule through the radial map at the ideal pixel
             xn, yn = -wx / wz, -wy / wz
             r2 = xn * xn + yn * yn
-            s = 1.0 + r2 * (self.k1 + self.k2 * r2)
-            ds = 2.0 * (self.k1 + 2.0 * self.k2 * r2)  # d s / d(r^2) * 2
+            s = 1.0 + r2 * (self.k1 + r2 * (self.k2 + self.k3 * r2))
+            ds = 2.0 * (self.k1 + r2 * (2.0 * self.k2 + 3.0 * self.k3 * r2))  # d s / d(r^2) * 2
             d = np.stack([np.stack([s + ds * xn * xn, ds * xn * yn], -1),
                           np.stack([ds * xn * yn, s + ds * yn * yn], -1)], -2)
             jac = d @ jac
@@ -138,17 +239,18 @@ class PinholeCamera:
         return (x >= lo) & (y >= lo) & (x <= self.width - 0.5 - margin_px) & (y <= self.height - 0.5 - margin_px)
 
 
-def radial_distort(x, y, cx: float, cy: float, focal_px: float, k1: float, k2: float) -> tuple[np.ndarray, np.ndarray]:
-    """Ideal pinhole pixels -> distorted pixels, Brown-Conrady radial terms (:class:`PinholeCamera`)."""
+def radial_distort(x, y, cx: float, cy: float, focal_px: float, k1: float, k2: float,
+                   k3: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Ideal pixels -> distorted pixels, Brown-Conrady radial terms (:class:`PinholeCamera`)."""
     dx, dy = np.asarray(x, dtype=float) - cx, np.asarray(y, dtype=float) - cy
     r2 = (dx * dx + dy * dy) / focal_px**2
-    s = 1.0 + r2 * (k1 + k2 * r2)
+    s = 1.0 + r2 * (k1 + r2 * (k2 + k3 * r2))
     return cx + dx * s, cy + dy * s
 
 
-def radial_undistort(x, y, cx: float, cy: float, focal_px: float, k1: float, k2: float,
+def radial_undistort(x, y, cx: float, cy: float, focal_px: float, k1: float, k2: float, k3: float = 0.0,
                      iterations: int = 30) -> tuple[np.ndarray, np.ndarray]:
-    """Distorted pixels -> ideal pinhole pixels: Newton on the radius ``rho (1 + k1 rho^2 + k2 rho^4) = r_d``.
+    """Distorted pixels -> ideal pixels: Newton on the radius ``rho (1 + k1 rho^2 + k2 rho^4 + k3 rho^6) = r_d``.
 
     Hand-written because it is one scalar equation per star, vectorised (OpenCV's
     ``undistortPoints`` is not a dependency; tetra3rs' takes one point per call). Where the radial
@@ -158,8 +260,8 @@ def radial_undistort(x, y, cx: float, cy: float, focal_px: float, k1: float, k2:
     rd = np.hypot(dx, dy) / focal_px
     rho = rd.copy()
     for _ in range(iterations):
-        g = rho * (1.0 + k1 * rho**2 + k2 * rho**4) - rd
-        dg = 1.0 + 3.0 * k1 * rho**2 + 5.0 * k2 * rho**4
+        g = rho * (1.0 + rho**2 * (k1 + rho**2 * (k2 + k3 * rho**2))) - rd
+        dg = 1.0 + rho**2 * (3.0 * k1 + rho**2 * (5.0 * k2 + 7.0 * k3 * rho**2))
         step = g / np.where(dg > 0, dg, np.nan)
         rho = rho - step
         if np.all(~np.isfinite(step) | (np.abs(step) < 1e-13)):

@@ -21,6 +21,7 @@ from pydantic import (
 )
 
 from rollingstar.config import Strict, parse_yaml, read_yaml, validate
+from rollingstar.sensors.camera import Projection
 from rollingstar.sensors.effects import UnknownEffectError, resolve
 
 Vec3 = tuple[float, float, float]
@@ -33,7 +34,7 @@ MAX_SIDE_PX = 65536
 
 
 class SensorConfig(Strict):
-    """Pinhole optics and detector geometry."""
+    """Optics (a pinhole unless ``projection`` says otherwise) and detector geometry."""
 
     focal_length_mm: PositiveFloat
     pixel_size_um: PositiveFloat
@@ -42,6 +43,10 @@ class SensorConfig(Strict):
     principal_point_px: tuple[float, float] | None = Field(
         None, description="(cx, cy); default the detector centre ((W-1)/2, (H-1)/2)"
     )
+    projection: Projection = Field(
+        "perspective", description="how the lens maps the angle theta from the boresight to the image radius r: "
+        "perspective (pinhole, r = f tan theta), equidistant (r = f theta), equisolid (r = 2 f sin(theta/2)), "
+        "stereographic (r = 2 f tan(theta/2)) or orthographic (r = f sin theta)")
 
 
 class ShutterConfig(Strict):

@@ -51,11 +51,13 @@ def _log_format_bullet(name: str) -> str:
 
 
 def _expression(text: str, names: dict[str, float]):
-    """Evaluate a formula as the documents write it (``-(x - cx) p``: a product by juxtaposition)."""
-    tokens = re.findall(r"[A-Za-z_]\w*|\d+(?:\.\d*)?|\S", text)
+    """Evaluate a formula as the documents write it (``-(x - cx) p``: a product by juxtaposition;
+    ``^`` a power; a name ``names`` maps to a function, followed by ``(``, a call)."""
+    tokens = re.findall(r"[A-Za-z_]\w*|\d+(?:\.\d*)?|\*\*|\S", text.replace("^", "**"))
     out = []
     for prev, tok in zip([None, *tokens], tokens):
         operand_end = prev is not None and (prev == ")" or re.fullmatch(r"\w+(?:\.\d*)?", prev))
+        operand_end = operand_end and not (tok == "(" and callable(names.get(prev)))  # a function call
         if operand_end and (tok == "(" or re.fullmatch(r"\w+(?:\.\d*)?", tok)):
             out.append("*")
         out.append(tok)
@@ -257,3 +259,29 @@ def test_the_axis_scan_finds_a_wrong_statement():
     for text in old:
         claims = list(_axis_claims(_flat(text)))
         assert claims and any(c != _code_axis_words(a, 1 if s == "+" else -1) for _, s, a, c in claims), text
+
+
+def test_the_lens_projection_row_is_the_cameras():
+    """Each projection's radius law and the distortion as conventions.md states them, evaluated
+    from its text, against where the camera images directions up to 80 deg from the boresight."""
+    from rollingstar.sensors.camera import PROJECTIONS
+
+    text = _table()["lens projection"]
+    laws = dict(re.findall(r"(\w+)(?: \(the pinhole\))? `r = ([^`]*)`", text))
+    assert set(laws) == set(PROJECTIONS), f"conventions.md: projections stated {sorted(laws)}, the code's {PROJECTIONS}"
+    distortion = re.search(r"`r' = ([^`]*)`", text)
+    assert distortion, "conventions.md: the lens projection row states no distortion r' = ..."
+    rng = np.random.default_rng(5)
+    theta = rng.uniform(0.0, np.radians(80.0), 60)
+    phi = rng.uniform(-np.pi, np.pi, 60)
+    w = np.column_stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
+    k = {"k1": -0.02, "k2": 0.001, "k3": -1e-5}
+    for name, law in laws.items():
+        cam = PinholeCamera(focal_length_m=4e-3, pixel_size_m=5e-6, width=808, height=608, projection=name, **k)
+        names = {"f_px": cam.focal_px, "theta": theta, "tan": np.tan, "sin": np.sin, **k}
+        r = _expression(law, names)
+        r = _expression(distortion.group(1), {**names, "r": r})
+        x, y, _ = cam.project(w)
+        # along the pinhole's azimuth: a camera vector with positive x images at smaller columns
+        np.testing.assert_allclose(x, cam.cx - r * np.cos(phi), atol=1e-6)
+        np.testing.assert_allclose(y, cam.cy - r * np.sin(phi), atol=1e-6)

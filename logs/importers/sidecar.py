@@ -31,6 +31,7 @@ from pydantic import (
 from rollingstar.config import format_validation_error, read_yaml
 from rollingstar.errors import ConfigError
 from rollingstar.logs.importers.common import ImportDataError
+from rollingstar.sensors.camera import Projection, projection_rho, projection_theta
 from rollingstar.sensors.scenario import (
     AttitudeConfig,
     CatalogConfig,
@@ -94,6 +95,10 @@ class CameraSpec(_Strict):
     fov_axis: Literal["horizontal", "vertical", "diagonal"] = "horizontal"
     principal_point_px: tuple[float, float] | None = Field(
         None, description="(cx, cy); default the detector centre ((W-1)/2, (H-1)/2)")
+    projection: Projection = Field(
+        "perspective", description="the lens's projection (perspective: a pinhole; equidistant, equisolid, "
+        "stereographic or orthographic: wide-angle lenses, rollingstar.sensors.camera.PROJECTIONS); fov_deg is "
+        "read through it")
     shutter: ShutterSpec = ShutterSpec()
     bit_depth: int | None = Field(None, ge=8, le=16, description="ADC bits; default from the image dtype (8 or 16)")
     mirrored: bool = Field(
@@ -121,12 +126,13 @@ class CameraSpec(_Strict):
             return self.focal_length_mm * 1e3 / self.pixel_size_um
         n = {"horizontal": self.width_px, "vertical": self.height_px,
              "diagonal": math.hypot(self.width_px, self.height_px)}[self.fov_axis]
-        return (n / 2.0) / math.tan(math.radians(self.fov_deg) / 2.0)
+        return (n / 2.0) / float(projection_rho(math.radians(self.fov_deg) / 2.0, self.projection)[0])
 
     @property
     def field_deg(self) -> tuple[float, float]:
-        """Full angles (horizontal, vertical) of the detector seen through the pinhole, deg."""
-        return tuple(2.0 * math.degrees(math.atan(n / 2.0 / self.focal_px)) for n in (self.width_px, self.height_px))
+        """Full angles (horizontal, vertical) of the detector seen through the lens, deg."""
+        return tuple(2.0 * math.degrees(float(projection_theta(n / 2.0 / self.focal_px, self.projection)))
+                     for n in (self.width_px, self.height_px))
 
     def sensor_config(self) -> SensorConfig:
         """The scenario sensor block (focal length and pixel size whose ratio is ``focal_px``)."""
@@ -135,7 +141,8 @@ class CameraSpec(_Strict):
         if pp is not None and self.mirrored:  # the recording holds the rows reversed
             pp = ((self.width_px - 1) - pp[0], pp[1])
         return SensorConfig(focal_length_mm=self.focal_px * pixel_um * 1e-3, pixel_size_um=pixel_um,
-                            width_px=self.width_px, height_px=self.height_px, principal_point_px=pp)
+                            width_px=self.width_px, height_px=self.height_px, principal_point_px=pp,
+                            projection=self.projection)
 
 
 class TimestampsSpec(_Strict):
