@@ -17,7 +17,9 @@ from rollingstar.estimators.centroiders.cog import (
     robust_sigma,
 )
 from rollingstar.estimators.centroiders.covariance import effective_gain, isotropic_sigma
+from rollingstar.estimators.centroiders.edge import with_edge_covariance
 from rollingstar.estimators.centroiders.streak_kernel import levenberg_marquardt, star_pixels, window_moments
+from rollingstar.estimators.centroiders.window_kernel import centroid_windows_at
 from rollingstar.estimators.data import FrameData, StarTable, frame_camera
 from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.effects.geometry import image_velocity, rotation_jacobian
@@ -34,7 +36,11 @@ RIDGE = 1e-12  # added to the damped normal matrix: a star without usable pixels
 FROZEN_VELOCITY_ITERATIONS = 2  # first iterations of the fit with the velocity held at its guess
 MIN_STARS_FOR_RATE = 3  # stars needed to fit the body rate kept for the next frame
 SIGN_MATCH_PX = 5.0  # a star moved from the previous frame lands this close to one of this frame's
-NOISE_STRIDE = 16  # pixel stride of a tracked frame's noise and background-level sample
+# pixels of a tracked frame's noise and background-level sample: the level's standard error is
+# then 1.25 sigma / 64 (a full search's, from cog's 16384, is half that)
+TRACKED_SAMPLE_PX = 4096
+ROUND_WINDOW_PX = 24  # window of a round spot's CoG in a tracked frame (a saturated bright star's spot fits)
+SAME_SPOT_PX = 1.0  # spots closer than this are one
 # A fit with an expected velocity must come within this fraction of it plus VELOCITY_SLACK_PX of
 # streak length over the exposure (a fit across two collinear streaks, or onto a neighbour, is much
 # longer or turned; a PSF 30 % wider than the model's passes for a 3 px smear)
@@ -345,6 +351,8 @@ class StreakCentroider(Centroider):
         x, y, misses = x[inside], y[inside], self._misses[inside]
         f = self._tracked_frame(frame)
         nx, ny = self._new_sky(f, camera, omega, dt)
+        if self._longest_streak_px(camera, omega) < self.params.cog_below_px:
+            return self._track_round(frame, camera, omega, f, x, y, misses, nx, ny)
         vx, vy = image_velocity(camera, np.concatenate([x, nx]), np.concatenate([y, ny]), omega)
         nrows, ncols = self._window_size(vx, vy, int(np.ceil(2.0 * self.params.track_margin_px)))
         # a star both tracked and found in the new sky is fitted twice, and one fit kept: a track
@@ -365,6 +373,45 @@ class StreakCentroider(Centroider):
         self._omega = self._fitted_rate(camera, p, signed=True)
         return frame.evolve(stars=self._table(frame, f, p, cov))
 
+    def _track_round(self, frame: FrameData, camera, omega, f: _Frame, x, y, misses, nx, ny):
+        """A tracked frame of round spots (every expected streak shorter than ``cog_below_px``): the
+        ``cog`` definition and covariance model in a ``ROUND_WINDOW_PX`` window around each tracked
+        star and each new-sky detection (compiled, read in place:
+        :func:`~rollingstar.estimators.centroiders.window_kernel.centroid_windows_at`), as ``cog``
+        would centroid the full frame; None when too few stars are found (as :meth:`_track`)."""
+        cp = self._cog.params
+        H, W = self._shape
+        h = min(ROUND_WINDOW_PX, H, W)
+        px, py = np.concatenate([x, nx]), np.concatenate([y, ny])
+        r0 = np.clip(np.rint(py - 0.5 * (h - 1)).astype(np.int64), 0, H - h)
+        c0 = np.clip(np.rint(px - 0.5 * (h - 1)).astype(np.int64), 0, W - h)
+        s, _ = centroid_windows_at(f.raw, r0, c0, h, h, px, py, f.background.at(py, px), np.full(px.size, f.noise),
+                                   threshold_sigma=cp.threshold_sigma, min_pixels=cp.min_pixels,
+                                   max_pixels=cp.max_pixels, connectivity=cp.connectivity, grow_px=cp.grow_px,
+                                   saturation_adu=f.saturation, reject_border=cp.reject_border,
+                                   gain_e_per_adu=cp.gain_e_per_adu, cov_gain_e_per_adu=self._gain)
+        keep = np.flatnonzero(s.found & (s.flux > 0))
+        keep = keep[_first_of_each(s.x[keep], s.y[keep])]  # a spot two windows found (tracked and new sky)
+        if keep.size < max(MIN_STARS_FOR_RATE, self.params.redetect_fraction * self._searched_count):
+            return None
+        keep = keep[np.argsort(-s.flux[keep], kind="stable")]
+        sx, sy, flux, cov = s.x[keep], s.y[keep], s.flux[keep], s.cov[:, keep]
+        near = (np.minimum(sx, W - 1 - sx) < 0.5 * h) | (np.minimum(sy, H - 1 - sy) < 0.5 * h)  # cut spots are here
+        cov, cut = with_edge_covariance(cov, sx, sy, flux, s.peak[keep], self._shape, only=near)
+        timing = self.context.timing
+        stars = StarTable.build(sx, sy, t_ns=timing.row_mid_exposure_ns(frame.t0_ns, sy),
+                                row_time_ns=timing.row_start_ns(frame.t0_ns, sy), flux=flux, peak=s.peak[keep],
+                                npix=s.npix[keep], saturated=s.saturated[keep], snr=s.snr[keep],
+                                sigma_px=isotropic_sigma(cov), cov_xx=cov[0], cov_xy=cov[1], cov_yy=cov[2])
+        found = np.any((np.abs(sx[None, :] - x[:, None]) < 0.5 * h) & (np.abs(sy[None, :] - y[:, None]) < 0.5 * h), axis=1)
+        coast = ~found & (misses < self.params.coast_frames)
+        tx, ty = np.concatenate([sx, x[coast]]), np.concatenate([sy, y[coast]])
+        self._previous = (frame.t0_ns, np.column_stack([tx, ty, *image_velocity(camera, tx, ty, omega)]))
+        self._misses = np.concatenate([np.zeros(sx.size, dtype=np.int64), misses[coast] + 1])
+        self._tracked_frames += 1
+        out = frame.evolve(stars=stars)
+        return out.flagged(f"edge_truncated_stars:{int(cut.sum())}") if cut.any() else out
+
     def _moved(self, camera, x, y, omega, dt: float):
         """Where stars seen at ``(x, y)`` (their own rows' mid-exposure) are at this frame's: the line of
         sight turned by ``Exp(-omega t) w``, ``t = dt + (y' - y) ld`` the time between the two rows'
@@ -378,13 +425,16 @@ class StreakCentroider(Centroider):
 
     def _tracked_frame(self, frame: FrameData) -> _Frame:
         """A tracked frame's fit inputs: the last full search's background map shifted to this frame's
-        level and the noise, both from every ``NOISE_STRIDE``-th pixel (the sky's background varies
-        over the field slowly and over time by its level)."""
-        if self._background is None:
-            return self._frame(frame)
+        level and the noise, both from a strided sample of ``TRACKED_SAMPLE_PX`` pixels (the sky's
+        background varies over the field slowly and over time by its level)."""
+        if self._background is None:  # the last full search was cog's: this frame's map is the one tracked from now
+            f = self._frame(frame)
+            self._background = f.background
+            return f
         raw = self._raw(frame)
-        sub = raw[::NOISE_STRIDE, ::NOISE_STRIDE].astype(float)
-        resid = sub - self._background.grid(np.arange(0, raw.shape[0], NOISE_STRIDE), np.arange(0, raw.shape[1], NOISE_STRIDE))
+        step = max(1, int(np.sqrt(raw.size / TRACKED_SAMPLE_PX)))
+        sub = raw[::step, ::step].astype(float)
+        resid = sub - self._background.grid(np.arange(0, raw.shape[0], step), np.arange(0, raw.shape[1], step))
         level = float(np.median(resid))
         noise = max(robust_sigma(resid - level), self.params.noise_floor_adu)
         background = self._background._replace(tiles=self._background.tiles + level)
@@ -748,6 +798,12 @@ def _misfit_scale(chi2: np.ndarray, used: np.ndarray) -> np.ndarray:
     dof = np.maximum(used - 6, 1)
     reduced = chi2 / dof
     return np.where(reduced > 1.0 + 3.0 * np.sqrt(2.0 / dof), reduced, 1.0)
+
+
+def _first_of_each(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Mask of the spots not within ``SAME_SPOT_PX`` of an earlier one."""
+    close = np.hypot(x[:, None] - x[None, :], y[:, None] - y[None, :]) < SAME_SPOT_PX
+    return ~np.any(np.tril(close, k=-1), axis=1)
 
 
 def _runs(keys: list) -> list[tuple[int, int]]:

@@ -236,3 +236,26 @@ def test_an_unpredicted_jump_sends_the_tracking_centroider_back_to_a_full_search
         modes.append(centroider.last_mode)
         assert np.unique(_matched(stars, x, y, 1.5)[0]).size >= 0.9 * x.size, f"frame {k}"
     assert modes[1:3] == ["tracked", "tracked"] and modes[3] == "full", modes
+
+
+def test_tracked_round_spots_are_the_cog_centroids_of_the_full_frame():
+    """At 0.5 deg/s (2 px streaks, under cog_below_px) a tracked frame takes the cog definition in
+    windows around the tracked stars: the same stars as cog on the full frame, at the same
+    positions to a quarter of their sigma (the tracked background level comes from a quarter of
+    cog's sample: a CoG moves with its background), with the same covariance model."""
+    ctx, frames, truth = _moving_sky(np.random.default_rng(6), 0.5 * PX_PER_S_PER_DEG_S, 6)
+    tracked = StreakCentroider(cog_below_px=3.0, background="median")
+    tracked.setup(ctx)
+    cog = CogCentroider(background="median")
+    cog.setup(ctx)
+    for k, frame in enumerate(frames):
+        a = tracked.process(frame).stars
+        assert tracked.last_mode == ("cog" if k == 0 else "tracked")
+        tracked.update_prior(frame.evolve(rate=RateEstimate(t_ns=frame.t0_ns, omega_rad_s=_rate_about_x(
+            ctx, 0.5 * PX_PER_S_PER_DEG_S))))
+        b = cog.process(frame).stars
+        d = np.hypot(a.x[:, None] - b.x[None, :], a.y[:, None] - b.y[None, :])
+        assert a.n == b.n and np.all(d.min(axis=1) < 0.25 * a.sigma_px), (k, a.n, b.n)
+        j = d.argmin(axis=1)
+        np.testing.assert_allclose(a.cov_xx, b.cov_xx[j], rtol=0.05)
+        np.testing.assert_allclose(a.cov_yy, b.cov_yy[j], rtol=0.05)
