@@ -88,7 +88,7 @@ class StreakParams(BaseModel):
                                 "fewer than redetect_fraction of the last full search's stars remain).")
     redetect_fraction: float = Field(default=0.75, gt=0, le=1, description="Fraction of the last full-frame "
                                      "search's stars below which a tracked frame is searched over the full frame.")
-    track_margin_px: float = Field(default=2.0, gt=0, description="Prediction error (px) a tracked star's window "
+    track_margin_px: float = Field(default=1.0, gt=0, description="Prediction error (px) a tracked star's window "
                                    "allows besides the streak and 3 PSF widths.")
     full_search_frames: int = Field(default=16, ge=0, description="A tracked frame is searched in full after this "
                                     "many tracked frames (a star the last full search missed, e.g. one of two "
@@ -354,7 +354,7 @@ class StreakCentroider(Centroider):
         if self._longest_streak_px(camera, omega) < self.params.cog_below_px:
             return self._track_round(frame, camera, omega, f, x, y, misses, nx, ny)
         vx, vy = image_velocity(camera, np.concatenate([x, nx]), np.concatenate([y, ny]), omega)
-        nrows, ncols = self._window_size(vx, vy, int(np.ceil(2.0 * self.params.track_margin_px)))
+        nrows, ncols = self._window_size(vx, vy, self.params.track_margin_px, multiple=2)
         # a star both tracked and found in the new sky is fitted twice, and one fit kept: a track
         # from a streak the edge cut may be off by more than its window allows
         cand = _Candidates(np.concatenate([x, nx]), np.concatenate([y, ny]), vx, vy, np.ones(vx.size, dtype=bool),
@@ -609,16 +609,18 @@ class StreakCentroider(Centroider):
             vx, vy = image_velocity(camera, x, y, omega)
             slow = np.hypot(vx, vy) * self._exposure < SLOW_STREAK_PX  # start at rest: no sign preferred
             vx, vy = np.where(slow, 0.0, vx), np.where(slow, 0.0, vy)
-        nrows, ncols = self._window_size(vx, vy, k)
+        nrows, ncols = self._window_size(vx, vy, k / 2.0)
         return _Candidates(x, y, vx, vy, np.full(x.size, omega is not None), nrows, ncols)
 
-    def _window_size(self, vx, vy, k: int):
+    def _window_size(self, vx, vy, extra_px: float, multiple: int = 4):
         """Rows and columns of the fit windows: the streak (rolling-shutter stretch included) plus
-        ``MARGIN_SIGMAS`` PSF widths and half the detection's bin, rounded up to a multiple of 4."""
-        margin = MARGIN_SIGMAS * self._se + k / 2.0
+        ``MARGIN_SIGMAS`` PSF widths and ``extra_px`` (the uncertainty of the centre: half a
+        detection bin, or a tracked star's prediction) each side, rounded up to a multiple of
+        ``multiple`` (fewer distinct sizes: the fit runs once per size)."""
+        margin = MARGIN_SIGMAS * self._se + extra_px
         along_y = np.abs(vy) * self._exposure / np.maximum(1.0 - np.abs(vy) * self._ld, 0.5)
-        nrows = 4 * np.ceil((along_y + 2 * margin) / 4.0)
-        ncols = 4 * np.ceil((np.abs(vx) * self._exposure + 2 * margin) / 4.0)
+        nrows = multiple * np.ceil((along_y + 2 * margin) / multiple)
+        ncols = multiple * np.ceil((np.abs(vx) * self._exposure + 2 * margin) / multiple)
         return nrows.astype(int), ncols.astype(int)
 
     def _search_velocities(self) -> np.ndarray:
