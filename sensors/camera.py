@@ -43,7 +43,7 @@ def projection_theta(rho, projection: str) -> np.ndarray:
         if projection == "perspective":
             return np.arctan(r)
         if projection == "equidistant":
-            return r.copy()
+            return np.where(r < np.pi, r, np.nan)
         if projection == "equisolid":
             return np.where(r <= 2.0, 2.0 * np.arcsin(np.minimum(0.5 * r, 1.0)), np.nan)
         if projection == "stereographic":
@@ -109,9 +109,11 @@ class PinholeCamera:
 
     @property
     def fov_deg(self) -> tuple[float, float]:
-        """Full field of view (horizontal, vertical) in degrees (without distortion)."""
+        """Full field of view (horizontal, vertical) in degrees (without distortion); a side wider
+        than the projection's image circle sees the circle's full angle, ``2 MAX_THETA``."""
         half = np.array([self.width, self.height]) * self.pixel_size_m / 2 / self.focal_length_m
-        return tuple(float(np.degrees(2 * projection_theta(h, self.projection))) for h in half)
+        theta = np.nan_to_num(projection_theta(half, self.projection), nan=MAX_THETA[self.projection])
+        return tuple(float(np.degrees(2 * t)) for t in theta)
 
     @property
     def distorted(self) -> bool:
@@ -134,6 +136,8 @@ class PinholeCamera:
                                      [-0.5, -0.5, self.height - 0.5, self.height - 0.5])
             if np.all(np.isfinite(corners)):
                 return float(np.arccos(np.clip(corners[:, 2], -1.0, 1.0)).max())
+            if self.projection != "perspective":  # a corner beyond the image circle: the circle's rim
+                return float(MAX_THETA[self.projection])
         dx = max(self.cx + 0.5, self.width - 0.5 - self.cx)
         dy = max(self.cy + 0.5, self.height - 0.5 - self.cy)
         return float(np.arctan(np.hypot(dx, dy) / self.focal_px))

@@ -16,9 +16,12 @@ by their Schur complement (each star's ``(F, b)`` couples only to itself):
     (sum A_j^T S_j A_j) theta_step = sum A_j^T s_j
 
 iterated until a step under the strict screen moves no parameter by more than ``CONVERGED_SIGMAS``
-of its sigma (at most ``pixel_iterations``), with ``G, C, N`` the (position-and-velocity, nuisance) blocks of ``J^T W J``, ``g, n`` those of
-``J^T W r``, and ``A_j = d(x_j, y_j, vx_j, vy_j) / d theta``. The information ``sum A_j^T S_j A_j``
-at the solution is the Fisher information of ``theta`` in the pixels (the frame-level pixel bound).
+of its sigma (at most ``pixel_iterations``), with ``G, C, N`` the (position-and-velocity,
+nuisance) blocks of ``J^T W J``, ``g, n`` those of ``J^T W r``, and ``A_j = d(x_j, y_j, vx_j,
+vy_j) / d theta``. The information ``sum A_j^T S_j A_j`` is the Fisher information of ``theta`` in
+the pixels (the frame-level pixel bound); the one returned, and the screen the outlier count
+comes from, are the last linearisation's, less than ``CONVERGED_SIGMAS`` from the solution (the
+information changes over a PSF width, the step is a few hundredths of a pixel).
 A window cut by the detector's edge keeps the pixels it has. A star with fewer than
 ``MIN_LIVE_PIXELS`` live pixels, or one the model does not explain (non-positive flux, or a
 reduced chi-square above ``MAX_STAR_CHI2`` at the current step, above ``START_STAR_CHI2`` at the

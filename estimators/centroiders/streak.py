@@ -41,6 +41,7 @@ SIGN_MATCH_PX = 5.0  # a star moved from the previous frame lands this close to 
 TRACKED_SAMPLE_PX = 4096
 ROUND_WINDOW_PX = 24  # window of a round spot's CoG in a tracked frame (a saturated bright star's spot fits)
 SAME_SPOT_PX = 1.0  # spots closer than this are one
+MAX_KERNELS = 256  # matched filters kept (by streak length in whole pixels and bin)
 # A fit with an expected velocity must come within this fraction of it plus VELOCITY_SLACK_PX of
 # streak length over the exposure (a fit across two collinear streaks, or onto a neighbour, is much
 # longer or turned; a PSF 30 % wider than the model's passes for a 3 px smear)
@@ -265,6 +266,7 @@ class StreakCentroider(Centroider):
         self._misses = np.zeros(0, dtype=np.int64)
         self._searched_count = 0
         self._tracked_frames = 0
+        self._inflow = {}
         self._background = None
         self.last_mode = ""  # how the last frame was centroided: tracked, full, cold or cog (diagnostics)
         self._kernels = {}
@@ -323,6 +325,7 @@ class StreakCentroider(Centroider):
         self._misses = np.zeros(len(tracks), dtype=np.int64)
         self._searched_count = len(tracks)
         self._tracked_frames = 0
+        self._inflow = {}  # (axis, edge) -> the sky's shift in through that edge since it was last searched (px)
         self._background = background
 
     def _cog_frame(self, frame: FrameData, camera, omega) -> FrameData:
@@ -352,9 +355,12 @@ class StreakCentroider(Centroider):
         f = self._tracked_frame(frame)
         nx, ny = self._new_sky(f, camera, omega, dt)
         if self._longest_streak_px(camera, omega) < self.params.cog_below_px:
-            return self._track_round(frame, camera, omega, f, x, y, misses, nx, ny)
+            return self._track_round(frame, camera, omega, f, x, y, misses, nx, ny, dt)
         vx, vy = image_velocity(camera, np.concatenate([x, nx]), np.concatenate([y, ny]), omega)
-        nrows, ncols = self._window_size(vx, vy, self.params.track_margin_px, multiple=2)
+        # the centre's uncertainty: a tracked star's prediction, a new-sky detection's half bin
+        extra = np.concatenate([np.full(x.size, self.params.track_margin_px),
+                                0.5 * np.where(np.hypot(vx, vy)[x.size:] * self._exposure >= LONG_STREAK_PX, 4, 2)])
+        nrows, ncols = self._window_size(vx, vy, extra, multiple=2)
         # a star both tracked and found in the new sky is fitted twice, and one fit kept: a track
         # from a streak the edge cut may be off by more than its window allows
         cand = _Candidates(np.concatenate([x, nx]), np.concatenate([y, ny]), vx, vy, np.ones(vx.size, dtype=bool),
@@ -373,12 +379,13 @@ class StreakCentroider(Centroider):
         self._omega = self._fitted_rate(camera, p, signed=True)
         return frame.evolve(stars=self._table(frame, f, p, cov))
 
-    def _track_round(self, frame: FrameData, camera, omega, f: _Frame, x, y, misses, nx, ny):
+    def _track_round(self, frame: FrameData, camera, omega, f: _Frame, x, y, misses, nx, ny, dt: float):
         """A tracked frame of round spots (every expected streak shorter than ``cog_below_px``): the
         ``cog`` definition and covariance model in a ``ROUND_WINDOW_PX`` window around each tracked
         star and each new-sky detection (compiled, read in place:
         :func:`~rollingstar.estimators.centroiders.window_kernel.centroid_windows_at`), as ``cog``
-        would centroid the full frame; None when too few stars are found (as :meth:`_track`)."""
+        would centroid the full frame; None when too few stars are found (as :meth:`_track`). The
+        expected rate follows the stars' misses (:meth:`_rate_from_moves`)."""
         cp = self._cog.params
         H, W = self._shape
         h = min(ROUND_WINDOW_PX, H, W)
@@ -396,14 +403,22 @@ class StreakCentroider(Centroider):
             return None
         keep = keep[np.argsort(-s.flux[keep], kind="stable")]
         sx, sy, flux, cov = s.x[keep], s.y[keep], s.flux[keep], s.cov[:, keep]
-        near = (np.minimum(sx, W - 1 - sx) < 0.5 * h) | (np.minimum(sy, H - 1 - sy) < 0.5 * h)  # cut spots are here
-        cov, cut = with_edge_covariance(cov, sx, sy, flux, s.peak[keep], self._shape, only=near)
+        cut = np.zeros(keep.size, dtype=bool)
+        if cp.edge_sigma:  # as cog: the spots that reach the outermost rows or columns (by their size)
+            reach = np.sqrt(s.npix[keep] / np.pi) + cp.grow_px + 0.5
+            border = (np.minimum(sx, W - 1 - sx) < reach) | (np.minimum(sy, H - 1 - sy) < reach)
+            if border.any():
+                cov, cut = with_edge_covariance(cov, sx, sy, flux, s.peak[keep], self._shape, only=border)
         timing = self.context.timing
         stars = StarTable.build(sx, sy, t_ns=timing.row_mid_exposure_ns(frame.t0_ns, sy),
                                 row_time_ns=timing.row_start_ns(frame.t0_ns, sy), flux=flux, peak=s.peak[keep],
                                 npix=s.npix[keep], saturated=s.saturated[keep], snr=s.snr[keep],
                                 sigma_px=isotropic_sigma(cov), cov_xx=cov[0], cov_xy=cov[1], cov_yy=cov[2])
-        found = np.any((np.abs(sx[None, :] - x[:, None]) < 0.5 * h) & (np.abs(sy[None, :] - y[:, None]) < 0.5 * h), axis=1)
+        d = np.hypot(sx[None, :] - x[:, None], sy[None, :] - y[:, None])
+        nearest = d.argmin(axis=1) if sx.size else np.zeros(x.size, dtype=int)
+        found = d[np.arange(x.size), nearest] < 0.5 * h if sx.size else np.zeros(x.size, dtype=bool)
+        self._omega = self._rate_from_moves(camera, omega, x[found], y[found], sx[nearest[found]], sy[nearest[found]],
+                                            dt)
         coast = ~found & (misses < self.params.coast_frames)
         tx, ty = np.concatenate([sx, x[coast]]), np.concatenate([sy, y[coast]])
         self._previous = (frame.t0_ns, np.column_stack([tx, ty, *image_velocity(camera, tx, ty, omega)]))
@@ -411,6 +426,23 @@ class StreakCentroider(Centroider):
         self._tracked_frames += 1
         out = frame.evolve(stars=stars)
         return out.flagged(f"edge_truncated_stars:{int(cut.sum())}") if cut.any() else out
+
+    def _rate_from_moves(self, camera, omega, x, y, fx, fy, dt: float):
+        """``omega`` corrected by the tracked stars' misses: predicted at ``(x, y)`` with ``omega``,
+        found at ``(fx, fy)`` after ``dt`` s, so ``found - predicted = J(x, y) d_omega dt`` (``J``
+        the image velocity per unit rate; least squares, without misses beyond 3 robust sigmas).
+        Round spots carry no velocity of their own: without a gyro or a later stage's rate this is
+        how a tracked frame of them follows a changing rate."""
+        if x.size < MIN_STARS_FOR_RATE or dt <= 0:
+            return omega
+        A = rotation_jacobian(camera, x, y) * dt
+        r = np.column_stack([fx - x, fy - y])
+        keep = np.ones(x.size, dtype=bool)
+        for _ in range(2):
+            d_omega = np.linalg.lstsq(A[keep].reshape(-1, 3), r[keep].reshape(-1), rcond=None)[0]
+            miss = np.hypot(*(r - A @ d_omega).T)
+            keep = miss <= 3.0 * max(1.4826 * np.median(miss), 0.05)
+        return np.asarray(omega, dtype=float) + d_omega
 
     def _moved(self, camera, x, y, omega, dt: float):
         """Where stars seen at ``(x, y)`` (their own rows' mid-exposure) are at this frame's: the line of
@@ -441,10 +473,11 @@ class StreakCentroider(Centroider):
         return _Frame(raw, background, noise, self._saturation(raw), 1.0 / self._gain if self._gain else 0.0)
 
     def _new_sky(self, f: _Frame, camera, omega, dt: float):
-        """Stars in the sky that entered the detector since the previous frame: the matched filter
-        with the expected motion over a strip along each edge the sky moved in through, as deep as
-        the sky's shift over ``dt`` plus a fit window's half size (the largest along the edge), in
-        ``detect_tile_px`` segments of one kernel each."""
+        """Stars in the sky that entered the detector since an edge was last searched: the matched
+        filter with the expected motion over a strip along each edge the sky moved in through, as
+        deep as the sky's shift since (summed over frames until it exceeds ``SLOW_STREAK_PX``: a
+        slow drift is searched every few frames) plus a fit window's half size (the largest along
+        the edge), in ``detect_tile_px`` segments of one kernel each."""
         H, W = self._shape
         t = self.params.detect_tile_px
         xs, ys = [], []
@@ -456,9 +489,12 @@ class StreakCentroider(Centroider):
                 vx, vy = image_velocity(camera, px, py, omega)
                 inward = (vx if axis == 1 else vy) * dt * (1.0 if edge == 0.0 else -1.0)
                 reach = 0.5 * np.hypot(vx, vy) * self._exposure + MARGIN_SIGMAS * self._se + self.params.track_margin_px
-                if not np.any(inward > SLOW_STREAK_PX):
+                entered = self._inflow.get((axis, edge), 0.0) + max(float(np.max(inward)), 0.0)
+                if entered <= SLOW_STREAK_PX:
+                    self._inflow[(axis, edge)] = entered
                     continue
-                depth = int(np.ceil(np.max(np.where(inward > SLOW_STREAK_PX, inward + reach, 0.0))))
+                self._inflow[(axis, edge)] = 0.0
+                depth = int(np.ceil(entered + np.max(reach)))
                 lo, hi = (0, min(depth, size)) if edge == 0.0 else (max(size - depth, 0), size)
                 keys = [self._kernel_key(a, b, self._bin(a, b)) for a, b in zip(vx, vy)]
                 for i, j in _runs(keys):  # neighbouring segments with one kernel searched as one
@@ -612,7 +648,7 @@ class StreakCentroider(Centroider):
         nrows, ncols = self._window_size(vx, vy, k / 2.0)
         return _Candidates(x, y, vx, vy, np.full(x.size, omega is not None), nrows, ncols)
 
-    def _window_size(self, vx, vy, extra_px: float, multiple: int = 4):
+    def _window_size(self, vx, vy, extra_px, multiple: int = 4):
         """Rows and columns of the fit windows: the streak (rolling-shutter stretch included) plus
         ``MARGIN_SIGMAS`` PSF widths and ``extra_px`` (the uncertainty of the centre: half a
         detection bin, or a tracked star's prediction) each side, rounded up to a multiple of
@@ -653,6 +689,8 @@ class StreakCentroider(Centroider):
         """Unit-flux model streak binned ``k x k``, normalised to unit sum of squares (cached by the
         streak's length in whole pixels)."""
         key = self._kernel_key(vx, vy, k)
+        if key not in self._kernels and len(self._kernels) >= MAX_KERNELS:  # a rate that keeps changing
+            self._kernels.clear()
         if key not in self._kernels:
             vx, vy = key[0] / self._exposure, key[1] / self._exposure
             hx = int(np.ceil((abs(vx) * self._exposure / 2 + 3 * self._se) / k))

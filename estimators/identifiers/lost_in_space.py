@@ -199,6 +199,10 @@ class LostInSpaceIdentifier(Identifier):
         if context.catalog is None:
             raise ValueError("the 'lost-in-space' identifier needs a star catalogue in the sensor context")
         cam = context.camera
+        if cam.projection != "perspective" or cam.k3:
+            raise ValueError(f"the 'lost-in-space' identifier models a pinhole with radial terms k1, k2; the camera "
+                             f"declares projection {cam.projection!r}, k3 = {cam.k3:g}, which its pattern search "
+                             f"and camera fit would treat as a pinhole")
         self._fov_deg = float(cam.fov_deg[0])
         self._db = None  # built on the first pattern search (_database): tracking from a prior never needs it
         import tetra3rs
@@ -293,10 +297,14 @@ class LostInSpaceIdentifier(Identifier):
         return check_frame(out, frame_camera(out, self.context), self.context.catalog, self.params.max_false_match_prob)
 
     def _with_camera(self, out: FrameData) -> FrameData:
-        """``out`` carrying the fitted camera model when the intrinsics were fitted (class docstring, 5)."""
-        if not self._fitting:
+        """``out`` carrying the camera model it was identified with (class docstring, 5): the fitted
+        one when the intrinsics were fitted, the one the parameters ``k1``, ``k2`` make when they
+        differ from the sensor context's camera; nothing when that is the context's own."""
+        cam = self.context.camera
+        model = self._track_model.camera(cam)
+        if not self._fitting and _same_intrinsics(model, cam):
             return out
-        return out.evolve(camera=self._track_model.camera(self.context.camera))
+        return out.evolve(camera=model)
 
     def _reject(self, frame: FrameData, reason: str, **diag) -> tuple[FrameData, LostInSpaceSolution]:
         det = frame.stars
@@ -548,3 +556,10 @@ def fit_body_rate(camera, x, y, vx, vy, iterations: int = 8) -> np.ndarray | Non
         else:
             weight = np.clip(1.0 - (r / (4.685 * scale)) ** 2, 0.0, None) ** 2
     return omega
+
+
+def _same_intrinsics(a, b) -> bool:
+    """True when two cameras' focal length, principal point and radial terms agree to rounding
+    (a model rebuilt from a camera's pixel focal length differs from it in the last bits)."""
+    return bool(np.isclose(a.focal_px, b.focal_px, rtol=1e-12) and np.isclose(a.cx, b.cx, rtol=0, atol=1e-9)
+                and np.isclose(a.cy, b.cy, rtol=0, atol=1e-9) and a.k1 == b.k1 and a.k2 == b.k2)

@@ -176,15 +176,17 @@ def test_a_rate_estimate_sets_the_expected_motion_and_short_streaks_go_to_cog():
         assert np.isfinite(out.vx).all() != expect_cog  # only the streak fit measures velocities
 
 
-def _moving_sky(rng, vy: float, n_frames: int, jump_at: int | None = None, jump_px: float = 0.0):
+def _moving_sky(rng, vy: float, n_frames: int, jump_at: int | None = None, jump_px: float = 0.0,
+                row_offset: float = 0.0, gyro: bool = True):
     """Frames of a sky drifting down the rows at ``vy`` px/s (new stars enter at the top), with its
     true stars per frame; from frame ``jump_at`` on the sky also stands ``jump_px`` to the right
-    (an unpredicted jump)."""
+    (an unpredicted jump); ``row_offset`` moves the grid of stars down; without ``gyro`` the frames
+    carry no gyro samples."""
     ctx, model = _context()
     cols = (np.arange(5) + 0.5) * (SIZE - 40) / 5 + 20
     t_first = ctx.timing.frame_start_ns(0)
     above = vy * (ctx.timing.frame_start_ns(n_frames) - t_first) * 1e-9 + 50.0  # the sky that enters
-    rows = np.arange(-above, SIZE, 44.0)
+    rows = np.arange(-above, SIZE, 44.0) + row_offset
     gx, gy = np.meshgrid(cols, rows)
     gx[1::2] += 0.5 * (SIZE - 40) / 5  # staggered rows: no two streaks collinear and close (a blend)
     x0, y0 = gx.ravel() + rng.uniform(-4, 4, gx.size), gy.ravel() + rng.uniform(-4, 4, gy.size)
@@ -194,7 +196,7 @@ def _moving_sky(rng, vy: float, n_frames: int, jump_at: int | None = None, jump_
         x = x0 + (jump_px if jump_at is not None and k >= jump_at else 0.0)
         on = (y > 6) & (y < SIZE - 6) & (x > 6) & (x < SIZE - 6)
         frames.append(_render(ctx, model, x[on], y[on], 0.0, vy, np.full(int(on.sum()), 2.0e4), rng, k,
-                              _rate_about_x(ctx, vy)))
+                              _rate_about_x(ctx, vy) if gyro else None))
         truth.append((x[on], y[on]))
     return ctx, frames, truth
 
@@ -259,3 +261,44 @@ def test_tracked_round_spots_are_the_cog_centroids_of_the_full_frame():
         j = d.argmin(axis=1)
         np.testing.assert_allclose(a.cov_xx, b.cov_xx[j], rtol=0.05)
         np.testing.assert_allclose(a.cov_yy, b.cov_yy[j], rtol=0.05)
+
+
+@pytest.mark.parametrize("cog_below_px", [0.0, 3.0])
+def test_a_slow_drift_is_searched_once_a_pixel_of_sky_has_entered(cog_below_px):
+    """0.2 deg/s: under a pixel of sky enters per frame. The strip is searched once the entered sky
+    adds up to a pixel, so a star that drifts in is found by tracking (no periodic full search
+    here) as soon as a full search of the frame finds it."""
+    vy = 0.2 * PX_PER_S_PER_DEG_S
+    ctx, frames, truth = _moving_sky(np.random.default_rng(8), vy, 24, row_offset=18.0)
+    tracked = StreakCentroider(cog_below_px=cog_below_px, full_search_frames=0)
+    full = StreakCentroider(cog_below_px=cog_below_px, track_windows=False)
+    tracked.setup(ctx)
+    full.setup(ctx)
+    entered = set()
+    for k, (frame, (x, y)) in enumerate(zip(frames, truth)):
+        a, b = tracked.process(frame).stars, full.process(frame).stars
+        if k:
+            assert tracked.last_mode == "tracked", k
+        ja, jb = set(_matched(a, x, y, 1.5)[0]), set(_matched(b, x, y, 1.5)[0])
+        missing = {j for j in jb - ja if y[j] > 6 + 2 * vy * 0.06}  # not found two frames after entering
+        assert not missing, f"frame {k}: tracking misses {[(round(x[j]), round(y[j])) for j in missing]}"
+        entered |= {(round(x[j]), round(y[j] - vy * (frame.t0_ns - frames[0].t0_ns) * 1e-9)) for j in ja if k
+                    and y[j] < 10}
+    assert entered, "no star entered the detector in this test's sky"
+
+
+def test_round_spots_tracked_without_a_gyro_follow_the_rate_from_their_own_moves():
+    """No gyro and no later stage's rate after the first frame: the tracked frames of round spots
+    start from a rate 30 % slow and correct it from where the stars are found, so the windows stay
+    on the stars and the expected rate comes within 2 % of the truth."""
+    vy = 0.6 * PX_PER_S_PER_DEG_S
+    ctx, frames, truth = _moving_sky(np.random.default_rng(9), vy, 10, gyro=False)
+    centroider = StreakCentroider(cog_below_px=3.0, full_search_frames=0)
+    centroider.setup(ctx)
+    rate = _rate_about_x(ctx, vy)
+    centroider.update_prior(frames[0].evolve(rate=RateEstimate(t_ns=frames[0].t0_ns, omega_rad_s=0.7 * rate)))
+    for k, (frame, (x, y)) in enumerate(zip(frames, truth)):
+        stars = centroider.process(frame).stars
+        assert np.unique(_matched(stars, x, y, 1.5)[0]).size >= 0.9 * x.size, k
+        assert k == 0 or centroider.last_mode == "tracked"
+    assert abs(centroider._omega[0] / rate[0] - 1.0) < 0.02, centroider._omega / rate[0]

@@ -144,3 +144,27 @@ def test_the_simulator_images_a_wide_field_through_the_lens_projection(projectio
     np.testing.assert_allclose(np.column_stack([truth.x, truth.y]), np.column_stack([x, y]), atol=1e-6)
     # Hp <= 4.5 holds ~900 stars over the sky; a 120 x 98 deg field sees ~1/6 of it
     assert 60 < truth.x.size < 300, truth.x.size
+
+
+@pytest.mark.parametrize("projection, rim_deg", [("orthographic", 90.0), ("equisolid", 180.0), ("equidistant", 180.0)])
+def test_a_detector_wider_than_the_image_circle_sees_the_whole_circle(projection, rim_deg):
+    """A circular fisheye: the detector's corners (and, here, its sides) lie beyond the image
+    circle, where no direction images; the field is the circle's, not a pinhole's formula."""
+    rim_rho = {"orthographic": 1.0, "equisolid": 2.0, "equidistant": np.pi}[projection]
+    f_px = 0.4 * 808 / rim_rho  # the circle's radius is 0.4 of the width: narrower than the detector
+    cam = PinholeCamera(focal_length_m=f_px * 5e-6, pixel_size_m=5e-6, width=808, height=608, projection=projection)
+    assert np.isnan(cam.unproject(-0.5, -0.5)).all()
+    assert np.isclose(cam.half_diagonal_rad, np.radians(rim_deg))
+    assert np.isclose(cam.fov_deg[0], 2 * rim_deg)
+
+
+def test_lost_in_space_refuses_a_camera_it_would_treat_as_a_pinhole():
+    from rollingstar.estimators.data import SensorContext
+    from rollingstar.estimators.identifiers.lost_in_space import LostInSpaceIdentifier
+    from rollingstar.sensors.catalog import StarCatalog
+    from rollingstar.sensors.timing import DetectorTiming
+
+    ctx = SensorContext(camera=_camera("equidistant"), timing=DetectorTiming(mode="global", exposure_ns=10**7, line_delay_ns=0, rows=608),
+                        catalog=StarCatalog.from_hipparcos(2025.0, 3.0))
+    with pytest.raises(ValueError, match="projection 'equidistant'"):
+        LostInSpaceIdentifier().setup(ctx)
