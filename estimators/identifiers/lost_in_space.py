@@ -297,14 +297,16 @@ class LostInSpaceIdentifier(Identifier):
         return check_frame(out, frame_camera(out, self.context), self.context.catalog, self.params.max_false_match_prob)
 
     def _with_camera(self, out: FrameData) -> FrameData:
-        """``out`` carrying the camera model it was identified with (class docstring, 5): the fitted
-        one when the intrinsics were fitted, the one the parameters ``k1``, ``k2`` make when they
-        differ from the sensor context's camera; nothing when that is the context's own."""
+        """``out`` carrying the camera model later stages should use (class docstring, 5): the fitted
+        one when the intrinsics were fitted; the sensor context's with this identifier's ``k1``,
+        ``k2`` when those differ from its own; else none (the context's camera). The focal length
+        of tetra3rs' solved field (``solved_scale``) helps matching only: it is never handed on."""
         cam = self.context.camera
-        model = self._track_model.camera(cam)
-        if not self._fitting and _same_intrinsics(model, cam):
-            return out
-        return out.evolve(camera=model)
+        if self._fitting:
+            return out.evolve(camera=self._track_model.camera(cam))
+        if (self.params.k1, self.params.k2) != (cam.k1, cam.k2):
+            return out.evolve(camera=replace(cam, k1=self.params.k1, k2=self.params.k2))
+        return out
 
     def _reject(self, frame: FrameData, reason: str, **diag) -> tuple[FrameData, LostInSpaceSolution]:
         det = frame.stars
@@ -557,9 +559,3 @@ def fit_body_rate(camera, x, y, vx, vy, iterations: int = 8) -> np.ndarray | Non
             weight = np.clip(1.0 - (r / (4.685 * scale)) ** 2, 0.0, None) ** 2
     return omega
 
-
-def _same_intrinsics(a, b) -> bool:
-    """True when two cameras' focal length, principal point and radial terms agree to rounding
-    (a model rebuilt from a camera's pixel focal length differs from it in the last bits)."""
-    return bool(np.isclose(a.focal_px, b.focal_px, rtol=1e-12) and np.isclose(a.cx, b.cx, rtol=0, atol=1e-9)
-                and np.isclose(a.cy, b.cy, rtol=0, atol=1e-9) and a.k1 == b.k1 and a.k2 == b.k2)
