@@ -58,7 +58,7 @@ class RsBundleParams(RobustParams):
     pixel_iterations: int = Field(default=8, ge=1, le=30, description="Most Gauss-Newton iterations of the pixel "
                                   "step (it stops earlier once a step moves no parameter by 5 % of its sigma).")
     psf_sigma_px: float = Field(default=1.0, gt=0, description="Gaussian PSF sigma of the pixel model (px).")
-    window_sigmas: float = Field(default=4.0, gt=1, description="Half width of each star's pixel window beyond "
+    window_sigmas: float = Field(default=3.0, gt=1, description="Half width of each star's pixel window beyond "
                                  "its streak, in PSF sigmas.")
 
 
