@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from rollingstar.errors import UserError
 from rollingstar.estimators.diagnosis import gyro_channel, residuals
 from rollingstar.estimators.diagnosis.gyro_channel import GyroChannel, GyroData
 from rollingstar.estimators.diagnosis.inputs import DiagnoseOptions, SensorModel
@@ -31,6 +32,7 @@ from rollingstar.estimators.diagnosis.signatures import linear_problem
 
 MIN_STARS_PER_FRAME = 4  # an attitude from fewer stars says little: frames keep at least this many
 OUTLIER_SIGMA = 30.0  # far beyond noise, below the identifier's refine gate: a wrong match, not physics
+MIN_TRAINING_STARS = 10  # fewer training stars left after the outlier gate: nothing to diagnose
 LOCATED_STRUCTURE_ROWS = 12  # covariate x channel tests reported (strongest first)
 
 
@@ -130,6 +132,12 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
     else:  # Mahalanobis distance under the star's 2 x 2 covariance
         far = np.linalg.norm(whitened_residuals(obs, pred0), axis=1) > OUTLIER_SIGMA
     n_rejected = int(far.sum())
+    if np.count_nonzero(~far & ~obs.heldout) < MIN_TRAINING_STARS:
+        miss = float(np.nanmedian(np.hypot(obs.x - pred0.x, obs.y - pred0.y)))
+        raise UserError(f"the simulation as given misses {n_rejected} of the {obs.n} identified stars by more than "
+                        f"{OUTLIER_SIGMA:g} sigma (median miss {miss:.3g} px), leaving fewer than {MIN_TRAINING_STARS} "
+                        f"training stars to diagnose: its sensor model is far from the recording's (lens projection, "
+                        f"focal length, distortion or principal point); state them closer in the scenario")
     if n_rejected:
         obs = obs.take(~far)
         frame_has_train, att_mask = attitude_mask(obs)

@@ -199,10 +199,10 @@ class LostInSpaceIdentifier(Identifier):
         if context.catalog is None:
             raise ValueError("the 'lost-in-space' identifier needs a star catalogue in the sensor context")
         cam = context.camera
-        if cam.projection != "perspective" or cam.k3:
-            raise ValueError(f"the 'lost-in-space' identifier models a pinhole with radial terms k1, k2; the camera "
-                             f"declares projection {cam.projection!r}, k3 = {cam.k3:g}, which its pattern search "
-                             f"and camera fit would treat as a pinhole")
+        self._pinhole = cam.projection == "perspective" and not cam.k3
+        if not self._pinhole and self.params.fit_distortion != "none":
+            raise ValueError(f"the 'lost-in-space' identifier fits a pinhole with radial terms k1, k2; the camera "
+                             f"declares projection {cam.projection!r}, k3 = {cam.k3:g}: use fit_distortion 'none'")
         self._fov_deg = float(cam.fov_deg[0])
         self._db = None  # built on the first pattern search (_database): tracking from a prior never needs it
         import tetra3rs
@@ -213,7 +213,7 @@ class LostInSpaceIdentifier(Identifier):
             "initial_attitude": None, "gate_px": self.params.gate_px, "extrapolate": False, "refine": True,
             "magnitude_limit": self.params.magnitude_limit})
         self._tracker: TrackingIdentifier | None = None
-        self._track_model = RadialCamera.from_pinhole(cam, self.params.k1, self.params.k2)
+        self._track_model = RadialCamera.from_pinhole(cam, *self._known_distortion())
         mode = self.params.fit_distortion
         if mode == "auto":
             mode = "radial" if self._fov_deg > self.params.auto_distortion_fov_deg else "focal"
@@ -298,15 +298,21 @@ class LostInSpaceIdentifier(Identifier):
 
     def _with_camera(self, out: FrameData) -> FrameData:
         """``out`` carrying the camera model later stages should use (class docstring, 5): the fitted
-        one when the intrinsics were fitted; the sensor context's with this identifier's ``k1``,
-        ``k2`` when those differ from its own; else none (the context's camera). The focal length
+        one when the intrinsics were fitted; the sensor context's with the ``k1``, ``k2`` this
+        identifier's parameters state when those differ from its own; else none (the context's). The focal length
         of tetra3rs' solved field (``solved_scale``) helps matching only: it is never handed on."""
         cam = self.context.camera
         if self._fitting:
             return out.evolve(camera=self._track_model.camera(cam))
-        if (self.params.k1, self.params.k2) != (cam.k1, cam.k2):
-            return out.evolve(camera=replace(cam, k1=self.params.k1, k2=self.params.k2))
+        known = self._known_distortion()
+        if known != (cam.k1, cam.k2):
+            return out.evolve(camera=replace(cam, k1=known[0], k2=known[1]))
         return out
+
+    def _known_distortion(self) -> tuple[float, float]:
+        """``(k1, k2)``: the parameters' when they state a distortion, else the sensor context camera's."""
+        p, cam = self.params, self.context.camera
+        return (p.k1, p.k2) if (p.k1, p.k2) != (0.0, 0.0) else (float(cam.k1), float(cam.k2))
 
     def _reject(self, frame: FrameData, reason: str, **diag) -> tuple[FrameData, LostInSpaceSolution]:
         det = frame.stars
@@ -402,10 +408,12 @@ class LostInSpaceIdentifier(Identifier):
     def _lost_in_space(self, frame: FrameData) -> tuple[FrameData, LostInSpaceSolution]:
         det = frame.stars
         cam = self.context.camera
+        if not self._pinhole:  # tetra3rs' patterns and our re-matching are a pinhole's
+            return self._reject(frame, f"pattern_search_needs_a_pinhole({cam.projection})")
         finite = np.flatnonzero(np.isfinite(det.x) & np.isfinite(det.y))
         if finite.size < self.params.min_matches:
             return self._reject(frame, f"too_few_detections({finite.size}<{self.params.min_matches})")
-        model = RadialCamera.from_pinhole(cam, self.params.k1, self.params.k2)
+        model = RadialCamera.from_pinhole(cam, *self._known_distortion())
         t_ref = int(self.context.timing.frame_reference_ns(frame.t0_ns))
         motion = self._velocity_motion(det, model, t_ref)
         # a streak's pixels tell its direction of travel only through the rolling shutter: when the

@@ -158,13 +158,23 @@ def test_a_detector_wider_than_the_image_circle_sees_the_whole_circle(projection
     assert np.isclose(cam.fov_deg[0], 2 * rim_deg)
 
 
-def test_lost_in_space_refuses_a_camera_it_would_treat_as_a_pinhole():
-    from rollingstar.estimators.data import SensorContext
+def test_lost_in_space_does_not_pattern_search_a_camera_it_would_treat_as_a_pinhole():
+    """A fisheye can be tracked from a prior (the tracker projects through the camera), but the
+    pattern search and the camera fit are a pinhole's: the fit is refused when configured, and a
+    frame that would need a pattern search is rejected with that reason, not identified wrongly."""
+    from rollingstar.estimators.data import FrameData, SensorContext, StarTable
     from rollingstar.estimators.identifiers.lost_in_space import LostInSpaceIdentifier
     from rollingstar.sensors.catalog import StarCatalog
     from rollingstar.sensors.timing import DetectorTiming
 
-    ctx = SensorContext(camera=_camera("equidistant"), timing=DetectorTiming(mode="global", exposure_ns=10**7, line_delay_ns=0, rows=608),
+    ctx = SensorContext(camera=_camera("equidistant"), timing=DetectorTiming(mode="global", exposure_ns=10**7,
+                                                                             line_delay_ns=0, rows=608),
                         catalog=StarCatalog.from_hipparcos(2025.0, 3.0))
     with pytest.raises(ValueError, match="projection 'equidistant'"):
-        LostInSpaceIdentifier().setup(ctx)
+        LostInSpaceIdentifier(fit_distortion="radial").setup(ctx)
+    lis = LostInSpaceIdentifier()
+    lis.setup(ctx)
+    rng = np.random.default_rng(0)
+    stars = StarTable.build(rng.uniform(0, 807, 20), rng.uniform(0, 607, 20), t_ns=0)
+    out = lis.process(FrameData(index=0, t0_ns=0, stars=stars))
+    assert out.stars.n == 0 and "lost_in_space_rejected:pattern_search_needs_a_pinhole(equidistant)" in out.flags
