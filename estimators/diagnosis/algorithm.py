@@ -29,6 +29,7 @@ from rollingstar.estimators.diagnosis.locating import Location, locate
 from rollingstar.estimators.diagnosis.modelling import EffectModel, model_effects, updated_scenario
 from rollingstar.estimators.diagnosis.naming import Naming, name_effects
 from rollingstar.estimators.diagnosis.observations import Observations
+from rollingstar.estimators.diagnosis.projection import ProjectionChoice, choose_projection, with_projection
 from rollingstar.estimators.diagnosis.verifying import Verification, verify
 from rollingstar.sensors.scenario import ScenarioConfig
 
@@ -42,6 +43,7 @@ class Diagnosis:
     naming: Naming
     model: EffectModel
     verification: Verification
+    projection: ProjectionChoice | None = None  # the lens projection's choice (None: not searched, narrow field)
 
     @property
     def obs(self) -> Observations:
@@ -65,23 +67,28 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
     """
     with threadpool_limits(limits=1, user_api="blas"):
         sensor = sensor_model(scenario)
+        choice = choose_projection(observations, attitudes, sensor, options)
+        if choice is not None and choice.renamed:
+            sensor = sensor_model(with_projection(scenario, choice))
         cands: dict[str, Candidate] = library(exclude=exclude_effects)
         location = locate(observations, attitudes, sensor, cands, gyro, options)
         naming = name_effects(location, sensor, cands, options)
         model = model_effects(location.data, naming, sensor, options)
         verification = verify(location, naming, model, sensor, cands, options)
-    return Diagnosis(sensor, location, naming, model, verification)
+    return Diagnosis(sensor, location, naming, model, verification, choice)
 
 
 def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
     """The report of ``d`` as one JSON-able dict; ``recording``, ``sim`` and ``pipeline`` name its inputs."""
     data, v, q = d.location.data, d.verification, d.verification.quality
+    renamed = d.projection is not None and d.projection.renamed
     out = {
         "recording": recording,
         "sim": sim,
         "pipeline": pipeline,
-        "mismatch": v.mismatch,
-        "verdict": v.verdict,
+        "mismatch": v.mismatch or renamed,
+        "verdict": _verdict(d.projection, v.verdict),
+        "projection": d.projection.as_json() if d.projection is not None else None,
         "noise": {"sigma_px_median": float(np.median(data.obs.sigma)), "source": data.obs.sigma_source},
         "rejected_outliers": data.n_rejected,
         "split": {"unit": data.unit, "frames": data.obs.n_frames, "train_frames": data.n_train_frames,
@@ -112,3 +119,11 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
         "rejected_on_heldout": v.rejected_on_heldout,
     })
     return out
+
+
+def _verdict(projection: ProjectionChoice | None, verdict: str) -> str:
+    """The verdict, led by the lens projection when one replaced the declared one."""
+    if projection is None or not projection.renamed:
+        return verdict
+    rest = verdict.replace("no mismatch: the simulation explains", "with it the simulation explains", 1)
+    return f"{projection.sentence()}; {rest}"

@@ -1,6 +1,8 @@
 """``rollingstar diagnose`` on a 100 deg fisheye (equidistant projection) simulated at centroid level:
 with the projection declared, a lens distortion is named and fitted as on a narrow field; with a
-pinhole declared instead, the command says the sensor model is far off (exit 2), not a traceback."""
+pinhole declared for the same nominal field, the projection is named first (with its focal
+length) and the distortion after it; a model off beyond what the projection search spans is
+refused with what to fix (exit 2), not a traceback."""
 from __future__ import annotations
 
 import json
@@ -60,9 +62,48 @@ def test_a_fisheye_distortion_is_named_with_the_projection_declared(fisheye):
     assert out["heldout_rms_after_px"] < 1.2 * SIGMA_PX
 
 
-def test_a_pinhole_declared_for_a_fisheye_is_refused_with_what_to_fix(fisheye):
+def test_a_pinhole_declared_for_a_fisheye_gets_the_projection_named_then_the_distortion(fisheye):
     res = CliRunner().invoke(app, ["diagnose", "--sim", str(fisheye["pinhole"]), "--recording", str(fisheye["rec"]),
                                    "-o", str(fisheye["dir"] / "report_pinhole"), "--json", "-q"])
+    assert res.exit_code == 0, res.output
+    out = json.loads(res.output)
+    proj = out["projection"]
+    assert proj["declared"] == "perspective" and proj["named"] == "equidistant" and out["mismatch"]
+    truth_focal = 512 / math.radians(50.0)
+    assert abs(proj["candidates"]["equidistant"]["focal_px"] / truth_focal - 1) < 1e-3
+    # the other laws fit worse than their focal length and k1 can make up: named by a wide margin
+    runner_up = sorted(c["chi2_dof"] for p, c in proj["candidates"].items() if p != "equidistant")[0]
+    assert runner_up > 5 * proj["candidates"]["equidistant"]["chi2_dof"]
+    assert out["verdict"].startswith("lens projection: equidistant, not the declared perspective")
+    assert proj["heldout_rms_px"]["perspective"] > 100 * proj["heldout_rms_px"]["equidistant"]
+    named = {e["name"]: e for e in out["effects"]}
+    assert set(named) == {"radial_distortion"}
+    k1 = named["radial_distortion"]["params"]["k1"]
+    assert abs(k1["value"] - K1) < 4 * k1["sigma"], k1
+    assert out["heldout_rms_after_px"] < 1.2 * SIGMA_PX
+
+
+def test_a_narrow_field_makes_no_projection_search():
+    """Over a 13 deg field every projection differs from the pinhole by a theta^3 term a k1
+    absorbs, far below the noise: none could be named, and none is searched."""
+    from rollingstar.estimators.diagnosis.projection import distinguishable
+    from rollingstar.sensors.camera import PinholeCamera
+
+    narrow = PinholeCamera(focal_length_m=0.02409, pixel_size_m=5.5e-6, width=1024, height=1024)
+    assert not distinguishable(narrow, 0.05)
+    wide = PinholeCamera(focal_length_m=512 / math.tan(math.radians(50.0)) * 5.5e-6, pixel_size_m=5.5e-6, width=1024,
+                         height=1024)
+    assert distinguishable(wide, 0.05)
+
+
+def test_a_model_off_beyond_the_search_is_refused_with_what_to_fix(fisheye):
+    """A focal length twice the lens's: beyond the focal-length freedom of the projection search
+    and the library's focal-length effect, so the stars stay beyond the outlier gate, and the
+    command says which parts of the sensor model to check."""
+    off = fisheye["dir"] / "off.yaml"
+    off.write_text(_scenario("equidistant", 2 * 512 / math.radians(50.0)))
+    res = CliRunner().invoke(app, ["diagnose", "--sim", str(off), "--recording", str(fisheye["rec"]),
+                                   "-o", str(fisheye["dir"] / "report_off"), "--json", "-q"])
     assert res.exit_code == 2, res.output
-    assert "sensor model is far from the recording's" in res.output and "lens projection" in res.output
+    assert "sensor model is far from the recording's" in res.output and "focal length" in res.output
     assert "Traceback" not in res.output

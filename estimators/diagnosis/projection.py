@@ -1,0 +1,169 @@
+"""Which lens projection a recording's stars follow, before any effect is named.
+
+A lens's projection (:data:`rollingstar.sensors.camera.PROJECTIONS`: the image radius of a
+direction ``theta`` from the boresight, ``r = f rho(theta)``) is not a small perturbation of
+another: a 100 deg fisheye declared as a pinhole misses its corner stars by hundreds of pixels,
+beyond the outlier gate and beyond what the library's distortion terms can bend. So the
+projection is chosen first, as a discrete model choice, and the effects are then named relative
+to it.
+
+Every projection is fitted to the training stars (the held-out split of
+:func:`~rollingstar.estimators.diagnosis.locating.split_heldout`, so held-out data stays unseen):
+its focal length (from the one that images the declared camera's nominal field edge at the same
+pixel, free by a factor 0.7-1.4), a radial term ``k1``, and every frame's attitude (and rate, as
+the locate step fits them) by variable projection. Fitting ``k1`` for every candidate, the
+declared projection included, means a projection must explain what a third-order distortion of
+the declared one cannot: over a narrow field the projections differ by a ``theta^3`` term a ``k1``
+absorbs, and none is named (:func:`distinguishable` skips the search when no projection could
+be). The best projection replaces the declared one when its chi-square (same parameter count, so
+the BIC difference) is lower by ``NAMING_DELTA``; the scenario the rest of the diagnosis works
+from then declares it with the focal length fitted with it (a nominal field through the wrong
+projection is off by more than the library's focal-length effect reaches), and the library names
+the distortion, and any focal-length error left, relative to it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from rollingstar.estimators.diagnosis.inputs import DiagnoseOptions, SensorModel
+from rollingstar.estimators.diagnosis.locating import attitude_mask, split_heldout
+from rollingstar.estimators.diagnosis.observations import Observations, fit_nuisance, whitened_residuals
+from rollingstar.sensors.camera import PROJECTIONS, projection_rho, projection_theta
+from rollingstar.sensors.scenario import ScenarioConfig
+
+NAMING_DELTA = 10.0  # chi-square a projection must gain over the declared one (the library's BIC margin)
+FOCAL_RANGE = (0.7, 1.4)  # the focal length's freedom around the nominal field's
+SEPARATION_SIGMAS = 1.0  # a projection this far (in noise sigmas) from every focal and k1 change of the declared is searched
+
+
+@dataclass(frozen=True)
+class ProjectionChoice:
+    """The projections' fits: chi-square, focal length (px) and ``k1`` each, the declared one and
+    the one named (the declared one when no other wins by ``NAMING_DELTA``)."""
+
+    declared: str
+    named: str
+    chi2: dict
+    focal_px: dict
+    k1: dict
+    dof: int
+    heldout_rms_px: dict  # held-out RMS per axis under the declared and the named projection (their fits)
+
+    @property
+    def renamed(self) -> bool:
+        return self.named != self.declared
+
+    @property
+    def delta_chi2(self) -> float:
+        """How much better the named projection fits than the declared one."""
+        return float(self.chi2[self.declared] - self.chi2[self.named])
+
+    def as_json(self) -> dict:
+        return {"declared": self.declared, "named": self.named, "delta_chi2": self.delta_chi2, "dof": self.dof,
+                "heldout_rms_px": self.heldout_rms_px,
+                "candidates": {p: {"chi2_dof": self.chi2[p] / max(self.dof, 1), "focal_px": self.focal_px[p],
+                                   "k1": self.k1[p]} for p in self.chi2}}
+
+    def sentence(self) -> str:
+        if not self.renamed:
+            return ""
+        return (f"lens projection: {self.named}, not the declared {self.declared}, focal length "
+                f"{self.focal_px[self.named]:.1f} px (training chi2/dof {self.chi2[self.declared] / max(self.dof, 1):.3g} "
+                f"-> {self.chi2[self.named] / max(self.dof, 1):.3g}, focal length and k1 fitted for each; held-out RMS "
+                f"{self.heldout_rms_px[self.declared]:.3g} -> {self.heldout_rms_px[self.named]:.3g} px)")
+
+
+def nominal_focal_px(camera, projection: str) -> float:
+    """The focal length (px) with which ``projection`` images the direction at the declared camera's
+    field edge (half the detector's width) at that same pixel."""
+    edge_px = 0.5 * camera.width
+    theta = float(projection_theta(edge_px / camera.focal_px, camera.projection))
+    return edge_px / float(projection_rho(theta, projection)[0])
+
+
+def distinguishable(camera, sigma_px: float) -> bool:
+    """Whether any other projection differs from ``camera``'s, over its field (out to the detector's
+    corners), by more than ``SEPARATION_SIGMAS`` of the stars' noise after the best focal-length and
+    ``k1`` change of the declared one: the radial curves compared directly (linear least squares on
+    ``r``, ``r^3``), no stars needed. Over a narrow field none does, and no search is made."""
+    corner = float(np.hypot(max(camera.cx + 0.5, camera.width - 0.5 - camera.cx),
+                            max(camera.cy + 0.5, camera.height - 0.5 - camera.cy)))
+    theta_max = float(projection_theta(corner / camera.focal_px, camera.projection))
+    if not np.isfinite(theta_max):
+        return True
+    theta = np.linspace(0.0, theta_max, 64)
+    rho_declared = projection_rho(theta, camera.projection)[0]
+    basis = np.column_stack([rho_declared, rho_declared**3])
+    for projection in PROJECTIONS:
+        if projection == camera.projection:
+            continue
+        r = nominal_focal_px(camera, projection) * projection_rho(theta, projection)[0] / camera.focal_px
+        if not np.all(np.isfinite(r)):
+            return True
+        coef, *_ = np.linalg.lstsq(basis, r, rcond=None)
+        if np.max(np.abs(basis @ coef - r)) * camera.focal_px > SEPARATION_SIGMAS * sigma_px:
+            return True
+    return False
+
+
+def choose_projection(obs: Observations, attitudes: Rotation, sensor: SensorModel,
+                      options: DiagnoseOptions) -> ProjectionChoice | None:
+    """Fit every projection to the training stars (module docstring) and name the best; None when
+    no projection is :func:`distinguishable` from the declared one over this camera's field."""
+    if obs.n == 0 or not distinguishable(sensor.camera, float(np.median(obs.sigma))):
+        return None
+    heldout, _ = split_heldout(obs, options.heldout_fraction, options.seed)
+    obs = replace(obs, heldout=heldout)
+    _, att_mask = attitude_mask(obs)
+    train = ~heldout
+    chi2, focal, k1, heldout_rms = {}, {}, {}, {}
+    for projection in PROJECTIONS:
+        chi2[projection], focal[projection], k1[projection], heldout_rms[projection] = _fit(
+            obs, attitudes, sensor, projection, att_mask, train)
+    declared = sensor.camera.projection
+    finite = {p: c for p, c in chi2.items() if np.isfinite(c)}
+    best = min(finite, key=finite.get) if finite else declared
+    named = best if (not np.isfinite(chi2[declared]) or chi2[declared] - chi2[best] >= NAMING_DELTA) else declared
+    dof = int(2 * np.count_nonzero(train) - 3 * obs.n_frames - 2)
+    return ProjectionChoice(declared, named, chi2, focal, k1, dof, heldout_rms)
+
+
+def _fit(obs, attitudes, sensor: SensorModel, projection: str, att_mask, train) -> tuple[float, float, float, float]:
+    """Chi-square, focal length and k1 of ``projection`` fitted to the training stars with every
+    frame's attitude, and the held-out RMS per axis with them (the held-out frames' attitudes fitted
+    to their own stars, the nuisance)."""
+    cam0 = sensor.camera
+    f0 = nominal_focal_px(cam0, projection)
+    if not np.isfinite(f0) or f0 <= 0:
+        return np.inf, np.nan, np.nan, np.nan
+
+    def camera(p):
+        return replace(cam0, projection=projection, focal_length_m=f0 * np.exp(p[0]) * cam0.pixel_size_m, k1=p[1])
+
+    def residuals(p):
+        _, pred = fit_nuisance(obs, attitudes, camera(p), sensor.timing, sensor.effects, att_mask, sensor.moving)
+        r = whitened_residuals(obs, pred)[train].ravel()
+        return np.where(np.isfinite(r), r, 1e3)  # a star the model cannot image: a large, finite miss
+
+    lo, hi = np.log(FOCAL_RANGE[0]), np.log(FOCAL_RANGE[1])
+    try:
+        sol = least_squares(residuals, x0=[0.0, 0.0], bounds=([lo, -1.0], [hi, 1.0]), x_scale=[0.01, 0.01],
+                            max_nfev=40)
+    except (ValueError, np.linalg.LinAlgError):
+        return np.inf, np.nan, np.nan, np.nan
+    _, pred = fit_nuisance(obs, attitudes, camera(sol.x), sensor.timing, sensor.effects, None, sensor.moving)
+    out = ~train
+    miss = np.concatenate([obs.x[out] - pred.x[out], obs.y[out] - pred.y[out]])
+    heldout_rms = float(np.sqrt(np.nanmean(miss**2))) if out.any() else float("nan")
+    return float(2.0 * sol.cost), float(f0 * np.exp(sol.x[0])), float(sol.x[1]), heldout_rms
+
+
+def with_projection(scenario: ScenarioConfig, choice: ProjectionChoice) -> ScenarioConfig:
+    """``scenario`` declaring the named projection with the focal length fitted with it."""
+    focal_mm = choice.focal_px[choice.named] * scenario.sensor.pixel_size_um * 1e-3
+    sensor = scenario.sensor.model_copy(update={"projection": choice.named, "focal_length_mm": focal_mm})
+    return scenario.model_copy(update={"sensor": sensor})
