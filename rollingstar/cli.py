@@ -300,7 +300,7 @@ def reproduce(paper: str = typer.Argument(..., help="he2021a | he2021b | fu2022 
 
 @command()
 def figures(name: str = typer.Argument("foundation", help="foundation | real-data | real-cameras | adversarial | "
-                                        "centroid-covariance | covariance-weighting"),
+                                        "centroid-covariance | covariance-weighting | wide-angle"),
             quick: bool = typer.Option(False, "--quick"),
             as_json: bool = typer.Option(False, "--json"),
             out_dir: Path = typer.Option(None, "--out", help="write <out>/<figure>.md, .json and img/*.png (where the set writes pages)"),
@@ -310,7 +310,8 @@ def figures(name: str = typer.Argument("foundation", help="foundation | real-dat
     real-data (identification, per-lens calibration, vs astrometry.net); real-cameras (import + run
     on cameras the pipeline was not tuned on, vs a peer solver); adversarial (no false identification
     reported valid); centroid-covariance (the centroiders' 2 x 2 covariance on smeared images);
-    covariance-weighting (attitude RMSE with scalar vs 2 x 2 star weights)."""
+    covariance-weighting (attitude RMSE with scalar vs 2 x 2 star weights); wide-angle (the diagnosis
+    naming the projection of lenses declared as pinholes)."""
     handlers = {
         "foundation": lambda: _foundation_figures(out_dir, seed, as_json, quick),
         "real-data": lambda: _study("figures", "real_data_figures")(out_dir, as_json, repeats=repeats),
@@ -318,6 +319,7 @@ def figures(name: str = typer.Argument("foundation", help="foundation | real-dat
         "adversarial": lambda: _adversarial_figure(seed, as_json, quick),
         "centroid-covariance": lambda: _study("centroid_covariance", "centroid_covariance_figures")(out_dir, quick, seed, as_json),
         "covariance-weighting": lambda: _covariance_weighting_figure(out_dir, seed, as_json, quick),
+        "wide-angle": lambda: _study("wide_angle", "wide_angle_figures")(quick, seed, as_json),
     }
     if name not in handlers:
         raise UserError(f"unknown figure set {name!r}; available: {', '.join(handlers)}")

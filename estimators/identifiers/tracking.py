@@ -425,6 +425,7 @@ class TrackingIdentifier(Identifier):
         self._add_gyro(frame)
         motion = self.motion()
         idx, px, py, pt, w = self.predict_frame(frame.t0_ns, motion=motion)
+        det = _imageable(det, self.context.camera)
         matched_det, matched_star = self._first_match(det, px, py, pt, w, motion)
         if self.params.refine and matched_det.size >= 3:
             fit = self._refit(det, matched_det, idx[matched_star], motion)
@@ -433,6 +434,7 @@ class TrackingIdentifier(Identifier):
             resid = np.hypot(det.x[first[0]] - px[first[1]], det.y[first[0]] - py[first[1]])
             gate = max(self.params.refine_gate_px, 5.0 * 1.4826 * float(np.median(resid))) if resid.size else self.params.gate_px
             matched_det, matched_star = self._match(det, px, py, min(gate, self.params.gate_px))
+        det = frame.stars  # the detections as given (those no direction images were only kept from matching)
         n = det.n
         cat_idx = idx[matched_star]
         catalog = self.context.catalog
@@ -516,3 +518,13 @@ class TrackingIdentifier(Identifier):
                 matched_det = np.flatnonzero(mutual)
                 matched_star = j[matched_det]
         return matched_det, matched_star
+
+
+def _imageable(det, camera):
+    """``det`` with the positions no direction images set to NaN, so that nothing matches them: past
+    a fisheye's image circle, or where a radial map folds over (a distortion the camera does not
+    model can put a detection there)."""
+    if not camera.distorted and camera.projection == "perspective":
+        return det
+    ok = np.all(np.isfinite(camera.unproject(det.x, det.y)), axis=1)
+    return det if ok.all() else det.with_columns(x=np.where(ok, det.x, np.nan), y=np.where(ok, det.y, np.nan))
