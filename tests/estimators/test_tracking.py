@@ -149,3 +149,34 @@ def test_verification_drops_a_detection_matched_to_the_wrong_star():
     assert set(out.stars.catalog_id) == set(ids) - {ids[2]}
     plain = _ident(scene, gate_px=10.0, refine=False).process(FrameData(index=0, t0_ns=0, stars=table))
     assert ids[2] in set(plain.stars.catalog_id)
+
+
+def test_detections_no_direction_images_are_left_unmatched():
+    """An orthographic lens whose image circle (radius f) ends inside the detector. A star imaged
+    near the rim is detected just beyond it (where a distortion the camera does not model can
+    put it), and spots sit in the corners: none of them has a direction. They stay unmatched
+    instead of breaking the attitude refit, and every other star is identified."""
+    from dataclasses import replace
+
+    from rollingstar.sensors.camera import PinholeCamera
+
+    scene = make_scene(seed=21)
+    cam = scene.context.camera
+    ortho = PinholeCamera(focal_length_m=120 * cam.pixel_size_m, pixel_size_m=cam.pixel_size_m, width=cam.width,
+                          height=cam.height, projection="orthographic")
+    ctx = replace(scene.context, camera=ortho)
+    tracker = TrackingIdentifier()
+    tracker.setup(ctx)
+    idx, px, py, _, _ = tracker.predict_frame(0)
+    r = np.hypot(px - ortho.cx, py - ortho.cy)
+    edge = int(np.argmax(r))
+    assert idx.size >= 5 and r[edge] > ortho.focal_px - 5.0  # a star within 5 px of the rim
+    x, y = px.copy(), py.copy()
+    x[edge], y[edge] = ortho.cx + (px[edge] - ortho.cx) * (ortho.focal_px + 1.0) / r[edge], \
+        ortho.cy + (py[edge] - ortho.cy) * (ortho.focal_px + 1.0) / r[edge]  # 1 px beyond the rim
+    corners = np.array([[1.0, 1.0], [cam.width - 2.0, 1.0], [1.0, cam.height - 2.0]])
+    assert np.isnan(ortho.unproject(np.r_[x[edge], corners[:, 0]], np.r_[y[edge], corners[:, 1]])).all()
+    det = StarTable.build(np.r_[x, corners[:, 0]], np.r_[y, corners[:, 1]], t_ns=0, sigma_px=0.1)
+    out = tracker.process(FrameData(index=0, t0_ns=0, stars=det))
+    assert out.stars.n == idx.size - 1 and out.unmatched.n == 4
+    np.testing.assert_array_equal(np.sort(out.stars.catalog_id), np.sort(ctx.catalog.ids[np.delete(idx, edge)]))
