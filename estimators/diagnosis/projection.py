@@ -10,8 +10,10 @@ to it.
 Every projection is fitted to the training stars (the held-out split of
 :func:`~rollingstar.estimators.diagnosis.locating.split_heldout`, so held-out data stays unseen):
 its focal length (from the one that images the declared camera's nominal field edge at the same
-pixel, free by a factor 0.7-1.4), a radial term ``k1``, and every frame's attitude (and rate, as
-the locate step fits them) by variable projection. Fitting ``k1`` for every candidate, the
+pixel, free by a factor 0.7-1.4), a radial term ``k1``, and every frame's attitude by variable
+projection (each frame's rate held at the one the declared model's attitudes give: a projection
+changes where stars image, not how the frame turns); the best one and the declared one are then
+fitted again with the rates free. Fitting ``k1`` for every candidate, the
 declared projection included, means a projection must explain what a third-order distortion of
 the declared one cannot: over a narrow field the projections differ by a ``theta^3`` term a ``k1``
 absorbs, and none is named (:func:`distinguishable` skips the search when no projection could
@@ -31,7 +33,13 @@ from scipy.spatial.transform import Rotation
 
 from rollingstar.estimators.diagnosis.inputs import DiagnoseOptions, SensorModel
 from rollingstar.estimators.diagnosis.locating import attitude_mask, split_heldout
-from rollingstar.estimators.diagnosis.observations import Observations, fit_nuisance, whitened_residuals
+from rollingstar.estimators.diagnosis.observations import (
+    Nuisance,
+    Observations,
+    fit_attitudes,
+    fit_nuisance,
+    whitened_residuals,
+)
 from rollingstar.sensors.camera import PROJECTIONS, projection_rho, projection_theta
 from rollingstar.sensors.scenario import ScenarioConfig
 
@@ -120,22 +128,37 @@ def choose_projection(obs: Observations, attitudes: Rotation, sensor: SensorMode
     obs = replace(obs, heldout=heldout)
     _, att_mask = attitude_mask(obs)
     train = ~heldout
+    # the frames' rates once, from the declared model's attitudes: a projection changes where stars
+    # image, not how the frame turns between frames (the attitudes are refitted in every evaluation)
+    start, _ = fit_nuisance(obs, attitudes, sensor.camera, sensor.timing, sensor.effects, att_mask, sensor.moving)
     chi2, focal, k1, heldout_rms = {}, {}, {}, {}
     for projection in PROJECTIONS:
         chi2[projection], focal[projection], k1[projection], heldout_rms[projection] = _fit(
-            obs, attitudes, sensor, projection, att_mask, train)
+            obs, start, sensor, projection, att_mask, train)
     declared = sensor.camera.projection
     finite = {p: c for p, c in chi2.items() if np.isfinite(c)}
     best = min(finite, key=finite.get) if finite else declared
+    # the best and the declared fitted again with every frame's rate free (as the locate step fits
+    # them): the rates of a wrong model bias the focal length by a few parts in 1e4
+    for projection in {best, declared}:
+        chi2[projection], focal[projection], k1[projection], heldout_rms[projection] = _fit(
+            obs, attitudes, sensor, projection, att_mask, train)
     named = best if (not np.isfinite(chi2[declared]) or chi2[declared] - chi2[best] >= NAMING_DELTA) else declared
     dof = int(2 * np.count_nonzero(train) - 3 * obs.n_frames - 2)
     return ProjectionChoice(declared, named, chi2, focal, k1, dof, heldout_rms)
 
 
-def _fit(obs, attitudes, sensor: SensorModel, projection: str, att_mask, train) -> tuple[float, float, float, float]:
+def _fit(obs, start, sensor: SensorModel, projection: str, att_mask, train) -> tuple[float, float, float, float]:
     """Chi-square, focal length and k1 of ``projection`` fitted to the training stars with every
     frame's attitude, and the held-out RMS per axis with them (the held-out frames' attitudes fitted
-    to their own stars, the nuisance)."""
+    to their own stars, the nuisance). ``start``: a :class:`Nuisance` whose rates are held (the
+    search), or bare attitudes, whose rates are fitted too (the final fits)."""
+
+    def nuisance_fit(camera, mask):
+        if isinstance(start, Nuisance):
+            return fit_attitudes(obs, start, camera, sensor.timing, sensor.effects, mask)
+        return fit_nuisance(obs, start, camera, sensor.timing, sensor.effects, mask, sensor.moving)
+
     cam0 = sensor.camera
     f0 = nominal_focal_px(cam0, projection)
     if not np.isfinite(f0) or f0 <= 0:
@@ -145,7 +168,7 @@ def _fit(obs, attitudes, sensor: SensorModel, projection: str, att_mask, train) 
         return replace(cam0, projection=projection, focal_length_m=f0 * np.exp(p[0]) * cam0.pixel_size_m, k1=p[1])
 
     def residuals(p):
-        _, pred = fit_nuisance(obs, attitudes, camera(p), sensor.timing, sensor.effects, att_mask, sensor.moving)
+        _, pred = nuisance_fit(camera(p), att_mask)
         r = whitened_residuals(obs, pred)[train].ravel()
         return np.where(np.isfinite(r), r, 1e3)  # a star the model cannot image: a large, finite miss
 
@@ -155,7 +178,7 @@ def _fit(obs, attitudes, sensor: SensorModel, projection: str, att_mask, train) 
                             max_nfev=40)
     except (ValueError, np.linalg.LinAlgError):
         return np.inf, np.nan, np.nan, np.nan
-    _, pred = fit_nuisance(obs, attitudes, camera(sol.x), sensor.timing, sensor.effects, None, sensor.moving)
+    _, pred = nuisance_fit(camera(sol.x), None)
     out = ~train
     miss = np.concatenate([obs.x[out] - pred.x[out], obs.y[out] - pred.y[out]])
     heldout_rms = float(np.sqrt(np.nanmean(miss**2))) if out.any() else float("nan")
