@@ -33,6 +33,9 @@ from rollingstar.estimators.diagnosis.projection import ProjectionChoice, choose
 from rollingstar.estimators.diagnosis.verifying import Verification, verify
 from rollingstar.sensors.scenario import ScenarioConfig
 
+#: Rounds of model-aware outlier rejection: the model as given, then the model each round named
+MAX_OUTLIER_ROUNDS = 3
+
 
 @dataclass(frozen=True, eq=False)
 class Diagnosis:
@@ -44,6 +47,7 @@ class Diagnosis:
     model: EffectModel
     verification: Verification
     projection: ProjectionChoice | None = None  # the lens projection's choice (None: not searched, narrow field)
+    outlier_rounds: tuple = ()  # per round: the gate's model and the stars it rejected (model-aware outliers)
 
     @property
     def obs(self) -> Observations:
@@ -71,11 +75,22 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
         if choice is not None and choice.renamed:
             sensor = sensor_model(with_projection(scenario, choice))
         cands: dict[str, Candidate] = library(exclude=exclude_effects)
-        location = locate(observations, attitudes, sensor, cands, gyro, options)
-        naming = name_effects(location, sensor, cands, options)
-        model = model_effects(location.data, naming, sensor, options)
-        verification = verify(location, naming, model, sensor, cands, options)
-    return Diagnosis(sensor, location, naming, model, verification, choice)
+        gate, gate_names, rounds = None, (), []
+        for _ in range(MAX_OUTLIER_ROUNDS):
+            location = locate(observations, attitudes, sensor, cands, gyro, options, gate)
+            naming = name_effects(location, sensor, cands, options)
+            model = model_effects(location.data, naming, sensor, options)
+            verification = verify(location, naming, model, sensor, cands, options)
+            rejected = location.data.n_rejected
+            rounds.append({"gate": list(gate_names), "rejected": rejected, "fraction": rejected / max(observations.n, 1)})
+            names = tuple(c.name for c in verification.named)
+            # the gate of the next round is the model this one named: stars its physics explains come
+            # back; a fixed point when a round names what its gate held
+            if not rejected or not names or names == gate_names:
+                break
+            gate_names = names
+            gate = sensor_model(updated_scenario(sensor.scenario, verification.named, verification.thetas))
+    return Diagnosis(sensor, location, naming, model, verification, choice, tuple(rounds))
 
 
 def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
@@ -91,6 +106,7 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
         "projection": d.projection.as_json() if d.projection is not None else None,
         "noise": {"sigma_px_median": float(np.median(data.obs.sigma)), "source": data.obs.sigma_source},
         "rejected_outliers": data.n_rejected,
+        "outlier_rounds": list(d.outlier_rounds),
         "split": {"unit": data.unit, "frames": data.obs.n_frames, "train_frames": data.n_train_frames,
                   "heldout_frames": data.n_heldout_frames, "train_observations": int(data.train.sum()),
                   "heldout_observations": int(data.heldout.sum())},

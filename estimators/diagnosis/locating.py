@@ -102,9 +102,12 @@ class Location:
 
 
 def locate(obs: Observations, attitudes: Rotation, sensor: SensorModel, cands: dict[str, Candidate],
-           gyro: GyroData | None, options: DiagnoseOptions) -> Location:
-    """Hold out data, fit the model as given, reject gross outliers, measure where it misses."""
-    data, nuis0, pred0 = prepare_data(obs, attitudes, sensor, gyro, options)
+           gyro: GyroData | None, options: DiagnoseOptions, gate: SensorModel | None = None) -> Location:
+    """Hold out data, fit the model as given, reject gross outliers, measure where it misses.
+
+    ``gate``: the model whose misses decide what is a gross outlier (default: the model as given);
+    the diagnosis passes the model it named, so that stars the named physics explains are kept."""
+    data, nuis0, pred0 = prepare_data(obs, attitudes, sensor, gyro, options, gate)
     obs = data.obs
     gyro_chi2 = None if obs.channel is None else float(np.sum(gyro_channel.channel_rows(obs, pred0) ** 2))
     located = residuals.locate(obs, pred0, sensor.camera, data.train, 3 * data.n_train_frames)
@@ -113,8 +116,9 @@ def locate(obs: Observations, attitudes: Rotation, sensor: SensorModel, cands: d
 
 
 def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gyro: GyroData | None,
-                 options: DiagnoseOptions) -> tuple[Dataset, Nuisance, Prediction]:
-    """The held-out split, the first nuisance fit, outlier rejection and the gyro channel.
+                 options: DiagnoseOptions, gate: SensorModel | None = None) -> tuple[Dataset, Nuisance, Prediction]:
+    """The held-out split, the first nuisance fit, outlier rejection (against ``gate``'s
+    prediction, default the model as given) and the gyro channel.
 
     Returns the data, and the attitudes/rates and prediction of the model as given on it.
     """
@@ -127,10 +131,14 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
         obs = estimate_sigma(obs, pred0)
         nuis0, pred0 = fit_nuisance(obs, attitudes, *fit, att_mask, sensor.moving)
     # gross outliers (misidentified stars: the tracking refine gate is 2 px = 40 sigma at 0.05 px)
-    if obs.cov is None:
-        far = np.hypot(obs.x - pred0.x, obs.y - pred0.y) > OUTLIER_SIGMA * obs.sigma
-    else:  # Mahalanobis distance under the star's 2 x 2 covariance
-        far = np.linalg.norm(whitened_residuals(obs, pred0), axis=1) > OUTLIER_SIGMA
+    far = _beyond_gate(obs, pred0)
+    if gate is not None:  # the named model's misses, its attitudes fitted without the stars beyond its gate
+        gate_fit = (gate.camera, gate.timing, gate.effects)
+        _, pred_gate = fit_nuisance(obs, attitudes, *gate_fit, att_mask, gate.moving)
+        for _ in range(2):  # a wrong identification pulls its frame's attitude: gate again without it
+            far = _beyond_gate(obs, pred_gate)
+            _, pred_gate = fit_nuisance(obs, attitudes, *gate_fit, att_mask & ~far, gate.moving)
+        far = _beyond_gate(obs, pred_gate)
     n_rejected = int(far.sum())
     if np.count_nonzero(~far & ~obs.heldout) < MIN_TRAINING_STARS:
         miss = float(np.nanmedian(np.hypot(obs.x - pred0.x, obs.y - pred0.y)))
@@ -150,6 +158,13 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
         obs = replace(obs, channel=chan)
         nuis0, pred0 = fit_nuisance(obs, nuis0, *fit, att_mask, sensor.moving)
     return Dataset(obs, unit, frame_has_train, att_mask, n_rejected, chan_out), nuis0, pred0
+
+
+def _beyond_gate(obs: Observations, pred: Prediction) -> np.ndarray:
+    """The stars further than ``OUTLIER_SIGMA`` from ``pred`` (Mahalanobis under a 2 x 2 covariance)."""
+    if obs.cov is None:
+        return np.hypot(obs.x - pred.x, obs.y - pred.y) > OUTLIER_SIGMA * obs.sigma
+    return np.linalg.norm(whitened_residuals(obs, pred), axis=1) > OUTLIER_SIGMA
 
 
 def split_heldout(obs: Observations, fraction: float, seed: int) -> tuple[np.ndarray, str]:
