@@ -7,19 +7,8 @@ import pytest
 
 from rollingstar.pipelines.simulate import simulate_to_log
 from rollingstar.sensors.scenario import load_scenario
+from tests.diagnosis.test_diagnose import BASE  # he2021b's optics, 12 frames at 0.5 deg/s, 0.05 px noise
 
-BASE = """name: outlier-rounds
-level: centroid
-sensor: {focal_length_mm: 24.09, pixel_size_um: 5.5, width_px: 1024, height_px: 1024}
-shutter: {mode: rolling, exposure_ms: 50.0, line_delay_us: 49.0}
-catalog: {source: hipparcos, magnitude_limit: 6.0, epoch_year: 2025.0}
-motion:
-  initial_attitude: {ra_deg: 83.8, dec_deg: -5.4, roll_deg: 0.0}
-  rate_deg_s: [0.5, 0.0, 0.0]
-noise: {centroid_sigma_px: 0.05}
-frames: 12
-seed: 3
-"""
 K1 = 0.3  # moves corner stars by ~6 px: far beyond the 30-sigma gate of the model as given
 
 
@@ -49,6 +38,7 @@ def _diagnose(scenario, obs, att0):
 def test_stars_the_named_distortion_explains_come_back(strong_distortion):
     d = _diagnose(*strong_distortion)
     rounds = d.outlier_rounds
+    print("outlier rounds:", [(r["gate"], r["rejected"], round(r["fraction"], 3)) for r in rounds])  # pytest -s
     assert rounds[0]["gate"] == [] and rounds[0]["fraction"] > 0.1  # the model as given drops the outer stars
     assert rounds[-1]["gate"] == ["radial_distortion"] and rounds[-1]["rejected"] == 0
     assert [c.name for c in d.verification.named] == ["radial_distortion"]

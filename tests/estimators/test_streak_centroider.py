@@ -177,12 +177,12 @@ def test_a_rate_estimate_sets_the_expected_motion_and_short_streaks_go_to_cog():
 
 
 def _moving_sky(rng, vy: float, n_frames: int, jump_at: int | None = None, jump_px: float = 0.0,
-                row_offset: float = 0.0, gyro: bool = True):
+                row_offset: float = 0.0, gyro: bool = True, psf_sigma_px: float = 1.0):
     """Frames of a sky drifting down the rows at ``vy`` px/s (new stars enter at the top), with its
     true stars per frame; from frame ``jump_at`` on the sky also stands ``jump_px`` to the right
     (an unpredicted jump); ``row_offset`` moves the grid of stars down; without ``gyro`` the frames
-    carry no gyro samples."""
-    ctx, model = _context()
+    carry no gyro samples; ``psf_sigma_px`` the rendered PSF (the fit's model is 1 px)."""
+    ctx, model = _context(psf_sigma_px)
     cols = (np.arange(5) + 0.5) * (SIZE - 40) / 5 + 20
     t_first = ctx.timing.frame_start_ns(0)
     above = vy * (ctx.timing.frame_start_ns(n_frames) - t_first) * 1e-9 + 50.0  # the sky that enters
@@ -302,3 +302,19 @@ def test_round_spots_tracked_without_a_gyro_follow_the_rate_from_their_own_moves
         assert np.unique(_matched(stars, x, y, 1.5)[0]).size >= 0.9 * x.size, k
         assert k == 0 or centroider.last_mode == "tracked"
     assert abs(centroider._omega[0] / rate[0] - 1.0) < 0.02, centroider._omega / rate[0]
+
+
+@pytest.mark.parametrize("rate_deg_s", [0.5, 6.0])
+def test_tracking_a_sky_rendered_with_a_wider_psf_than_the_model_loses_no_star(rate_deg_s):
+    """Stars rendered with a 1.4 px PSF (the fit's model: 1 px; cog has no model): tracked frames
+    still find every star a full search of the frame finds, and no full search is needed."""
+    ctx, frames, truth = _moving_sky(np.random.default_rng(12), rate_deg_s * PX_PER_S_PER_DEG_S, 6, psf_sigma_px=1.4)
+    tracked = StreakCentroider(cog_below_px=3.0)
+    full = StreakCentroider(cog_below_px=3.0, track_windows=False)
+    tracked.setup(ctx)
+    full.setup(ctx)
+    for k, (frame, (x, y)) in enumerate(zip(frames, truth)):
+        a, b = tracked.process(frame).stars, full.process(frame).stars
+        assert k == 0 or tracked.last_mode == "tracked", k
+        ja, jb = set(_matched(a, x, y, 1.5)[0]), set(_matched(b, x, y, 1.5)[0])
+        assert jb <= ja and len(ja) >= 0.8 * x.size, (k, jb - ja, len(ja), x.size)
