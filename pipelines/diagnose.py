@@ -280,6 +280,8 @@ def print_summary(result: dict, console) -> None:
         return "n/a" if v is None else f"{v:.4g}"
 
     loc = result["located"]
+    console.print(result["summary"], highlight=False, markup=False)
+    console.print()
     console.print(f"[bold]verdict:[/] {result['verdict']}", highlight=False)
     console.print(f"located: chi2/dof {f(loc['chi2_dof'])} (z {f(loc['z'])}), strongest covariate "
                   f"{loc['strongest_covariate']} / {loc['strongest_channel']} (z {f(loc['strongest_z'])})", highlight=False)

@@ -11,6 +11,12 @@
 4. :func:`.verifying.verify` -> :class:`.verifying.Verification`: the fit before and after on
    training and held-out data, re-simulation, the claims and the verdict.
 
+Around them: the lens projection is chosen first (:mod:`.projection`, wide fields); the steps run
+in rounds of model-aware outlier rejection; and the recording's noise is measured against the
+stated one (:mod:`.noise`) on the named model's residuals: when it is off, every sigma is scaled
+by the measured factor and the steps run again, so white noise the simulation understates is
+reported as a noise-model mismatch instead of being fitted as physics.
+
 :func:`as_json` is the report of a :class:`Diagnosis` as one JSON-able dict
 (``rollingstar diagnose --json``).
 """
@@ -22,14 +28,20 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
+from rollingstar.config import validate
+from rollingstar.estimators.diagnosis import summary
+from rollingstar.estimators.diagnosis.describe import Description, describe
 from rollingstar.estimators.diagnosis.gyro_channel import GyroData
 from rollingstar.estimators.diagnosis.inputs import DiagnoseOptions, SensorModel, sensor_model
 from rollingstar.estimators.diagnosis.library import Candidate, library
 from rollingstar.estimators.diagnosis.locating import Location, locate
 from rollingstar.estimators.diagnosis.modelling import EffectModel, model_effects, updated_scenario
 from rollingstar.estimators.diagnosis.naming import Naming, name_effects
+from rollingstar.estimators.diagnosis.noise import NoiseCheck, scaled
+from rollingstar.estimators.diagnosis.noise import measure as measure_noise
 from rollingstar.estimators.diagnosis.observations import Observations
 from rollingstar.estimators.diagnosis.projection import ProjectionChoice, choose_projection, with_projection
+from rollingstar.estimators.diagnosis.signatures import candidate_signatures
 from rollingstar.estimators.diagnosis.verifying import Verification, verify
 from rollingstar.sensors.scenario import ScenarioConfig
 
@@ -48,6 +60,23 @@ class Diagnosis:
     verification: Verification
     projection: ProjectionChoice | None = None  # the lens projection's choice (None: not searched, narrow field)
     outlier_rounds: tuple = ()  # per round: the gate's model and the stars it rejected (model-aware outliers)
+    noise: NoiseCheck | None = None  # the recording's noise against the stated (None: too few repeated stars)
+    description: Description | None = None  # the shape of an unexplained systematic (None: none left, or none found)
+
+    def _named_thetas(self) -> list[np.ndarray]:
+        """The named effects' parameters, moved by what an empirical correction takes back from them."""
+        v, desc = self.verification, self.description
+        thetas = [np.asarray(t, dtype=float) for t in v.thetas]
+        if desc is None or desc.correction is None or desc.named_shift is None or not v.named:
+            return thetas
+        if desc.named_shift.size != sum(len(c.parameters) for c in v.named):
+            return thetas
+        out, i = [], 0
+        for c, t in zip(v.named, thetas):
+            k = len(c.parameters)
+            out.append(np.clip(t + c.scales * desc.named_shift[i:i + k], c.lower, c.upper))
+            i += k
+        return out
 
     @property
     def obs(self) -> Observations:
@@ -57,7 +86,16 @@ class Diagnosis:
     def updated_scenario(self) -> ScenarioConfig:
         """The input scenario with the named effects enabled at their fitted parameters."""
         v = self.verification
-        return updated_scenario(self.sensor.scenario, v.named, v.thetas)
+        out = updated_scenario(self.sensor.scenario, v.named, self._named_thetas())
+        if self.noise is not None and self.noise.applied and self.sensor.scenario.level == "centroid":
+            sigma = out.noise.centroid_sigma_px * self.noise.factor
+            out = out.model_copy(update={"noise": out.noise.model_copy(update={"centroid_sigma_px": sigma})})
+        if self.description is not None and self.description.correction is not None:
+            data = out.model_dump(mode="json")
+            data["effects"] = [*data["effects"], self.description.correction]
+            data["description"] += f"; empirical correction: {self.description.text}"
+            out = validate(ScenarioConfig, data, "<updated scenario>")
+        return out
 
 
 def diagnose(observations: Observations, attitudes: Rotation, scenario: ScenarioConfig, gyro: GyroData | None = None,
@@ -75,36 +113,68 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
         if choice is not None and choice.renamed:
             sensor = sensor_model(with_projection(scenario, choice))
         cands: dict[str, Candidate] = library(exclude=exclude_effects)
-        gate, gate_names, rounds = None, (), []
-        for _ in range(MAX_OUTLIER_ROUNDS):
-            location = locate(observations, attitudes, sensor, cands, gyro, options, gate)
-            naming = name_effects(location, sensor, cands, options)
-            model = model_effects(location.data, naming, sensor, options)
-            verification = verify(location, naming, model, sensor, cands, options)
-            rejected = location.data.n_rejected
-            rounds.append({"gate": list(gate_names), "rejected": rejected, "fraction": rejected / max(observations.n, 1)})
-            names = tuple(c.name for c in verification.named)
-            # the gate of the next round is the model this one named: stars its physics explains come
-            # back; a fixed point when a round names what its gate held
-            if not rejected or not names or names == gate_names:
-                break
-            gate_names = names
-            gate = sensor_model(updated_scenario(sensor.scenario, verification.named, verification.thetas))
-    return Diagnosis(sensor, location, naming, model, verification, choice, tuple(rounds))
+        steps = _outlier_rounds(observations, attitudes, sensor, cands, gyro, options)
+        data = steps[0].data
+        noise = measure_noise(data.obs, steps[0].prediction, data.train, data.att_mask, sensor.camera)
+        if noise is not None and noise.applied:
+            steps = _outlier_rounds(scaled(observations, noise), attitudes, sensor, cands, gyro, options)
+        shape = _describe(steps[0], steps[2], sensor) if steps[3].unexplained else None
+    return Diagnosis(sensor, *steps[:4], choice, steps[4], noise, shape)
+
+
+def _describe(location: Location, model: EffectModel, sensor: SensorModel) -> Description | None:
+    """The shape of the systematic the named model leaves (:mod:`.describe`), the named effects free."""
+    data = location.data
+    named = None
+    if model.chosen:
+        named = tuple(_named_rows(data, model, mask) for mask in (data.train, data.heldout))
+        named = None if any(n is None for n in named) else named
+    return describe(data.obs, model.prediction, data.train, sensor.camera, named)
+
+
+def _named_rows(data, model: EffectModel, mask) -> np.ndarray | None:
+    """The named effects' whitened, attitude-projected image rows on ``mask`` (N, q)."""
+    groups, _, _ = candidate_signatures(data.obs, model.prediction, {c.name: c for c in model.chosen}, model.effects, mask)
+    rows = 2 * int(mask.sum())  # image rows only (the gyro rows follow them)
+    return np.concatenate([g[:rows] for g in groups.values()], axis=1) if groups else None
+
+
+def _outlier_rounds(observations: Observations, attitudes: Rotation, sensor: SensorModel, cands: dict[str, Candidate],
+                    gyro: GyroData | None, options: DiagnoseOptions) -> tuple:
+    """The four steps in rounds of model-aware outlier rejection: the gross-outlier gate of each
+    round after the first is the model the previous round named (stars its physics explains come
+    back); a fixed point when a round names what its gate held. Returns the last round's
+    (location, naming, model, verification) and each round's gate and rejected fraction."""
+    gate, gate_names, rounds = None, (), []
+    for _ in range(MAX_OUTLIER_ROUNDS):
+        location = locate(observations, attitudes, sensor, cands, gyro, options, gate)
+        naming = name_effects(location, sensor, cands, options)
+        model = model_effects(location.data, naming, sensor, options)
+        verification = verify(location, naming, model, sensor, cands, options)
+        rejected = location.data.n_rejected
+        rounds.append({"gate": list(gate_names), "rejected": rejected, "fraction": rejected / max(observations.n, 1)})
+        names = tuple(c.name for c in verification.named)
+        if not rejected or not names or names == gate_names:
+            break
+        gate_names = names
+        gate = sensor_model(updated_scenario(sensor.scenario, verification.named, verification.thetas))
+    return location, naming, model, verification, tuple(rounds)
 
 
 def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
     """The report of ``d`` as one JSON-able dict; ``recording``, ``sim`` and ``pipeline`` name its inputs."""
     data, v, q = d.location.data, d.verification, d.verification.quality
     renamed = d.projection is not None and d.projection.renamed
+    noise_off = d.noise is not None and d.noise.applied
     out = {
         "recording": recording,
         "sim": sim,
         "pipeline": pipeline,
-        "mismatch": v.mismatch or renamed,
-        "verdict": _verdict(d.projection, v.verdict),
+        "mismatch": v.mismatch or renamed or noise_off,
+        "verdict": _verdict(d.projection, d.noise, v.verdict),
         "projection": d.projection.as_json() if d.projection is not None else None,
         "noise": {"sigma_px_median": float(np.median(data.obs.sigma)), "source": data.obs.sigma_source},
+        "noise_check": d.noise.as_json() if d.noise is not None else None,
         "rejected_outliers": data.n_rejected,
         "outlier_rounds": list(d.outlier_rounds),
         "split": {"unit": data.unit, "frames": data.obs.n_frames, "train_frames": data.n_train_frames,
@@ -119,7 +189,8 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
         "ambiguous": v.ambiguous,
         "absorbed_by_attitude": v.absorbed,
         "not_testable": d.location.untestable,
-        "unexplained_systematic": {"present": v.unexplained, "evidence": v.evidence, "tests": d.model.leftover_tests},
+        "unexplained_systematic": {"present": v.unexplained, "evidence": v.evidence, "tests": d.model.leftover_tests,
+                                   "description": d.description.as_json() if d.description is not None else None},
     }
     for key, pair in (("train_rms", q.train_rms_px), ("heldout_rms", q.heldout_rms_px)):
         out[f"{key}_before_px"], out[f"{key}_after_px"] = pair.before, pair.after
@@ -134,12 +205,19 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
         "heldout_confirms": v.heldout_confirms,
         "rejected_on_heldout": v.rejected_on_heldout,
     })
+    out["summary"] = summary.paragraph(out)
     return out
 
 
-def _verdict(projection: ProjectionChoice | None, verdict: str) -> str:
-    """The verdict, led by the lens projection when one replaced the declared one."""
-    if projection is None or not projection.renamed:
+def _verdict(projection: ProjectionChoice | None, noise: NoiseCheck | None, verdict: str) -> str:
+    """The verdict, led by the lens projection when one replaced the declared one and by the noise
+    factor when the recording's noise is not the stated one."""
+    lead = []
+    if projection is not None and projection.renamed:
+        lead.append(projection.sentence())
+    if noise is not None and noise.applied:
+        lead.append(noise.sentence())
+    if not lead:
         return verdict
     rest = verdict.replace("no mismatch: the simulation explains", "with it the simulation explains", 1)
-    return f"{projection.sentence()}; {rest}"
+    return "; ".join([*lead, rest])

@@ -29,6 +29,8 @@ class Candidate:
         self.name: str = effect_cls.name
         self.parameters = tuple(effect_cls.parameters)
         self.explanation: str = getattr(effect_cls, "explanation", "")
+        self.follows: str = getattr(effect_cls, "follows", "")
+        self.shown_by: str = getattr(effect_cls, "shown_by", "")
         self.aliases = tuple(getattr(effect_cls, "aliases", ()))
         self.channels = frozenset(getattr(effect_cls, "channels", frozenset({"image"})))
         self.needs = tuple(getattr(effect_cls(), "needs", ()))  # may be a property of the instance
@@ -86,8 +88,10 @@ class Candidate:
 
 
 def library(exclude=()) -> dict[str, Candidate]:
-    """Every registered effect as a candidate (by name), minus ``exclude``."""
-    return {name: Candidate(cls) for name, cls in sorted(EFFECTS.items()) if name not in set(exclude)}
+    """Every registered physical effect as a candidate (by name), minus ``exclude`` (empirical
+    shapes are never candidates: :mod:`rollingstar.sensors.effects.empirical`)."""
+    return {name: Candidate(cls) for name, cls in sorted(EFFECTS.items())
+            if name not in set(exclude) and not cls.empirical}
 
 
 def separating_experiment(a: Candidate, b) -> str:
@@ -100,6 +104,9 @@ def separating_experiment(a: Candidate, b) -> str:
         return alias.separating_experiment
     if bname in ("attitude", "rate"):
         return "an external attitude and rate reference (gyro, second tracker or surveyed mount) logged with the frames"
+    if a.follows and b.follows:  # from the two signatures: what each follows, and what would show it
+        ways = a.shown_by if a.shown_by == b.shown_by else f"{a.shown_by}, or {b.shown_by}"
+        return f"{a.name} follows {a.follows}, {bname} follows {b.follows}: {ways}"
     return (f"a measurement design in which {a.name} and {bname} move stars differently: vary the motion "
             "(rate reversal, another rotation axis, an inertial hold), the exposure time, and cover the whole "
             "field, centre to corners, with many stars")

@@ -30,6 +30,7 @@ from rollingstar.estimators.diagnosis.signatures import linear_problem
 
 MIN_INCLUSION = 0.5
 MAX_ROUNDS = 3  # rounds of nonlinear backward / linear forward refinement
+WALD_SLACK = 4.0  # an effect whose Wald delta BIC is this many times the margin is kept without a refit
 
 
 @dataclass(frozen=True, eq=False)
@@ -151,7 +152,12 @@ def select_nonlinear(data: Dataset, sensor: SensorModel, nuis0: Nuisance, cands:
 
 def backward_eliminate(data: Dataset, sensor: SensorModel, nuis0: Nuisance, cands: dict[str, Candidate],
                        names: list[str], fit: dict, min_delta_bic: float) -> tuple[list[str], dict, list[dict]]:
-    """Drop, one at a time, the effect that earns least nonlinear delta BIC while it is below the margin.
+    """Drop, one at a time, an effect whose nonlinear delta BIC is below the margin.
+
+    Candidates are tried in the order of their Wald delta BIC (from the full fit's covariance, no
+    refit): the first whose refit without it costs less than ``min_delta_bic`` is dropped. An effect
+    whose Wald delta BIC exceeds ``WALD_SLACK`` x the margin is not refitted: it earns its place by a
+    wide margin, and each refit is a nonlinear fit of every other effect and attitude.
 
     Returns the names kept, their fit, and ``{"dropped", "delta_bic_nonlinear"}`` per effect dropped.
     """
@@ -159,18 +165,38 @@ def backward_eliminate(data: Dataset, sensor: SensorModel, nuis0: Nuisance, cand
     while len(names) > 1:
         chosen = [cands[n] for n in names]  # the names fit["thetas"] belong to
         warm = {c.name: t for c, t in zip(chosen, fit["thetas"])}
-        worst, worst_bic, worst_fit = None, None, None
-        for n in names:
+        worst = None
+        for n, wald in wald_delta_bic(chosen, fit, data.n_residuals):
+            if wald >= WALD_SLACK * min_delta_bic:
+                break
             f = refit_chi2(data, sensor, nuis0, [cands[m] for m in names if m != n], warm)
             d = f["cost"] - fit["cost"] - len(cands[n].parameters) * np.log(data.n_residuals)
-            if worst_bic is None or d < worst_bic:
+            if d < min_delta_bic:
                 worst, worst_bic, worst_fit = n, d, f
-        if worst_bic >= min_delta_bic:
+                break
+        if worst is None:
             break
         names = [m for m in names if m != worst]
         fit = worst_fit
         dropped.append({"dropped": worst, "delta_bic_nonlinear": float(worst_bic)})
     return names, fit, dropped
+
+
+def wald_delta_bic(chosen: list[Candidate], fit: dict, n_residuals: int) -> list[tuple[str, float]]:
+    """Each effect's Wald delta BIC, ``dtheta^T C^-1 dtheta - p ln N`` from the fit's covariance,
+    ascending; an effect without a finite covariance comes first (-inf: refit it)."""
+    sig = np.concatenate([np.asarray(s, dtype=float) for s in fit["sigmas"]])
+    cov = np.asarray(fit["corr"], dtype=float) * np.outer(sig, sig)
+    out, i = [], 0
+    for c, theta in zip(chosen, fit["thetas"]):
+        k = len(c.parameters)
+        block, d = cov[i:i + k, i:i + k], np.asarray(theta, dtype=float) - c.defaults
+        i += k
+        if not np.all(np.isfinite(block)):
+            out.append((c.name, -np.inf))
+            continue
+        out.append((c.name, float(d @ np.linalg.pinv(block) @ d) - k * np.log(n_residuals)))
+    return sorted(out, key=lambda nw: nw[1])
 
 
 def drop_one_delta_bic(data: Dataset, sensor: SensorModel, nuis0: Nuisance, chosen: list[Candidate],

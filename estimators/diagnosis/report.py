@@ -129,7 +129,7 @@ def write_report(result: dict, d: Diagnosis, out_dir: Path) -> Path:
     loc = result["located"]
     parts = [f"<h1>rollingstar diagnose</h1><p><b>recording</b> {html.escape(result['recording'])}<br>"
              f"<b>simulation</b> {html.escape(str(result['sim']))}</p>",
-             f"<h2>Verdict</h2><p>{html.escape(result['verdict'])}</p>",
+             f"<h2>Verdict</h2><p>{html.escape(result['summary'])}</p><p><i>In one line:</i> {html.escape(result['verdict'])}</p>",
              "<h2>1. Locate</h2>",
              _table([["chi2 / dof (training)", _f(loc["chi2_dof"])], ["z of chi2 against the noise", _f(loc["z"])],
                      ["noise sigma (px)", f"{_f(result['noise']['sigma_px_median'])} ({result['noise']['source']})"],

@@ -12,9 +12,14 @@ stepwise selection over effect *groups* adds, at each step, the group that lower
 stops when no group lowers it by ``min_delta_bic`` (10: "very strong" evidence on the Kass &
 Raftery 1995 scale). Bootstrap inclusion probabilities repeat the selection on recordings
 resampled by whole frames (the unit the nuisance acts on). Two candidates are *ambiguous* when
-swapping one for the other changes BIC by less than ``bic_window`` points or when their projected
-signatures have a canonical correlation above ``corr_limit`` (0.95): the data cannot tell them
-apart, and the report names both and the experiment that would.
+swapping one for the other changes BIC by less than ``bic_window`` points, or when their projected
+signatures have a canonical correlation above ``corr_limit`` (0.95) and the swap costs less than
+``DECISIVE_SWAP_BIC``: the data cannot tell them apart, and the report names both and the
+experiment that would. A swap of 10 would be decisive for a correctly specified model; between
+signatures this collinear, a small misfit elsewhere (another effect, the noise model) moves the
+comparison by more, so a tenfold margin is asked before a correlated pair counts as told apart.
+Above it the pair is not reported as ambiguous, whatever the correlation: a swap costing
+thousands of BIC points is an answer.
 """
 from __future__ import annotations
 
@@ -27,6 +32,7 @@ from rollingstar.estimators.diagnosis.observations import frame_normal, solve_fr
 MIN_DELTA_BIC = 10.0
 BIC_WINDOW = 6.0
 CORR_LIMIT = 0.95
+DECISIVE_SWAP_BIC = 100.0  # a correlated pair whose swap costs this much is told apart (module doc)
 ABSORBED_FRACTION = 1e-6  # projected signature numerically zero against its raw norm: the attitude absorbs it
 
 
@@ -188,7 +194,7 @@ def ambiguities(problem: LinearProblem, selected: list[str], candidates: list[st
                 continue
             corr = canonical_correlation(design(problem, [g]), design(problem, [h]))
             swap = bic(problem, rest + [h]) - base
-            if corr > corr_limit or swap < bic_window:
+            if swap < bic_window or (corr > corr_limit and swap < DECISIVE_SWAP_BIC):
                 out.append({"selected": g, "alternative": h, "corr": corr, "delta_bic_swap": float(swap)})
     for i, g in enumerate(selected):  # two selected effects that trade off against each other
         for h in selected[i + 1:]:

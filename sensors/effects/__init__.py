@@ -25,6 +25,7 @@ from rollingstar.sensors.effects.base import (
 )
 from rollingstar.sensors.effects.boresight_rotation import BoresightRotation
 from rollingstar.sensors.effects.catalog_epoch import CatalogEpoch
+from rollingstar.sensors.effects.empirical import EmpiricalRipple, EmpiricalStep
 from rollingstar.sensors.effects.exposure_smear import ExposureSmear
 from rollingstar.sensors.effects.focal_length import FocalLength
 from rollingstar.sensors.effects.gyro_bias import GyroBias
@@ -43,7 +44,7 @@ from rollingstar.sensors.effects.time_offset import TimeOffset
 _CLASSES = (
     RollingShutter, ExposureSmear, RadialDistortion, TangentialDistortion, PrincipalPointOffset, FocalLength,
     BoresightRotation, StellarAberration, TimeOffset, GyroBias, GyroScale, ThermalFocalDrift, PixelPhaseBias,
-    MagnitudeBias, AngularAcceleration, CatalogEpoch, Refraction,
+    MagnitudeBias, AngularAcceleration, CatalogEpoch, Refraction, EmpiricalStep, EmpiricalRipple,
 )
 EFFECTS: dict[str, type[Effect]] = {cls.name: cls for cls in _CLASSES}
 
@@ -70,6 +71,7 @@ def build_effect(name: str, params: dict | None = None) -> Effect:
 __all__ = [
     "CHANNELS", "EFFECTS", "NUISANCE", "STAGE_DETECTOR", "STAGE_GYRO", "STAGE_OPTICS", "STAGE_SKY", "STAGE_TIME",
     "Alias", "AngularAcceleration", "BoresightRotation", "CatalogEpoch", "Effect", "EffectContext", "EffectParameter",
+    "EmpiricalRipple", "EmpiricalStep",
     "ExposureSmear", "FocalLength", "GyroBias", "GyroScale", "MagnitudeBias", "MissingContextError", "PixelPhaseBias",
     "PrincipalPointOffset", "RadialDistortion", "Refraction", "RollingShutter", "StellarAberration",
     "TangentialDistortion", "ThermalFocalDrift", "TimeOffset", "UnknownEffectError", "build_effect", "resolve",

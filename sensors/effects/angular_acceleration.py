@@ -30,6 +30,8 @@ class AngularAcceleration(Effect):
     """
 
     name: ClassVar[str] = "angular_acceleration"
+    follows: ClassVar[str] = "the square of each row's time from the frame centre (a rate change within the frame)"
+    shown_by: ClassVar[str] = "a rate ramp against a constant rate"
     synonyms: ClassVar[tuple[str, ...]] = ("rate_change", "acceleration")
     stage: ClassVar[int] = STAGE_SKY
     needs: ClassVar[tuple[str, ...]] = ("timing", "t0_ns")

@@ -53,6 +53,12 @@ Effect interface (class attributes)
 - ``image_level``: whether the image-level simulator can render it (False for biases that are
   properties of a centroid *estimator*, which an image simulation produces by itself);
 - ``explanation``: one paragraph a user can read;
+- ``empirical``: True for measured shapes written by a diagnosis (:mod:`.empirical`), which
+  a diagnosis never offers as candidates;
+- ``follows`` and ``shown_by``: what the displacement follows (``"r^3 from the principal point,
+  radially"``) and the measurement that shows that dependence best (``"stars out to the detector
+  corners"``); a diagnosis that cannot tell two effects apart without a declared alias builds its
+  separating experiment from these;
 - ``aliases``: :class:`Alias` entries: another effect (or ``"attitude"`` / ``"rate"``) whose
   signature is nearly collinear with this one, why, and the ``separating_experiment`` that tells
   them apart.
@@ -289,11 +295,14 @@ class Effect:
     synonyms: ClassVar[tuple[str, ...]] = ()
     parameters: ClassVar[tuple[EffectParameter, ...]] = ()
     explanation: ClassVar[str] = ""
+    follows: ClassVar[str] = ""  # what the displacement follows, e.g. "r^3 from the principal point"
+    shown_by: ClassVar[str] = ""  # the measurement that shows that dependence best
     aliases: ClassVar[tuple[Alias, ...]] = ()
     stage: ClassVar[int] = STAGE_OPTICS
     channels: ClassVar[frozenset[str]] = frozenset({"image"})
     needs: ClassVar[tuple[str, ...]] = ()
     image_level: ClassVar[bool] = True
+    empirical: ClassVar[bool] = False  # a measured shape (:mod:`.empirical`), never a diagnosis candidate
 
     def __init__(self, **values):
         valid = self.parameter_names()

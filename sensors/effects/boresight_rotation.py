@@ -26,6 +26,8 @@ class BoresightRotation(Effect):
     """
 
     name: ClassVar[str] = "boresight_rotation"
+    follows: ClassVar[str] = "a rotation of the field about the principal point (tangential, growing as r)"
+    shown_by: ClassVar[str] = "a turn about a cross-boresight axis measured by a gyro"
     synonyms: ClassVar[tuple[str, ...]] = ("detector_roll", "roll_misalignment")
     stage: ClassVar[int] = STAGE_SKY
     channels: ClassVar[frozenset[str]] = frozenset({"image", "attitude"})

@@ -21,6 +21,8 @@ class CatalogEpoch(Effect):
     """
 
     name: ClassVar[str] = "catalog_epoch"
+    follows: ClassVar[str] = "each star's catalogue proper motion"
+    shown_by: ClassVar[str] = "stars of large and small proper motion at equal magnitude"
     synonyms: ClassVar[tuple[str, ...]] = ("proper_motion", "epoch_error")
     stage: ClassVar[int] = STAGE_SKY
     needs: ClassVar[tuple[str, ...]] = ("attitude", "pm_rad_yr")

@@ -17,6 +17,8 @@ class ExposureSmear(TimeShiftEffect):
     weighting make ``b != 0``)."""
 
     name: ClassVar[str] = "exposure_smear"
+    follows: ClassVar[str] = "image velocity x exposure time"
+    shown_by: ClassVar[str] = "two exposure times at the same rate"
     synonyms: ClassVar[tuple[str, ...]] = ("smear", "smear_bias")
     needs: ClassVar[tuple[str, ...]] = ("omega_rad_s", "timing")
     time_needs: ClassVar[tuple[str, ...]] = ("timing",)

@@ -24,6 +24,8 @@ class FocalLength(Effect):
     """
 
     name: ClassVar[str] = "focal_length"
+    follows: ClassVar[str] = "the distance r from the principal point, radially, as r"
+    shown_by: ClassVar[str] = "stars out to the detector corners"
     synonyms: ClassVar[tuple[str, ...]] = ("plate_scale", "focal_length_error")
     stage: ClassVar[int] = STAGE_OPTICS
     parameters: ClassVar[tuple[EffectParameter, ...]] = (

@@ -22,6 +22,8 @@ class GyroBias(Effect):
     No image-plane signature (the Jacobian is zero)."""
 
     name: ClassVar[str] = "gyro_bias"
+    follows: ClassVar[str] = "a constant rate offset of the gyro"
+    shown_by: ClassVar[str] = "an inertial hold with the gyro logged"
     synonyms: ClassVar[tuple[str, ...]] = ("gyro_offset",)
     stage: ClassVar[int] = STAGE_GYRO
     channels: ClassVar[frozenset[str]] = frozenset({"gyro"})

@@ -21,6 +21,8 @@ class GyroScale(Effect):
     No image-plane signature."""
 
     name: ClassVar[str] = "gyro_scale"
+    follows: ClassVar[str] = "the gyro's rate, in proportion"
+    shown_by: ClassVar[str] = "two rates (or a reversal) with the gyro logged"
     synonyms: ClassVar[tuple[str, ...]] = ("gyro_scale_factor",)
     stage: ClassVar[int] = STAGE_GYRO
     channels: ClassVar[frozenset[str]] = frozenset({"gyro"})

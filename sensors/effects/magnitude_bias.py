@@ -22,6 +22,8 @@ class MagnitudeBias(Effect):
     """
 
     name: ClassVar[str] = "magnitude_bias"
+    follows: ClassVar[str] = "the star's magnitude"
+    shown_by: ClassVar[str] = "frames with a wide spread of magnitudes in the same region"
     synonyms: ClassVar[tuple[str, ...]] = ("brightness_bias", "charge_transfer_bias")
     stage: ClassVar[int] = STAGE_DETECTOR
     needs: ClassVar[tuple[str, ...]] = ("magnitude",)

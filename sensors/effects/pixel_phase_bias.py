@@ -24,6 +24,8 @@ class PixelPhaseBias(Effect):
     """
 
     name: ClassVar[str] = "pixel_phase_bias"
+    follows: ClassVar[str] = "the star's sub-pixel position"
+    shown_by: ClassVar[str] = "a slow drift of the stars across several pixels"
     synonyms: ClassVar[tuple[str, ...]] = ("s_curve", "pixel_locking")
     stage: ClassVar[int] = STAGE_DETECTOR
     image_level: ClassVar[bool] = False  # a property of the centroid estimator: images produce it by themselves

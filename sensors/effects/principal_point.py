@@ -22,6 +22,8 @@ class PrincipalPointOffset(Effect):
     """
 
     name: ClassVar[str] = "principal_point"
+    follows: ClassVar[str] = "nothing on the detector: a uniform shift of the field (plus a small scale term)"
+    shown_by: ClassVar[str] = "an external attitude reference, or a wide field"
     synonyms: ClassVar[tuple[str, ...]] = ("principal_point_offset", "boresight_offset")
     stage: ClassVar[int] = STAGE_OPTICS
     channels: ClassVar[frozenset[str]] = frozenset({"image", "attitude"})

@@ -27,6 +27,8 @@ class RadialDistortion(Effect):
     """
 
     name: ClassVar[str] = "radial_distortion"
+    follows: ClassVar[str] = "r^3 and r^5 from the principal point, radially"
+    shown_by: ClassVar[str] = "stars out to the detector corners"
     synonyms: ClassVar[tuple[str, ...]] = ("radial", "brown_conrady_radial", "distortion")
     stage: ClassVar[int] = STAGE_OPTICS
     parameters: ClassVar[tuple[EffectParameter, ...]] = (

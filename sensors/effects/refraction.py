@@ -30,6 +30,8 @@ class Refraction(Effect):
     """
 
     name: ClassVar[str] = "refraction"
+    follows: ClassVar[str] = "the zenith direction and cot(elevation)"
+    shown_by: ClassVar[str] = "several elevations, or a turn about the boresight"
     synonyms: ClassVar[tuple[str, ...]] = ("atmospheric_refraction",)
     stage: ClassVar[int] = STAGE_SKY
     needs: ClassVar[tuple[str, ...]] = ("attitude", "zenith_icrs")

@@ -16,6 +16,8 @@ class RollingShutter(TimeShiftEffect):
     """
 
     name: ClassVar[str] = "rolling_shutter"
+    follows: ClassVar[str] = "row x image velocity (flips sign with the rate)"
+    shown_by: ClassVar[str] = "a rate reversal or an inertial hold"
     synonyms: ClassVar[tuple[str, ...]] = ("line_delay", "line_delay_error")
     needs: ClassVar[tuple[str, ...]] = ("omega_rad_s",)
     parameters: ClassVar[tuple[EffectParameter, ...]] = (

@@ -26,6 +26,8 @@ class StellarAberration(Effect):
     """
 
     name: ClassVar[str] = "stellar_aberration"
+    follows: ClassVar[str] = "the angle to the observer's velocity (compression towards the apex)"
+    shown_by: ClassVar[str] = "pointings at different angles from the velocity vector"
     synonyms: ClassVar[tuple[str, ...]] = ("aberration", "velocity_aberration")
     stage: ClassVar[int] = STAGE_SKY
     needs: ClassVar[tuple[str, ...]] = ("attitude",)

@@ -25,6 +25,8 @@ class TangentialDistortion(Effect):
     """
 
     name: ClassVar[str] = "tangential_distortion"
+    follows: ClassVar[str] = "r^2 from the principal point, decentred"
+    shown_by: ClassVar[str] = "stars over the whole detector"
     synonyms: ClassVar[tuple[str, ...]] = ("tangential", "decentering_distortion", "decentring_distortion")
     stage: ClassVar[int] = STAGE_OPTICS
     parameters: ClassVar[tuple[EffectParameter, ...]] = (

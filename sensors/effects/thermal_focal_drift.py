@@ -28,6 +28,8 @@ class ThermalFocalDrift(Effect):
     """
 
     name: ClassVar[str] = "thermal_focal_drift"
+    follows: ClassVar[str] = "temperature (or time) x r"
+    shown_by: ClassVar[str] = "a temperature swing (or a long recording)"
     synonyms: ClassVar[tuple[str, ...]] = ("focal_drift", "thermal_drift")
     stage: ClassVar[int] = STAGE_OPTICS
     parameters: ClassVar[tuple[EffectParameter, ...]] = (

@@ -14,6 +14,8 @@ class TimeOffset(TimeShiftEffect):
     the gyro/truth clock): ``(x', y') = (x, y) + (vx, vy) dt`` to first order."""
 
     name: ClassVar[str] = "time_offset"
+    follows: ClassVar[str] = "image velocity x a constant time (a shift along the motion)"
+    shown_by: ClassVar[str] = "two exposure times, or a gyro through a rate reversal"
     synonyms: ClassVar[tuple[str, ...]] = ("clock_offset", "timestamp_offset")
     channels: ClassVar[frozenset[str]] = frozenset({"image", "time", "attitude"})
     needs: ClassVar[tuple[str, ...]] = ("omega_rad_s",)

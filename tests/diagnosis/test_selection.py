@@ -103,3 +103,19 @@ def test_group_absorbed_by_the_nuisance_is_dropped():
     # with a reach of 1e4 prior scales the faint group can show itself: kept
     p = sel.build_problem(rng.normal(size=n), projected, np.arange(n), raw, reach={"faint": np.array([1e4])})
     assert p.absorbed == ["zero"] and sorted(p.groups) == ["faint", "real"]
+
+
+def test_a_collinear_pair_the_data_decide_is_not_ambiguous():
+    """Correlation above the limit alone does not make a pair ambiguous when swapping costs more
+    than DECISIVE_SWAP_BIC: the strong signal picks its own group; the weak one stays ambiguous."""
+    rng = np.random.default_rng(5)
+    n = 600
+    a = rng.normal(size=(n, 1))
+    twin = a + 0.2 * rng.normal(size=(n, 1))
+    groups = {"a": a, "a_twin": twin}
+    assert sel.canonical_correlation(a, twin) > sel.CORR_LIMIT
+    strong = sel.select(_problem(5.0 * a[:, 0] + rng.normal(size=n), groups), n_boot=0)
+    assert strong["selected"] == ["a"]
+    assert strong["ambiguous"] == [], strong["ambiguous"]
+    weak = sel.select(_problem(0.3 * a[:, 0] + rng.normal(size=n), groups), n_boot=0)
+    assert weak["ambiguous"] and weak["ambiguous"][0]["delta_bic_swap"] < sel.DECISIVE_SWAP_BIC

@@ -75,6 +75,9 @@ def random_values(cls, rng, scale=3.0):
 
 
 NAMES = sorted(EFFECTS)
+# physical effects: every parameter has a first-order signature at the defaults; empirical shapes
+# (sensors/effects/empirical.py) have discrete choices and location parameters that do not
+PHYSICAL = [n for n in NAMES if not EFFECTS[n].empirical]
 REQUIRED = ("rolling_shutter", "exposure_smear", "radial_distortion", "tangential_distortion", "principal_point",
             "focal_length", "boresight_rotation", "stellar_aberration", "time_offset", "gyro_bias", "gyro_scale",
             "thermal_focal_drift", "pixel_phase_bias", "magnitude_bias", "angular_acceleration", "catalog_epoch",
@@ -146,7 +149,7 @@ def _fd_check(cls, ctx, values):
         np.testing.assert_allclose(gjac[:, :, j], (gp - gm) / (2 * h), rtol=1e-6, atol=1e-15 / h)
 
 
-@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("name", PHYSICAL)
 @settings(max_examples=8, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1))
 def test_jacobian_matches_finite_differences(name, seed):
@@ -155,7 +158,7 @@ def test_jacobian_matches_finite_differences(name, seed):
     _fd_check(cls, full_context(seed=seed % 1000, n=60), random_values(cls, rng))
 
 
-@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("name", PHYSICAL)
 def test_jacobian_at_defaults_is_the_signature(name):
     """At the defaults the Jacobian is the whole first-order signature: apply(p) - x ~ J p."""
     cls = EFFECTS[name]
@@ -296,7 +299,7 @@ def test_detection_limit_of_a_shift_without_nuisance_is_n_sigma_over_sqrt_n():
     assert detection_limit(PrincipalPointOffset(), ctx, 0.1, 5.0)["dx"] > 20 * lim["dx"]
 
 
-@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("name", PHYSICAL)
 def test_signature_rms_is_the_rms_of_the_jacobian(name):
     ctx = full_context()
     e = build_effect(name, {})
@@ -360,3 +363,35 @@ def test_effect_parameter_validation():
 def test_effects_doc_is_up_to_date():
     doc = ROOT / "docs" / "effects.md"
     assert doc.read_text() == render_markdown(), "regenerate: python -m rollingstar.sensors.effects.doc docs/effects.md"
+
+
+# ------------------------------------------------------------------------ empirical shapes
+def test_empirical_step_known_answer():
+    """The step moves the chosen axis of the stars beyond the chosen coordinate, nothing else."""
+    ctx = full_context(seed=3)
+    x2, y2 = EFFECTS["empirical_step"](axis=1.0, across=0.0, at_px=400.0, size_px=0.3).apply(ctx.x, ctx.y, ctx)
+    np.testing.assert_array_equal(x2, ctx.x)
+    np.testing.assert_allclose(y2 - ctx.y, 0.3 * (np.asarray(ctx.x) > 400.0))
+    with pytest.raises(ValueError, match="axis must be 0"):
+        EFFECTS["empirical_step"](axis=0.5).apply(ctx.x, ctx.y, ctx)
+
+
+@pytest.mark.parametrize("axis,along", [(0.0, 1.0), (1.0, 0.0)])
+def test_empirical_ripple_known_answer_and_jacobian(axis, along):
+    """The ripple is a sine of the chosen coordinate on the chosen axis; its Jacobian in period,
+    amplitude and phase matches finite differences."""
+    ctx = full_context(seed=4)
+    values = {"axis": axis, "along": along, "period_px": 150.0, "amplitude_px": 0.2, "phase_rad": 0.4}
+    eff = EFFECTS["empirical_ripple"](**values)
+    x2, y2 = eff.apply(ctx.x, ctx.y, ctx)
+    coord = np.asarray(ctx.y if along else ctx.x)
+    moved, still = (y2 - ctx.y, x2 - ctx.x) if axis else (x2 - ctx.x, y2 - ctx.y)
+    np.testing.assert_allclose(moved, 0.2 * np.sin(2 * np.pi * coord / 150.0 + 0.4))
+    np.testing.assert_array_equal(still, 0.0)
+    jac = eff.jacobian(ctx.x, ctx.y, ctx)
+    for k, name in ((2, "period_px"), (3, "amplitude_px"), (4, "phase_rad")):
+        h = 1e-6 * max(abs(values[name]), 1.0)
+        xp, yp = EFFECTS["empirical_ripple"](**{**values, name: values[name] + h}).apply(ctx.x, ctx.y, ctx)
+        xm, ym = EFFECTS["empirical_ripple"](**{**values, name: values[name] - h}).apply(ctx.x, ctx.y, ctx)
+        fd = np.stack([xp - xm, yp - ym], axis=-1) / (2 * h)
+        np.testing.assert_allclose(jac[:, :, k], fd, atol=1e-6)

@@ -1,0 +1,282 @@
+"""Describe what lies outside the library: the smallest generic shape that explains the residual left.
+
+When the named model leaves an unexplained systematic, the training residual (whitened, every
+frame's attitude projected out, as the selection sees it) is fitted by each shape below, and the one
+with the lowest BIC (``-delta chi2 + k ln N``, ``k`` its coefficients plus one per scanned
+location or period) is reported in words and numbers, checked on the held-out data, and written as
+an empirical correction (:mod:`rollingstar.sensors.effects.empirical`) when the library has one of
+its kind:
+
+- ``step``: one axis moves by ``a`` for stars beyond a column (or row), the position scanned
+  every ``STEP_GRID_PX`` and reported as the gap between the stars on either side;
+- ``ripple``: one axis follows ``a sin + b cos`` of ``2 pi coordinate / P``, ``P`` scanned on a
+  logarithmic grid from ``MIN_PERIOD_PX`` to twice the detector, then refined around the best;
+- the generic bases of :mod:`.catchall` (field polynomial, magnitude bins, pixel phase, row x
+  image velocity) as whole models.
+
+The named effects stay free while a shape is fitted (their signatures, at the fitted model, are
+projected out of every shape's columns): an effect that absorbed part of an out-of-library
+perturbation gives it back to the shape that describes it better.
+
+A shape is reported only when its chi-square drop is significant after the look-elsewhere
+correction of its scan (Bonferroni over the scanned values): z above :data:`.catchall.Z_LIMIT`.
+A described shape is a measurement, not an explanation: it says where and how big.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+from rollingstar.estimators.diagnosis import catchall, selection
+from rollingstar.estimators.diagnosis.observations import Observations, Prediction, whiten, whitened_residuals
+from rollingstar.estimators.diagnosis.residuals import z_from_sf
+
+STEP_GRID_PX = 4.0
+MIN_PERIOD_PX = 8.0
+N_PERIODS = 160
+CLOSE_BIC = 10.0  # a second shape this close is reported beside the best
+AXES = ("x", "y")
+COORDS = ("column", "row")
+
+
+@dataclass(frozen=True)
+class Shape:
+    """One fitted shape: its columns' coefficients on the training rows and how much they explain."""
+
+    kind: str
+    label: dict  # what identifies it: axis, coordinate, position or period
+    columns: np.ndarray  # (n, 2, k) px per unit coefficient, every star (not whitened)
+    coef: np.ndarray  # (k,) px
+    cov: np.ndarray  # (k, k) px^2
+    delta_chi2: float
+    scanned: int  # values scanned to find it (1: a fixed basis)
+
+    @property
+    def k(self) -> int:
+        return int(self.coef.size)
+
+    def bic(self, n_rows: int) -> float:
+        return -self.delta_chi2 + (self.k + (self.scanned > 1)) * np.log(n_rows)
+
+    def z(self) -> float:
+        p = min(1.0, float(stats.chi2.sf(self.delta_chi2, self.k)) * self.scanned)
+        return float(z_from_sf(p))
+
+
+@dataclass(frozen=True)
+class Description:
+    """The shape that describes the unexplained systematic, in words and numbers."""
+
+    shape: Shape
+    text: str
+    heldout_chi2: tuple[float, float] | None  # held-out chi-square before and after subtracting the shape
+    heldout_rows: int
+    alternatives: list[dict]  # every shape tried: kind, BIC, z
+    correction: dict | None  # scenario effect entry (empirical shape), None when the library has no such kind
+    named_shift: np.ndarray | None = None  # the named effects' (prior-scaled) change when the shape is added (q,)
+
+    def as_json(self) -> dict:
+        s = self.shape
+        return {"shape": s.kind, **s.label, "text": self.text, "coefficients_px": s.coef.tolist(),
+                "sigmas_px": np.sqrt(np.diag(s.cov)).tolist(), "delta_chi2": s.delta_chi2, "dof": s.k,
+                "z": s.z(), "heldout_chi2_before": None if self.heldout_chi2 is None else self.heldout_chi2[0],
+                "heldout_chi2_after": None if self.heldout_chi2 is None else self.heldout_chi2[1],
+                "heldout_rows": self.heldout_rows, "alternatives": self.alternatives, "correction": self.correction}
+
+
+def describe(obs: Observations, pred: Prediction, train: np.ndarray, camera,
+             named: tuple[np.ndarray, np.ndarray] | None = None) -> Description | None:
+    """The smallest shape explaining the residual ``pred`` leaves on ``train`` (None: none significant).
+
+    ``named``: the named effects' projected, whitened signature rows on the training and on the
+    held-out stars, ((N, q), (N_h, q)); free while each shape is fitted, and moved with it on the
+    held-out data."""
+    aj = _Projector(obs, pred, None if named is None else named[0])
+    r = aj.rows(whitened_residuals(obs, pred)[:, :, None], train)[:, 0]
+    shapes = [*_steps(obs, aj, r, train, camera), *_ripples(obs, aj, r, train, camera), *_bases(obs, pred, aj, r, train, camera)]
+    shapes = [s for s in shapes if s is not None]
+    if not shapes:
+        return None
+    n_rows = r.size
+    best = min(shapes, key=lambda s: s.bic(n_rows))
+    if best.bic(n_rows) >= 0 or best.z() <= catchall.Z_LIMIT:
+        return None
+    held = ~train
+    heldout, shift = None, None
+    if named is not None and named[0].size:  # the named effects' share, moved with the shape on training
+        shift = -np.linalg.pinv(named[0]) @ (aj.rows(whiten(obs, best.columns), train, free=False) @ best.coef)
+    if held.any():
+        rh = aj.rows(whitened_residuals(obs, pred)[:, :, None], held, free=False)[:, 0]
+        fitted = aj.rows(whiten(obs, best.columns), held, free=False) @ best.coef
+        if shift is not None:
+            fitted = fitted + named[1] @ shift
+        heldout = (float(rh @ rh), float(np.sum((rh - fitted) ** 2)))
+    alts = sorted(({"shape": s.kind, **s.label, "bic": float(s.bic(n_rows)), "z": s.z()} for s in _best_per_kind(shapes, n_rows)),
+                  key=lambda a: a["bic"])
+    text = _text(best, obs)
+    runner = min((s for s in shapes if s.kind != best.kind), key=lambda s: s.bic(n_rows), default=None)
+    if runner is not None and runner.bic(n_rows) - best.bic(n_rows) < CLOSE_BIC:
+        text += f" (about as likely, within {CLOSE_BIC:g} BIC: {_text(runner, obs)})"
+    return Description(best, text, heldout, int(2 * held.sum()), alts, _correction(best), shift)
+
+
+# ------------------------------------------------------------------------------------- shapes
+def _rows(p: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(n, 2, m) -> the rows of ``mask``: all x rows, then all y rows (the selection's order), (N, m)."""
+    return np.concatenate([p[mask, 0, :], p[mask, 1, :]])
+
+
+class _Projector:
+    """Whitened columns (n, 2, m) -> their rows with every frame's attitude and (on the training
+    rows) the named effects projected out."""
+
+    def __init__(self, obs: Observations, pred: Prediction, named: np.ndarray | None):
+        self.obs, self.aj = obs, whiten(obs, pred.att_jac)
+        self.q = None
+        if named is not None and named.size:
+            u, s, _ = np.linalg.svd(named, full_matrices=False)
+            self.q = u[:, s > 1e-8 * s[0]]
+
+    def rows(self, cols: np.ndarray, mask: np.ndarray, free: bool = True) -> np.ndarray:
+        g = _rows(selection.project_frames(self.obs.frame, self.obs.n_frames, self.aj, cols), mask)
+        if free and self.q is not None:
+            g = g - self.q @ (self.q.T @ g)
+        return g
+
+
+def _coords(obs: Observations) -> tuple[np.ndarray, np.ndarray]:
+    """The detector coordinates a shape can run along: column (x) and row (y) of every star."""
+    return obs.x, obs.y
+
+
+def _single_axis(values: np.ndarray, axis: int) -> np.ndarray:
+    """(n, m) per-star values -> (n, 2, m) columns moving ``axis`` only."""
+    out = np.zeros((values.shape[0], 2, values.shape[1]))
+    out[:, axis, :] = values
+    return out
+
+
+def _steps(obs, aj, r, train, camera) -> list[Shape]:
+    out = []
+    for c, coord in enumerate(_coords(obs)):
+        size = camera.width if c == 0 else camera.height
+        grid = np.arange(STEP_GRID_PX, size - STEP_GRID_PX, STEP_GRID_PX) - 0.5
+        beyond = (coord[:, None] > grid[None, :]).astype(float)
+        for axis in (0, 1):
+            cols = _single_axis(beyond, axis)
+            g = aj.rows(whiten(obs, cols), train)
+            gg = np.einsum("nm,nm->m", g, g)
+            ok = gg > 1e-9 * max(gg.max(initial=0.0), 1e-300)
+            if not ok.any():
+                continue
+            gr = g.T @ r
+            d = np.where(ok, gr**2 / np.where(ok, gg, 1.0), -np.inf)
+            j = int(np.argmax(d))
+            below, above = coord[train & (coord <= grid[j])], coord[train & (coord > grid[j])]
+            gap = [float(below.max()) if below.size else 0.0, float(above.min()) if above.size else float(size)]
+            label = {"axis": AXES[axis], "coordinate": COORDS[c], "position_px": 0.5 * (gap[0] + gap[1]), "between_px": gap}
+            out.append(Shape("step", label, cols[:, :, j:j + 1], np.array([gr[j] / gg[j]]), np.array([[1.0 / gg[j]]]),
+                             float(d[j]), 4 * int(ok.sum())))  # scanned: positions x 2 axes x 2 coordinates
+    return out
+
+
+def _ripples(obs, aj, r, train, camera) -> list[Shape]:
+    out = []
+    for c, coord in enumerate(_coords(obs)):
+        size = camera.width if c == 0 else camera.height
+        periods = np.geomspace(MIN_PERIOD_PX, 2.0 * size, N_PERIODS)
+        for axis in (0, 1):
+            best = _best_period(obs, aj, r, train, coord, axis, periods)
+            step = periods[1] / periods[0]
+            fine = np.linspace(best / step, best * step, 41)
+            best = _best_period(obs, aj, r, train, coord, axis, fine)
+            cols = _single_axis(_wave(coord, np.array([best])), axis)
+            shape = _fit("ripple", {"axis": AXES[axis], "coordinate": COORDS[c], "period_px": float(best)}, cols,
+                         obs, aj, r, train, 4 * N_PERIODS)
+            if shape is not None:
+                out.append(shape)
+    return out
+
+
+def _wave(coord: np.ndarray, periods: np.ndarray) -> np.ndarray:
+    """(n, 2P): sin then cos of ``2 pi coord / P`` for every period, interleaved per period."""
+    arg = 2.0 * np.pi * coord[:, None] / periods[None, :]
+    return np.stack([np.sin(arg), np.cos(arg)], axis=-1).reshape(coord.size, -1)
+
+
+def _best_period(obs, aj, r, train, coord, axis, periods) -> float:
+    g = aj.rows(whiten(obs, _single_axis(_wave(coord, periods), axis)), train)
+    g = g.reshape(g.shape[0], periods.size, 2)
+    a = np.einsum("npi,npj->pij", g, g) + 1e-12 * np.eye(2)
+    b = np.einsum("npi,n->pi", g, r)
+    d = np.einsum("pi,pi->p", b, np.linalg.solve(a, b[..., None])[..., 0])
+    return float(periods[int(np.argmax(d))])
+
+
+def _bases(obs, pred, aj, r, train, camera) -> list[Shape]:
+    return [_fit(name, {}, cols, obs, aj, r, train, 1) for name, cols in catchall.generic_bases(obs, pred, camera).items()]
+
+
+def _fit(kind: str, label: dict, cols: np.ndarray, obs, aj, r, train, scanned: int) -> Shape | None:
+    """Least-squares coefficients of ``cols`` (n, 2, k, px per unit) on the projected residual ``r``."""
+    g = aj.rows(whiten(obs, cols), train)
+    keep = np.linalg.norm(g, axis=0) > 1e-9 * max(np.linalg.norm(g, axis=0).max(initial=0.0), 1e-300)
+    if not keep.any() or r.size < 5 * keep.sum():
+        return None
+    g, cols = g[:, keep], cols[:, :, keep]
+    cov = np.linalg.pinv(g.T @ g)
+    coef = cov @ (g.T @ r)
+    return Shape(kind, label, cols, coef, cov, float(coef @ (g.T @ r)), scanned)
+
+
+def _best_per_kind(shapes: list[Shape], n_rows: int) -> list[Shape]:
+    best: dict[str, Shape] = {}
+    for s in shapes:
+        if s.kind not in best or s.bic(n_rows) < best[s.kind].bic(n_rows):
+            best[s.kind] = s
+    return list(best.values())
+
+
+# -------------------------------------------------------------------------------- words, scenario
+def _text(s: Shape, obs: Observations) -> str:
+    sig = np.sqrt(np.diag(s.cov))
+    if s.kind == "step":
+        lo, hi = s.label["between_px"]
+        return (f"{s.label['axis']} residual steps by {s.coef[0]:+.3g} +- {sig[0]:.2g} px across {s.label['coordinate']} "
+                f"{s.label['position_px']:.0f} (between the stars at {lo:.0f} and {hi:.0f}): stars beyond it are displaced")
+    if s.kind == "ripple":
+        amp = float(np.hypot(*s.coef))
+        amp_sigma = float(np.sqrt(s.coef @ s.cov @ s.coef)) / max(amp, 1e-300)
+        along = "rows" if s.label["coordinate"] == "row" else "columns"
+        return (f"ripple of period {s.label['period_px']:.0f} px along the {along}, amplitude {amp:.3g} +- {amp_sigma:.2g} px "
+                f"in {s.label['axis']}")
+    shift = np.einsum("nkm,m->nk", s.columns, s.coef)
+    worst = int(np.argmax(np.hypot(shift[:, 0], shift[:, 1])))
+    size = float(np.hypot(*shift[worst]))
+    if s.kind == "field polynomial":
+        return (f"a smooth field-wide displacement (cubic in the position), largest {size:.3g} px near "
+                f"({obs.x[worst]:.0f}, {obs.y[worst]:.0f})")
+    if s.kind == "magnitude bins":
+        k = s.coef.size // 2
+        return (f"an offset by magnitude quartile (brightest first): x {', '.join(f'{v:+.3g}' for v in s.coef[:k])} px, "
+                f"y {', '.join(f'{v:+.3g}' for v in s.coef[k:])} px")
+    if s.kind == "pixel phase":
+        return f"an S-curve against the sub-pixel position, up to {size:.3g} px"
+    return f"a {s.kind} pattern of up to {size:.3g} px"
+
+
+def _correction(s: Shape) -> dict | None:
+    """The scenario entry of an empirical shape that reproduces ``s`` (None: no empirical kind for it)."""
+    axis = float(AXES.index(s.label["axis"])) if "axis" in s.label else None
+    if s.kind == "step":
+        return {"kind": "empirical_step", "params": {"axis": axis, "across": float(COORDS.index(s.label["coordinate"])),
+                                                      "at_px": s.label["position_px"], "size_px": float(s.coef[0])}}
+    if s.kind == "ripple":
+        a_sin, a_cos = s.coef
+        return {"kind": "empirical_ripple", "params": {"axis": axis, "along": float(COORDS.index(s.label["coordinate"])),
+                                                        "period_px": s.label["period_px"],
+                                                        "amplitude_px": float(np.hypot(a_sin, a_cos)),
+                                                        "phase_rad": float(np.arctan2(a_cos, a_sin))}}
+    return None

@@ -1,0 +1,111 @@
+"""The recording's noise against the noise the diagnosis was told: one factor, measured from the
+frame-to-frame scatter of the same stars.
+
+Every effect of the library moves a star's residual smoothly over the detector and in time. A star
+seen in two consecutive frames sits at almost the same place, row time and image speed in both, so
+the difference of its two whitened residuals cancels what such an effect does and keeps
+``sqrt(2)`` times the white noise. The RMS of those differences over ``sqrt(2)`` is the factor by
+which the stated noise is wrong, measured without modelling the physics first. Differences beyond
+``CLIP`` robust sigmas (a rate reversal at that frame boundary, a wrong identification) are left
+out; at 5 sigma that clips a normal sample's RMS by less than 0.01 %.
+
+Each frame's attitude is fitted to its own stars, which takes part of their noise into the fit: a
+residual's expected variance is ``1 - h`` of the noise's, with ``h`` the star's leverage on its
+frame's attitude (half the trace of its 2 x 2 block of the hat matrix; 3 / (2 n) on average over
+a frame of ``n`` stars, 17 % at 9 stars). Each difference is divided by its expected spread
+(studentised residuals) before the scale is taken.
+
+Every pair of consecutive frames is used; differences along one star's chain share an
+observation (correlation -1/2 between neighbours), so the standard error of ``ln(factor)`` from
+``m`` differences is ``sqrt(0.75 / m)`` instead of ``sqrt(0.5 / m)`` (variance of a mean of squares
+with neighbour correlation rho^2 = 1/4: 1 + 2/4). Only training stars are used, so the held-out
+test stays independent.
+
+The factor is applied (every sigma and covariance scaled, and the diagnosis run again) when it is
+beyond sampling (``NOISE_Z`` standard errors) and beyond ``MIN_CHANGE``: a noise model off by a
+few per cent changes no decision. A recording whose smooth physics changes much between two frames
+(a rate reversal at that frame boundary) contributes a few large differences; the median ignores them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from rollingstar.estimators.diagnosis.observations import Observations, Prediction, whiten, whitened_residuals
+from rollingstar.sensors.effects.geometry import rotation_jacobian
+
+MAD_TO_SIGMA = 1.4826
+CLIP = 5.0  # differences beyond this many robust sigmas are not noise
+CHAIN_VARIANCE = 0.75  # m * var(ln s) from m differences along stars' chains (module doc)
+MIN_DIFFERENCES = 40  # fewer differences (x and y of 20 pairs): the factor is not measured
+NOISE_Z = 4.0  # two-sided p = 6e-5 of applying a factor to a recording whose stated noise is right
+MIN_CHANGE = 0.05  # |ln factor| below this is not applied (5 %)
+
+
+@dataclass(frozen=True)
+class NoiseCheck:
+    """The measured noise factor: recorded noise / stated noise."""
+
+    factor: float
+    sigma_ln: float  # standard error of ln(factor)
+    pairs: int  # differences taken: a star seen in two consecutive frames (training stars)
+    stated_source: str  # where the stated noise came from (the recording, the scenario)
+    applied: bool
+
+    def as_json(self) -> dict:
+        return {"factor": self.factor, "factor_sigma": self.factor * self.sigma_ln, "pairs": self.pairs,
+                "stated_source": self.stated_source, "applied": self.applied,
+                "method": "RMS of the differences of the same star's studentised residuals in consecutive frames / sqrt(2)"}
+
+    def sentence(self) -> str:
+        """The noise-model mismatch in words (only meaningful when applied)."""
+        return (f"noise-model mismatch: the recording's centroid noise is {self.factor:.2f} +- "
+                f"{self.factor * self.sigma_ln:.2f} x the stated ({self.stated_source}), measured from "
+                f"{self.pairs} stars seen in consecutive frames; not library physics, the diagnosis used the measured noise")
+
+
+def measure(obs: Observations, pred: Prediction, use: np.ndarray, att_mask: np.ndarray, camera) -> NoiseCheck | None:
+    """The noise factor of ``obs`` against ``pred`` over the stars ``use`` (None: too few pairs);
+    ``att_mask``: the stars each frame's attitude was fitted to."""
+    first, second = consecutive_pairs(obs, use)
+    if 2 * first.size < MIN_DIFFERENCES:
+        return None
+    w = whitened_residuals(obs, pred)
+    spread = 1.0 - attitude_leverage(obs, pred, att_mask, camera)
+    diff = ((w[second] - w[first]) / np.sqrt(spread[first] + spread[second])[:, None]).ravel()
+    robust = MAD_TO_SIGMA * float(np.median(np.abs(diff)))
+    diff = diff[np.abs(diff) <= CLIP * robust]
+    if diff.size < MIN_DIFFERENCES or robust <= 0.0:
+        return None
+    factor = float(np.sqrt(np.mean(diff**2)))
+    sigma_ln = float(np.sqrt(CHAIN_VARIANCE / diff.size))
+    big = abs(np.log(factor)) > max(NOISE_Z * sigma_ln, MIN_CHANGE)
+    return NoiseCheck(factor, sigma_ln, int(first.size), obs.sigma_source, bool(big))
+
+
+def attitude_leverage(obs: Observations, pred: Prediction, att_mask: np.ndarray, camera) -> np.ndarray:
+    """Each star's leverage on its frame's attitude fit (n,): half the trace of its 2 x 2 hat block
+    (0 for stars the attitude was not fitted to)."""
+    jac = whiten(obs, rotation_jacobian(camera, pred.x, pred.y))  # (n, 2, 3) in noise units
+    info = np.zeros((obs.n_frames, 3, 3))
+    np.add.at(info, obs.frame[att_mask], np.einsum("nki,nkj->nij", jac[att_mask], jac[att_mask]))
+    cov = np.linalg.pinv(info)[obs.frame]
+    h = np.einsum("nki,nij,nkj->n", jac, cov, jac) / 2.0
+    return np.where(att_mask, np.clip(h, 0.0, 0.9), 0.0)
+
+
+def consecutive_pairs(obs: Observations, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of the same catalogue star in consecutive frames (both in ``use``)."""
+    idx = np.flatnonzero(use & (obs.catalog_id >= 0))
+    order = idx[np.lexsort((obs.frame[idx], obs.catalog_id[idx]))]
+    a, b = order[:-1], order[1:]
+    same = (obs.catalog_id[a] == obs.catalog_id[b]) & (obs.frame[b] == obs.frame[a] + 1)
+    return a[same], b[same]
+
+
+def scaled(obs: Observations, check: NoiseCheck) -> Observations:
+    """``obs`` with every sigma (and covariance) scaled by the measured factor."""
+    f = check.factor
+    return replace(obs, sigma=obs.sigma * f, cov=None if obs.cov is None else obs.cov * f * f,
+                   sigma_source=f"{obs.sigma_source}, scaled by {f:.3g} (measured noise factor)")

@@ -1,0 +1,79 @@
+"""The paragraph a diagnosis report leads with: what differs, how big, how sure, what improved on
+held-out data, what the data cannot tell apart, what is left, and what this recording cannot test.
+
+Built from the report's JSON object (:func:`.algorithm.as_json`) alone, so that the console, the
+HTML report and a user reading ``result.json`` see the same words.
+"""
+from __future__ import annotations
+
+
+def paragraph(result: dict) -> str:
+    """One paragraph summarising ``result`` (a :func:`.algorithm.as_json` object)."""
+    parts = [_what_differs(result), _heldout(result), *_ambiguous(result), _unexplained(result), _untestable(result)]
+    return " ".join(p for p in parts if p)
+
+
+def _what_differs(r: dict) -> str:
+    if not r["mismatch"]:
+        return "No mismatch: the simulation explains this recording within its noise."
+    found = []
+    proj = r.get("projection")
+    if proj and proj["named"] != proj["declared"]:
+        found.append(f"the lens projection is {proj['named']}, not the declared {proj['declared']}")
+    noise = r.get("noise_check")
+    if noise and noise.get("applied"):
+        found.append(f"the centroid noise is {noise['factor']:.2f} +- {noise['factor_sigma']:.2f} x the stated "
+                     f"(white: not library physics)")
+    found += [_effect(e) for e in r["effects"]]
+    if not found:
+        return "The simulation misses this recording, and no library effect explains it."
+    return "What differs: " + "; ".join(found) + "."
+
+
+def _effect(e: dict) -> str:
+    values = []
+    for name, p in e["params"].items():
+        sig = p["sigma"]
+        z = abs(p["value"]) / sig if sig and sig > 0 else None
+        values.append(f"{name} = {p['value']:.4g} +- {sig:.2g}" + (f" {p['unit']}" if p["unit"] not in ("", "1") else "") + (f" ({z:.0f} sigma)" if z is not None and z >= 1 else ""))
+    sure = e["confidence"] + (f", because: {', '.join(e['tentative_because'])}" if e.get("tentative_because") else "")
+    return f"{e['name']} ({', '.join(values)}; {sure})"
+
+
+def _heldout(r: dict) -> str:
+    before, after = r.get("heldout_rms_before_px"), r.get("heldout_rms_after_px")
+    if before is None or after is None:
+        return "No held-out data to check the fit on."
+    split = r["split"]
+    noise = r["noise"]["sigma_px_median"]
+    text = (f"On the {split['heldout_observations']} held-out stars ({split['heldout_frames']} frames the fit never saw), "
+            f"RMS per axis {before:.3g} -> {after:.3g} px against a noise of {noise:.3g} px")
+    cb, ca = r.get("heldout_chi2_dof_before"), r.get("heldout_chi2_dof_after")
+    if cb is not None and ca is not None:
+        text += f", chi2/dof {cb:.3g} -> {ca:.3g}"
+    if r["mismatch"] and not r.get("heldout_confirms", True):
+        text += " (no held-out improvement: nothing is claimed)"
+    return text + "."
+
+
+def _ambiguous(r: dict) -> list[str]:
+    return [f"Cannot tell {a['candidates'][0]} from {a['candidates'][1]} here (swap costs {a['delta_bic_swap']:.3g} BIC); "
+            f"to separate them: {a['separating_experiment']}." for a in r["ambiguous"]]
+
+
+def _unexplained(r: dict) -> str:
+    u = r["unexplained_systematic"]
+    if not u["present"]:
+        return ""
+    desc = u.get("description")
+    if desc:
+        return f"Left unexplained (outside the library): {desc['text']}."
+    return "Left unexplained (outside the library): " + ", ".join(f"{e['basis']} (z = {e['z']:.1f})" for e in u["evidence"]) + "."
+
+
+def _untestable(r: dict) -> str:
+    rows = [f"{a['name']} ({a['separating_experiment']})" for a in r.get("absorbed_by_attitude", [])]
+    rows += [f"{a['name']} ({a['reason']})" for a in r.get("not_testable", [])]
+    if not rows:
+        return ""
+    return "Not testable in this recording: " + "; ".join(rows) + "."
