@@ -115,7 +115,7 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
         cands: dict[str, Candidate] = library(exclude=exclude_effects)
         steps = _outlier_rounds(observations, attitudes, sensor, cands, gyro, options)
         data = steps[0].data
-        noise = measure_noise(data.obs, steps[0].prediction, data.train, data.att_mask, sensor.camera)
+        noise = measure_noise(data.obs, steps[2].prediction, data.train, data.att_mask, sensor.camera)
         if noise is not None and noise.applied:
             steps = _outlier_rounds(scaled(observations, noise), attitudes, sensor, cands, gyro, options)
         shape = _describe(steps[0], steps[2], sensor) if steps[3].unexplained else None

@@ -4,7 +4,10 @@ frame-to-frame scatter of the same stars.
 Every effect of the library moves a star's residual smoothly over the detector and in time. A star
 seen in two consecutive frames sits at almost the same place, row time and image speed in both, so
 the difference of its two whitened residuals cancels what such an effect does and keeps
-``sqrt(2)`` times the white noise. The RMS of those differences over ``sqrt(2)`` is the factor by
+``sqrt(2)`` times the white noise. Only pairs that moved less than ``MAX_SHIFT_FRACTION`` of the
+detector between the frames count (consecutive images of unrelated scenes, or a fast slew, give
+none), and the residuals are those of the model the diagnosis named, so that strong physics it
+has modelled does not leak into the differences. The RMS of those differences over ``sqrt(2)`` is the factor by
 which the stated noise is wrong, measured without modelling the physics first. Differences beyond
 ``CLIP`` robust sigmas (a rate reversal at that frame boundary, a wrong identification) are left
 out; at 5 sigma that clips a normal sample's RMS by less than 0.01 %.
@@ -41,6 +44,7 @@ CHAIN_VARIANCE = 0.75  # m * var(ln s) from m differences along stars' chains (m
 MIN_DIFFERENCES = 40  # fewer differences (x and y of 20 pairs): the factor is not measured
 NOISE_Z = 4.0  # two-sided p = 6e-5 of applying a factor to a recording whose stated noise is right
 MIN_CHANGE = 0.05  # |ln factor| below this is not applied (5 %)
+MAX_SHIFT_FRACTION = 1.0 / 32.0  # a pair's star moved less than this share of the detector's larger side
 
 
 @dataclass(frozen=True)
@@ -69,6 +73,9 @@ def measure(obs: Observations, pred: Prediction, use: np.ndarray, att_mask: np.n
     """The noise factor of ``obs`` against ``pred`` over the stars ``use`` (None: too few pairs);
     ``att_mask``: the stars each frame's attitude was fitted to."""
     first, second = consecutive_pairs(obs, use)
+    near = np.hypot(pred.x[second] - pred.x[first], pred.y[second] - pred.y[first]) \
+        < MAX_SHIFT_FRACTION * max(camera.width, camera.height)
+    first, second = first[near], second[near]
     if 2 * first.size < MIN_DIFFERENCES:
         return None
     w = whitened_residuals(obs, pred)

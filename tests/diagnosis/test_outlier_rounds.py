@@ -45,6 +45,7 @@ def test_stars_the_named_distortion_explains_come_back(strong_distortion):
     k1, sigma = d.model.thetas[0][0], d.model.fit["sigmas"][0][0]
     assert abs(k1 - K1) < 4 * sigma, (k1, sigma)
     assert d.verification.quality.heldout_rms_px.after < 1.2 * 0.05
+    assert d.noise is not None and not d.noise.applied, d.noise  # the modelled distortion is not taken for noise
 
 
 def test_misidentified_stars_stay_out(strong_distortion):
