@@ -35,7 +35,7 @@ from rollingstar.estimators.diagnosis.gyro_channel import GyroData
 from rollingstar.estimators.diagnosis.inputs import DiagnoseOptions, SensorModel, sensor_model
 from rollingstar.estimators.diagnosis.library import Candidate, library
 from rollingstar.estimators.diagnosis.locating import Location, locate
-from rollingstar.estimators.diagnosis.modelling import EffectModel, model_effects, updated_scenario
+from rollingstar.estimators.diagnosis.modelling import EffectModel, known_noise, model_effects, updated_scenario
 from rollingstar.estimators.diagnosis.naming import Naming, name_effects
 from rollingstar.estimators.diagnosis.noise import NoiseCheck, scaled
 from rollingstar.estimators.diagnosis.noise import measure as measure_noise
@@ -62,21 +62,7 @@ class Diagnosis:
     outlier_rounds: tuple = ()  # per round: the gate's model and the stars it rejected (model-aware outliers)
     noise: NoiseCheck | None = None  # the recording's noise against the stated (None: too few repeated stars)
     description: Description | None = None  # the shape of an unexplained systematic (None: none left, or none found)
-
-    def _named_thetas(self) -> list[np.ndarray]:
-        """The named effects' parameters, moved by what an empirical correction takes back from them."""
-        v, desc = self.verification, self.description
-        thetas = [np.asarray(t, dtype=float) for t in v.thetas]
-        if desc is None or desc.correction is None or desc.named_shift is None or not v.named:
-            return thetas
-        if desc.named_shift.size != sum(len(c.parameters) for c in v.named):
-            return thetas
-        out, i = [], 0
-        for c, t in zip(v.named, thetas):
-            k = len(c.parameters)
-            out.append(np.clip(t + c.scales * desc.named_shift[i:i + k], c.lower, c.upper))
-            i += k
-        return out
+    uncorrected_evidence: tuple = ()  # the systematic's evidence before its empirical correction joined the model
 
     @property
     def obs(self) -> Observations:
@@ -84,18 +70,19 @@ class Diagnosis:
         return self.location.data.obs
 
     def updated_scenario(self) -> ScenarioConfig:
-        """The input scenario with the named effects enabled at their fitted parameters."""
+        """The input scenario with the named effects enabled at their fitted parameters (and, when
+        the diagnosis measured them, the noise and an empirical correction)."""
         v = self.verification
-        out = updated_scenario(self.sensor.scenario, v.named, self._named_thetas())
+        out = updated_scenario(self.sensor.scenario, v.named, v.thetas)
         if self.noise is not None and self.noise.applied and self.sensor.scenario.level == "centroid":
-            sigma = out.noise.centroid_sigma_px * self.noise.factor
+            sigma = self.noise.stated_sigma_px * self.noise.factor  # the stated noise may be the recording's
             out = out.model_copy(update={"noise": out.noise.model_copy(update={"centroid_sigma_px": sigma})})
-        if self.description is not None and self.description.correction is not None:
-            data = out.model_dump(mode="json")
-            data["effects"] = [*data["effects"], self.description.correction]
-            data["description"] += f"; empirical correction: {self.description.text}"
-            out = validate(ScenarioConfig, data, "<updated scenario>")
         return out
+
+    @property
+    def corrected(self) -> bool:
+        """Whether an empirical correction of a shape outside the library is part of the model."""
+        return self.description is not None and self.description.correction is not None
 
 
 def diagnose(observations: Observations, attitudes: Rotation, scenario: ScenarioConfig, gyro: GyroData | None = None,
@@ -114,17 +101,36 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
             sensor = sensor_model(with_projection(scenario, choice))
         cands: dict[str, Candidate] = library(exclude=exclude_effects)
         steps = _outlier_rounds(observations, attitudes, sensor, cands, gyro, options)
-        data = steps[0].data
-        noise = measure_noise(data.obs, steps[2].prediction, data.train, data.att_mask, sensor.camera)
+        data, noise = steps[0].data, None
+        if known_noise(data):  # a noise estimated from the residuals has nothing to be measured against
+            noise = measure_noise(data.obs, steps[2].prediction, data.train, data.att_mask, sensor.camera)
         if noise is not None and noise.applied:
             steps = _outlier_rounds(scaled(observations, noise), attitudes, sensor, cands, gyro, options)
-        shape = _describe(steps[0], steps[2], sensor) if steps[3].unexplained else None
-    return Diagnosis(sensor, *steps[:4], choice, steps[4], noise, shape)
+        obs_used = scaled(observations, noise) if noise is not None and noise.applied else observations
+        shape = _describe(steps[0], steps[2], steps[3], sensor) if steps[3].unexplained else None
+        evidence = tuple(steps[3].evidence)
+        if shape is not None and shape.correction is not None:
+            # the shape joins the model as given and the physics is named again: an effect that only
+            # absorbed part of the shape is no longer needed
+            sensor = sensor_model(with_correction(sensor.scenario, shape))
+            steps = _outlier_rounds(obs_used, attitudes, sensor, cands, gyro, options)
+    return Diagnosis(sensor, *steps[:4], choice, steps[4], noise, shape, evidence)
 
 
-def _describe(location: Location, model: EffectModel, sensor: SensorModel) -> Description | None:
-    """The shape of the systematic the named model leaves (:mod:`.describe`), the named effects free."""
+def with_correction(scenario: ScenarioConfig, shape: Description) -> ScenarioConfig:
+    """``scenario`` with the empirical correction of ``shape`` added to its effects."""
+    data = scenario.model_dump(mode="json")
+    data["effects"] = [*data["effects"], shape.correction]
+    data["description"] = (data["description"] + "; " if data["description"] else "") + f"empirical correction: {shape.text}"
+    return validate(ScenarioConfig, data, "<scenario with an empirical correction>")
+
+
+def _describe(location: Location, model: EffectModel, verification: Verification, sensor: SensorModel) -> Description | None:
+    """The shape of the systematic the named model leaves (:mod:`.describe`), the named effects free;
+    the model as given when the named one was rejected on the held-out data."""
     data = location.data
+    if not verification.named:
+        return describe(data.obs, location.prediction, data.train, sensor.camera)
     named = None
     if model.chosen:
         named = tuple(_named_rows(data, model, mask) for mask in (data.train, data.heldout))
@@ -170,8 +176,8 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
         "recording": recording,
         "sim": sim,
         "pipeline": pipeline,
-        "mismatch": v.mismatch or renamed or noise_off,
-        "verdict": _verdict(d.projection, d.noise, v.verdict),
+        "mismatch": v.mismatch or renamed or noise_off or d.description is not None,
+        "verdict": _verdict(d.projection, d.noise, d.description, v.verdict),
         "projection": d.projection.as_json() if d.projection is not None else None,
         "noise": {"sigma_px_median": float(np.median(data.obs.sigma)), "source": data.obs.sigma_source},
         "noise_check": d.noise.as_json() if d.noise is not None else None,
@@ -189,8 +195,11 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
         "ambiguous": v.ambiguous,
         "absorbed_by_attitude": v.absorbed,
         "not_testable": d.location.untestable,
-        "unexplained_systematic": {"present": v.unexplained, "evidence": v.evidence, "tests": d.model.leftover_tests,
-                                   "description": d.description.as_json() if d.description is not None else None},
+        "unexplained_systematic": {"present": v.unexplained or d.description is not None,
+                                   "evidence": list(d.uncorrected_evidence) if d.corrected else v.evidence,
+                                   "tests": d.model.leftover_tests,
+                                   "description": d.description.as_json() if d.description is not None else None,
+                                   "left_after_correction": v.evidence if d.corrected else None},
     }
     for key, pair in (("train_rms", q.train_rms_px), ("heldout_rms", q.heldout_rms_px)):
         out[f"{key}_before_px"], out[f"{key}_after_px"] = pair.before, pair.after
@@ -209,14 +218,19 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
     return out
 
 
-def _verdict(projection: ProjectionChoice | None, noise: NoiseCheck | None, verdict: str) -> str:
-    """The verdict, led by the lens projection when one replaced the declared one and by the noise
-    factor when the recording's noise is not the stated one."""
+def _verdict(projection: ProjectionChoice | None, noise: NoiseCheck | None, description: Description | None,
+             verdict: str) -> str:
+    """The verdict, led by the lens projection when one replaced the declared one, by the noise
+    factor when the recording's noise is not the stated one, and by a shape outside the library
+    when one was described."""
     lead = []
     if projection is not None and projection.renamed:
         lead.append(projection.sentence())
     if noise is not None and noise.applied:
         lead.append(noise.sentence())
+    if description is not None:
+        lead.append(f"outside the library: {description.text}" +
+                    (" (written as an empirical correction)" if description.correction is not None else ""))
     if not lead:
         return verdict
     rest = verdict.replace("no mismatch: the simulation explains", "with it the simulation explains", 1)

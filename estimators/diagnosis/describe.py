@@ -9,10 +9,13 @@ its kind:
 
 - ``step``: one axis moves by ``a`` for stars beyond a column (or row), the position scanned
   every ``STEP_GRID_PX`` and reported as the gap between the stars on either side;
-- ``ripple``: one axis follows ``a sin + b cos`` of ``2 pi coordinate / P``, ``P`` scanned on a
-  logarithmic grid from ``MIN_PERIOD_PX`` to twice the detector, then refined around the best;
-- the generic bases of :mod:`.catchall` (field polynomial, magnitude bins, pixel phase, row x
-  image velocity) as whole models.
+- ``ripple``: one axis follows ``a sin + b cos`` of ``2 pi coordinate / P``, the frequency ``1 / P``
+  scanned uniformly from half a cycle over the detector to ``1 / MIN_PERIOD_PX``, a quarter cycle
+  over the detector apart, then refined around the best;
+- the generic bases of :mod:`.catchall` (field cells, field polynomial, magnitude bins, pixel
+  phase, row x image velocity) as whole models, each reduced to the directions the attitudes do
+  not absorb (rank cut of its projected columns, as the catch-all test does); their size is
+  reported as the displacement they fit after the attitudes, not as coefficients.
 
 The named effects stay free while a shape is fitted (their signatures, at the fitted model, are
 projected out of every shape's columns): an effect that absorbed part of an out-of-library
@@ -35,7 +38,6 @@ from rollingstar.estimators.diagnosis.residuals import z_from_sf
 
 STEP_GRID_PX = 4.0
 MIN_PERIOD_PX = 8.0
-N_PERIODS = 160
 CLOSE_BIC = 10.0  # a second shape this close is reported beside the best
 AXES = ("x", "y")
 COORDS = ("column", "row")
@@ -52,10 +54,11 @@ class Shape:
     cov: np.ndarray  # (k, k) px^2
     delta_chi2: float
     scanned: int  # values scanned to find it (1: a fixed basis)
+    rank: int | None = None  # independent directions fitted, when fewer than the columns
 
     @property
     def k(self) -> int:
-        return int(self.coef.size)
+        return int(self.coef.size) if self.rank is None else self.rank
 
     def bic(self, n_rows: int) -> float:
         return -self.delta_chi2 + (self.k + (self.scanned > 1)) * np.log(n_rows)
@@ -115,11 +118,15 @@ def describe(obs: Observations, pred: Prediction, train: np.ndarray, camera,
         heldout = (float(rh @ rh), float(np.sum((rh - fitted) ** 2)))
     alts = sorted(({"shape": s.kind, **s.label, "bic": float(s.bic(n_rows)), "z": s.z()} for s in _best_per_kind(shapes, n_rows)),
                   key=lambda a: a["bic"])
-    text = _text(best, obs)
+    text = _text(best, obs, aj, train)
     runner = min((s for s in shapes if s.kind != best.kind), key=lambda s: s.bic(n_rows), default=None)
     if runner is not None and runner.bic(n_rows) - best.bic(n_rows) < CLOSE_BIC:
-        text += f" (about as likely, within {CLOSE_BIC:g} BIC: {_text(runner, obs)})"
-    return Description(best, text, heldout, int(2 * held.sum()), alts, _correction(best), shift)
+        text += f" (about as likely, within {CLOSE_BIC:g} BIC: {_text(runner, obs, aj, train)})"
+    correction = _correction(best)
+    if heldout is not None and heldout[1] >= heldout[0]:  # a correction must hold up on data the fit never saw
+        text += " (not confirmed on the held-out data: no correction written)"
+        correction = None
+    return Description(best, text, heldout, int(2 * held.sum()), alts, correction, shift)
 
 
 # ------------------------------------------------------------------------------------- shapes
@@ -186,15 +193,17 @@ def _ripples(obs, aj, r, train, camera) -> list[Shape]:
     out = []
     for c, coord in enumerate(_coords(obs)):
         size = camera.width if c == 0 else camera.height
-        periods = np.geomspace(MIN_PERIOD_PX, 2.0 * size, N_PERIODS)
+        # uniform in frequency, 1 / (4 x the detector) apart: no period between two grid values
+        # loses more than a quarter of a cycle over the detector
+        freqs = np.arange(1.0 / (2.0 * size), 1.0 / MIN_PERIOD_PX, 1.0 / (4.0 * size))
         for axis in (0, 1):
-            best = _best_period(obs, aj, r, train, coord, axis, periods)
-            step = periods[1] / periods[0]
-            fine = np.linspace(best / step, best * step, 41)
+            best = _best_period(obs, aj, r, train, coord, axis, 1.0 / freqs)
+            df = 1.0 / (4.0 * size)
+            fine = 1.0 / np.linspace(1.0 / best - df, 1.0 / best + df, 21)
             best = _best_period(obs, aj, r, train, coord, axis, fine)
             cols = _single_axis(_wave(coord, np.array([best])), axis)
             shape = _fit("ripple", {"axis": AXES[axis], "coordinate": COORDS[c], "period_px": float(best)}, cols,
-                         obs, aj, r, train, 4 * N_PERIODS)
+                         obs, aj, r, train, 4 * freqs.size)  # scanned: frequencies x 2 axes x 2 coordinates
             if shape is not None:
                 out.append(shape)
     return out
@@ -220,15 +229,19 @@ def _bases(obs, pred, aj, r, train, camera) -> list[Shape]:
 
 
 def _fit(kind: str, label: dict, cols: np.ndarray, obs, aj, r, train, scanned: int) -> Shape | None:
-    """Least-squares coefficients of ``cols`` (n, 2, k, px per unit) on the projected residual ``r``."""
+    """Least-squares coefficients of ``cols`` (n, 2, k, px per unit) on the projected residual ``r``,
+    over the directions the projection leaves (singular values above 1e-8 of the largest)."""
     g = aj.rows(whiten(obs, cols), train)
-    keep = np.linalg.norm(g, axis=0) > 1e-9 * max(np.linalg.norm(g, axis=0).max(initial=0.0), 1e-300)
-    if not keep.any() or r.size < 5 * keep.sum():
+    if not np.any(g):
         return None
-    g, cols = g[:, keep], cols[:, :, keep]
-    cov = np.linalg.pinv(g.T @ g)
-    coef = cov @ (g.T @ r)
-    return Shape(kind, label, cols, coef, cov, float(coef @ (g.T @ r)), scanned)
+    u, sv, vt = np.linalg.svd(g, full_matrices=False)
+    keep = sv > 1e-8 * sv[0]
+    if r.size < 5 * keep.sum():
+        return None
+    u, sv, vt = u[:, keep], sv[keep], vt[keep]
+    cov = vt.T @ np.diag(sv**-2) @ vt  # the minimum-norm solution's covariance over the kept directions
+    coef = vt.T @ ((u.T @ r) / sv)
+    return Shape(kind, label, cols, coef, cov, float(np.sum((u.T @ r) ** 2)), scanned, int(keep.sum()))
 
 
 def _best_per_kind(shapes: list[Shape], n_rows: int) -> list[Shape]:
@@ -240,7 +253,7 @@ def _best_per_kind(shapes: list[Shape], n_rows: int) -> list[Shape]:
 
 
 # -------------------------------------------------------------------------------- words, scenario
-def _text(s: Shape, obs: Observations) -> str:
+def _text(s: Shape, obs: Observations, aj: "_Projector", train: np.ndarray) -> str:
     sig = np.sqrt(np.diag(s.cov))
     if s.kind == "step":
         lo, hi = s.label["between_px"]
@@ -252,19 +265,20 @@ def _text(s: Shape, obs: Observations) -> str:
         along = "rows" if s.label["coordinate"] == "row" else "columns"
         return (f"ripple of period {s.label['period_px']:.0f} px along the {along}, amplitude {amp:.3g} +- {amp_sigma:.2g} px "
                 f"in {s.label['axis']}")
-    shift = np.einsum("nkm,m->nk", s.columns, s.coef)
-    worst = int(np.argmax(np.hypot(shift[:, 0], shift[:, 1])))
-    size = float(np.hypot(*shift[worst]))
-    if s.kind == "field polynomial":
-        return (f"a smooth field-wide displacement (cubic in the position), largest {size:.3g} px near "
-                f"({obs.x[worst]:.0f}, {obs.y[worst]:.0f})")
-    if s.kind == "magnitude bins":
-        k = s.coef.size // 2
-        return (f"an offset by magnitude quartile (brightest first): x {', '.join(f'{v:+.3g}' for v in s.coef[:k])} px, "
-                f"y {', '.join(f'{v:+.3g}' for v in s.coef[k:])} px")
-    if s.kind == "pixel phase":
-        return f"an S-curve against the sub-pixel position, up to {size:.3g} px"
-    return f"a {s.kind} pattern of up to {size:.3g} px"
+    # a generic basis: the displacement it fits once every frame's attitude is taken out, in px
+    fitted = aj.rows(whiten(obs, s.columns), train, free=False) @ s.coef
+    n = int(train.sum())
+    sigma = obs.sigma[train]
+    shift = np.hypot(fitted[:n] * sigma, fitted[n:] * sigma)
+    worst = int(np.argmax(shift))
+    size, at = float(shift[worst]), (obs.x[train][worst], obs.y[train][worst])
+    rms = float(np.sqrt(np.mean(shift**2)))
+    what = {"field polynomial": "a smooth field-wide displacement (cubic in the position)",
+            "field cells": "a displacement that differs between regions of the detector (4 x 4 cells)",
+            "magnitude bins": "a displacement that depends on the star's magnitude (quartiles)",
+            "pixel phase": "an S-curve against the sub-pixel position",
+            "row x image velocity": "a shift along the motion growing with the row (a timing error)"}.get(s.kind, s.kind)
+    return f"{what}: {rms:.3g} px RMS after the attitudes, largest {size:.3g} px at ({at[0]:.0f}, {at[1]:.0f})"
 
 
 def _correction(s: Shape) -> dict | None:

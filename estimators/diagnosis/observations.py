@@ -75,6 +75,7 @@ class Observations:
     exposure_ns: np.ndarray | None = None  # (F,) per-frame exposure when the recording mixes exposure times
     channel: object = None  # gyro_channel.GyroChannel: attitude increments vs the gyro, when the recording has one
     cov: np.ndarray | None = None  # (n, 2, 2) px^2 position covariances, when not all isotropic (module doc)
+    noise_sigma_ln: float = 0.0  # standard error of ln(sigma) when the noise scale was measured (:mod:`.noise`)
 
     def __post_init__(self):
         if self.heldout is None:

@@ -11,8 +11,8 @@ minimises the whitened residuals over ``theta`` alone. The Jacobian of these pro
 (forward differences of the prediction with the attitudes held) with every frame's attitude
 projected out, ``J = -M d pred / d z``. Differencing the whole projected residual instead would
 refit every frame's attitude for every column (about five predictions each); the two agree to
-first order. A recording with a gyro channel differences the whole residual: its increment rows
-depend on the refitted attitudes as well.
+first order. With a gyro channel the increment rows are differenced with each frame's attitude
+moved by the rotation its training stars absorb of that column (the same first order).
 
 Stability: the same refit on halves of the frames, on the inner and outer parts of the field and on
 the slow and fast halves of image speed. Two subset estimates ``a, b`` agree when
@@ -33,8 +33,11 @@ from rollingstar.estimators.diagnosis.observations import (
     Observations,
     Prediction,
     fit_attitudes,
+    frame_normal,
     predict,
     rates_from_attitudes,
+    solve_frames,
+    star_weights,
     whiten,
     whitened_residuals,
 )
@@ -83,26 +86,12 @@ def refit(obs: Observations, nuis: Nuisance, camera, timing, base_effects, candi
         return np.nan_to_num(r, nan=1e6)
 
     def jac(z):
-        effects = chain_with(base_effects, candidates, split_theta(candidates, z))
-        n2, _ = fit_attitudes(obs, nuis, camera, timing, effects, mask, iterations=4) if state.get("z") is None \
-            or not np.array_equal(state["z"], z) else (state["nuis"], None)
-        base = predict(obs, n2, camera, timing, effects)
-        cols = np.empty((obs.n, 2, z.size))
-        for j in range(z.size):
-            h = 1e-4 * max(1.0, abs(z[j]))
-            zz = z.copy()
-            zz[j] = min(zz[j] + h, hi[j]) if zz[j] + h <= hi[j] else zz[j] - h
-            step = zz[j] - z[j]
-            pp = predict(obs, n2, camera, timing, chain_with(base_effects, candidates, split_theta(candidates, zz)))
-            cols[:, 0, j], cols[:, 1, j] = (pp.x - base.x) / step, (pp.y - base.y) / step
-        idx = np.flatnonzero(mask)
-        aj = whiten(obs, base.att_jac[idx], idx)
-        p = project_frames(obs.frame[idx], obs.n_frames, aj, whiten(obs, cols[idx], idx))
-        return -np.nan_to_num(np.concatenate([p[:, 0, :], p[:, 1, :]]))
+        if state.get("z") is None or not np.array_equal(state["z"], z):
+            resid(z)
+        return projected_jacobian(obs, state["nuis"], camera, timing, base_effects, candidates, mask, z, hi)
 
     try:
-        res = least_squares(resid, z0, jac="2-point" if obs.channel is not None else jac, bounds=(lo, hi), method="trf",
-                            x_scale=1.0, diff_step=1e-4, max_nfev=60)
+        res = least_squares(resid, z0, jac=jac, bounds=(lo, hi), method="trf", x_scale=1.0, max_nfev=60)
         z, jac, success, cost = res.x, res.jac, bool(res.success), float(2 * res.cost)
     except (ValueError, np.linalg.LinAlgError):  # a forward model that cannot be evaluated: report, not crash
         return {"thetas": split_theta(candidates, z0), "sigmas": [np.full(len(c.parameters), np.nan) for c in candidates],
@@ -111,6 +100,44 @@ def refit(obs: Observations, nuis: Nuisance, camera, timing, base_effects, candi
     resid(z)  # leave the nuisance at the solution
     return {"thetas": split_theta(candidates, z), "sigmas": out_s, "corr": corr, "nuisance": state["nuis"],
             "success": success, "cost": cost}
+
+
+def projected_jacobian(obs: Observations, nuis: Nuisance, camera, timing, base_effects, candidates: list[Candidate],
+                       mask: np.ndarray, z: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Kaufman's Jacobian of :func:`refit`'s residual at ``z`` (module doc), ``nuis`` the attitudes
+    refitted at ``z``: rows as the residual (training x, training y, gyro increments).
+
+    Image rows: ``-M d pred / d z``, the prediction differenced with the attitudes held and every
+    frame's attitude projected out. Gyro increment rows (when the recording has them): the
+    increments differenced with each frame's attitude moved by the rotation its training stars
+    would absorb of that column (first order of the attitude refit), as the refit does.
+    """
+    effects = chain_with(base_effects, candidates, split_theta(candidates, z))
+    base = predict(obs, nuis, camera, timing, effects)
+    cols = np.empty((obs.n, 2, z.size))
+    steps, chains = np.empty(z.size), []
+    for j in range(z.size):
+        zz = z.copy()
+        h = 1e-4 * max(1.0, abs(z[j]))
+        zz[j] = z[j] + h if z[j] + h <= hi[j] else z[j] - h
+        steps[j] = zz[j] - z[j]
+        chains.append(chain_with(base_effects, candidates, split_theta(candidates, zz)))
+        pp = predict(obs, nuis, camera, timing, chains[-1])
+        cols[:, 0, j], cols[:, 1, j] = (pp.x - base.x) / steps[j], (pp.y - base.y) / steps[j]
+    idx = np.flatnonzero(mask)
+    aj = whiten(obs, base.att_jac[idx], idx)
+    p = project_frames(obs.frame[idx], obs.n_frames, aj, whiten(obs, cols[idx], idx))
+    rows = [-p[:, 0, :], -p[:, 1, :]]
+    if obs.channel is not None:
+        a, b = frame_normal(obs.frame, obs.n_frames, base.att_jac, star_weights(obs, mask), -cols)
+        absorbed = solve_frames(a, b)  # (F, 3, m): each frame's attitude change per unit z
+        g0 = obs.channel.residual(nuis.attitude, obs.t_ref_ns, effects)
+        g = np.empty((g0.size, z.size))
+        for j in range(z.size):
+            att = nuis.attitude * Rotation.from_rotvec(absorbed[:, :, j] * steps[j])
+            g[:, j] = (obs.channel.residual(att, obs.t_ref_ns, chains[j]) - g0) / steps[j]
+        rows.append(g)
+    return np.nan_to_num(np.concatenate(rows))
 
 
 def subsets(obs: Observations, pred, camera, mask: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:

@@ -36,12 +36,23 @@ def normalised(obs, pred) -> np.ndarray:
 
 
 def chi2_stats(obs, pred, mask, n_params: int) -> dict:
-    """Chi-square, dof, chi2/dof, its z against 1 and the RMS residual (px) over ``mask``."""
+    """Chi-square, dof, chi2/dof, its z against 1 (:func:`chi2_z`) and the RMS residual (px) over ``mask``."""
     r = normalised(obs, pred)[mask]
     chi2 = float(np.sum(r**2))
     dof = max(int(2 * r.shape[0] - n_params), 1)
     rms = float(np.sqrt(np.mean((obs.x[mask] - pred.x[mask]) ** 2 + (obs.y[mask] - pred.y[mask]) ** 2) / 2)) if r.size else float("nan")
-    return {"chi2": chi2, "dof": dof, "chi2_dof": chi2 / dof, "z": float(z_from_sf(stats.chi2.sf(chi2, dof))), "rms_px": rms}
+    return {"chi2": chi2, "dof": dof, "chi2_dof": chi2 / dof, "z": chi2_z(chi2, dof, obs.noise_sigma_ln), "rms_px": rms}
+
+
+def chi2_z(chi2: float, dof: int, scale_sigma_ln: float = 0.0) -> float:
+    """One-sided z of ``chi2`` against ``dof``. When the noise scale was measured (standard error
+    ``scale_sigma_ln`` of its log), a chi-square of ``dof`` terms is off by ``2 scale_sigma_ln dof``
+    (1 sigma) on top of its own ``sqrt(2 dof)``: the z is then the smaller of the exact one and
+    the normal approximation with both spreads."""
+    z = float(z_from_sf(stats.chi2.sf(chi2, dof)))
+    if scale_sigma_ln > 0.0:
+        z = min(z, (chi2 - dof) / float(np.sqrt(2.0 * dof + (2.0 * scale_sigma_ln * dof) ** 2)))
+    return z
 
 
 def covariates(obs, pred, camera) -> dict[str, np.ndarray]:

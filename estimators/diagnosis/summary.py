@@ -25,6 +25,9 @@ def _what_differs(r: dict) -> str:
         found.append(f"the centroid noise is {noise['factor']:.2f} +- {noise['factor_sigma']:.2f} x the stated "
                      f"(white: not library physics)")
     found += [_effect(e) for e in r["effects"]]
+    desc = r["unexplained_systematic"].get("description")
+    if desc and desc.get("correction"):
+        found.append(f"outside the library, {desc['text']} (written to the updated scenario as an empirical correction)")
     if not found:
         return "The simulation misses this recording, and no library effect explains it."
     return "What differs: " + "; ".join(found) + "."
@@ -46,7 +49,9 @@ def _heldout(r: dict) -> str:
         return "No held-out data to check the fit on."
     split = r["split"]
     noise = r["noise"]["sigma_px_median"]
-    text = (f"On the {split['heldout_observations']} held-out stars ({split['heldout_frames']} frames the fit never saw), "
+    where = (f"{split['heldout_frames']} frames the fit never saw" if split["unit"] == "frames"
+             else "stars of each frame the fit never saw")
+    text = (f"On the {split['heldout_observations']} held-out stars ({where}), "
             f"RMS per axis {before:.3g} -> {after:.3g} px against a noise of {noise:.3g} px")
     cb, ca = r.get("heldout_chi2_dof_before"), r.get("heldout_chi2_dof_after")
     if cb is not None and ca is not None:
@@ -57,8 +62,14 @@ def _heldout(r: dict) -> str:
 
 
 def _ambiguous(r: dict) -> list[str]:
-    return [f"Cannot tell {a['candidates'][0]} from {a['candidates'][1]} here (swap costs {a['delta_bic_swap']:.3g} BIC); "
-            f"to separate them: {a['separating_experiment']}." for a in r["ambiguous"]]
+    out = []
+    for a in r["ambiguous"]:
+        first, second = a["candidates"]
+        named = {e["name"] for e in r["effects"]}
+        how = ("both are named and trade off against each other" if {first, second} <= named
+               else f"swapping them costs {a['delta_bic_swap']:.3g} BIC")
+        out.append(f"Cannot tell {first} from {second} here ({how}); to separate them: {a['separating_experiment']}.")
+    return out
 
 
 def _unexplained(r: dict) -> str:
@@ -66,6 +77,9 @@ def _unexplained(r: dict) -> str:
     if not u["present"]:
         return ""
     desc = u.get("description")
+    if desc and desc.get("correction"):  # described and corrected (in what differs); anything still left
+        left = u.get("left_after_correction") or []
+        return ("Still left after the correction: " + ", ".join(f"{e['basis']} (z = {e['z']:.1f})" for e in left) + ".") if left else ""
     if desc:
         return f"Left unexplained (outside the library): {desc['text']}."
     return "Left unexplained (outside the library): " + ", ".join(f"{e['basis']} (z = {e['z']:.1f})" for e in u["evidence"]) + "."

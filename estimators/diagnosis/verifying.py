@@ -103,7 +103,8 @@ def heldout_evidence(data: Dataset, pred: Prediction) -> list[dict]:
     training data show nothing (e.g. the only frames that could show an effect were held out)."""
     out = []
     for label, chi2, dof in heldout_chi2(data.obs, pred, data.heldout, data.heldout_frames_fitted, data.channel_heldout):
-        z = residuals.z_from_sf(float(stats.chi2.sf(chi2, dof))) if dof > 0 else 0.0
+        scale = data.obs.noise_sigma_ln if label == "image" else 0.0  # the gyro rows' noise is the gyro's
+        z = residuals.chi2_z(chi2, dof, scale) if dof > 0 else 0.0
         if known_noise(data) and z > CHI2_Z_LIMIT:
             out.append({"basis": f"held-out chi-square ({label})", "delta_chi2": chi2 - dof, "dof": dof,
                         "z": float(z), "significant": True})

@@ -254,27 +254,30 @@ NUISANCES = {
     "noise_0.67x": "centroid noise 1 / 1.5 x the stated, white",
     "psf_shape": "elliptical PSF (axes 1.6 and 0.9 px, random orientation) measured by an efficient centroider: "
                  "anisotropic noise growing with magnitude (photon and background terms), median the stated",
-    "pixel_response": "1 % rms pixel-to-pixel gain (PRNU) under a 1.2 px Gaussian PSF: each star's centroid shifted "
-                      "by its pixels' gains, fixed on the detector, plus the stated noise",
-    "row_quantised_shutter": "each star exposed at its nearest whole row's start instead of its own sub-row position "
-                             "(image velocity x line delay x row rounding), plus the stated noise",
-    "catalogue_positions": "the sky's stars displaced from the catalogue by 20 mas per axis (another catalogue's "
-                           "positions within their errors), plus the stated noise",
+    "pixel_response": "3 % rms pixel-to-pixel gain (PRNU, an uncorrected flat field) under a 0.8 px Gaussian PSF: "
+                      "each star's centroid shifted by its pixels' gains, fixed on the detector, plus the stated noise",
+    "row_quantised_shutter": "rows read out in blocks of 16 sharing one exposure time (the block's centre) instead of "
+                             "each row its own: a sawtooth of image velocity x line delay x up to 8 rows, plus the stated noise",
+    "catalogue_positions": "the sky's stars displaced from the catalogue by 1 arcsec per axis (another, older "
+                           "catalogue's positions within its errors), plus the stated noise",
 }
 NUISANCE_DESIGNS = ("inertial_hold", "single_axis", "multi_axis", "rate_reversal")  # one recording each, no mixed exposures
 PSF_AXES_PX = (1.6, 0.9)
 PSF_BACKGROUND_SHARE = 0.3  # background share of the variance at the median star's brightness
-PRNU_RMS = 0.01
-PRNU_PSF_SIGMA_PX = 1.2
-CATALOGUE_ERROR_MAS = 20.0
+PRNU_RMS = 0.03
+PRNU_PSF_SIGMA_PX = 0.8
+ROW_BLOCK = 16
+CATALOGUE_ERROR_MAS = 1000.0
 
 
-def nuisance_recording(cfg: ScenarioConfig, nuisance: str, output: Path, rng) -> None:
+def nuisance_recording(cfg: ScenarioConfig, nuisance: str, output: Path, rng) -> float:
     """``cfg``'s recording (no effects) with the centroids rewritten by ``nuisance`` (:data:`NUISANCES`).
 
     The design is simulated without noise, each centroid is matched to its noise-free truth star,
     and the position is rebuilt as truth + the nuisance's shift + its noise. The log states the
-    scenario's noise for every centroid, as a pipeline trusting the simulation would.
+    scenario's noise for every centroid, as a pipeline trusting the simulation would. Returns the
+    nuisance's size against the stated noise: the RMS per axis of what it adds to the positions
+    (its systematic shift and noise together) over the stated sigma; 1 is the stated noise alone.
     """
     clean = validate(ScenarioConfig, {**cfg.model_dump(mode="json"), "noise": {"centroid_sigma_px": 0.0}}, "<nuisance>")
     tmp = output.with_suffix(".clean.mcap")
@@ -286,12 +289,15 @@ def nuisance_recording(cfg: ScenarioConfig, nuisance: str, output: Path, rng) ->
     camera = build_simulator(cfg).camera
     star_shift = {}  # per catalogue star: a fixed shift (catalogue positions) or a fixed PRNU map
     prnu = rng.normal(0.0, PRNU_RMS, (cfg.sensor.height_px + 16, cfg.sensor.width_px + 16))
+    added = []
     with LogWriter(output, kind="simulation", metadata={"scenario": {"yaml": to_yaml(cfg)}}) as w:
         for m in reader.messages():
             if m.topic == TOPIC_CENTROIDS:
-                m = _rewrite(m, truth[int(m.data["frame"])], velocity, nuisance, sigma, camera, cfg, prnu, star_shift, rng)
+                m, shift = _rewrite(m, truth[int(m.data["frame"])], velocity, nuisance, sigma, camera, cfg, prnu, star_shift, rng)
+                added.append(shift)
             w.write_json(m.topic, m.data, m.log_time_ns)
     tmp.unlink(missing_ok=True)
+    return float(np.sqrt(np.mean(np.concatenate(added) ** 2)) / sigma)
 
 
 def _truth_velocities(truth: dict) -> dict:
@@ -328,20 +334,22 @@ def _rewrite(m, truth: dict, velocity: dict, nuisance: str, sigma: float, camera
         noise += _prnu_shift(x, y, prnu)
     elif nuisance == "row_quantised_shutter":
         v = np.array([velocity[(int(d["frame"]), int(c))] for c in ids]).reshape(-1, 2)
-        noise += v * ((np.round(y) - y) * cfg.shutter.line_delay_us * 1e-6)[:, None]
+        block_centre = np.floor(y / ROW_BLOCK) * ROW_BLOCK + (ROW_BLOCK - 1) / 2.0
+        noise += v * ((block_centre - y) * cfg.shutter.line_delay_us * 1e-6)[:, None]
     elif nuisance == "catalogue_positions":
         scale = camera.focal_px * np.deg2rad(CATALOGUE_ERROR_MAS / 3.6e6)
         noise += np.array([star_shift.setdefault(int(c), rng.normal(0.0, scale, 2)) for c in ids]).reshape(-1, 2)
     d["x"], d["y"] = (x + noise[:, 0]).tolist(), (y + noise[:, 1]).tolist()
     d["sigma_px"] = [float(sigma)] * n
-    return replace(m, data=d)
+    return replace(m, data=d), noise
 
 
 def _psf_shape_noise(mag: np.ndarray, sigma: float, star_shift: dict, rng) -> np.ndarray:
     """Noise of an efficient centroider on an elliptical PSF (Gaussian approximation of its
     Cramér-Rao bound): covariance ``S / N (1 + b)`` with ``S`` the PSF's shape (unit determinant,
     axes :data:`PSF_AXES_PX`), ``N`` the photons (10^(-0.4 m)) and ``b`` the background term
-    (grows as 1 / N); scaled so that a star of the recording's median magnitude has ``sigma`` per axis."""
+    (grows as 1 / N); scaled so that a star of the recording's median magnitude has the covariance
+    ``sigma^2 S`` (per-axis variances 1.78 and 0.56 sigma^2 along the PSF's axes, determinant sigma^4)."""
     if "shape" not in star_shift:
         a = rng.uniform(0.0, np.pi)
         rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
@@ -650,7 +658,7 @@ def run_nuisance_case(i: int, nuisance: str, design: str, exposure_ms: float, ca
     rng = np.random.default_rng(case_seed)
     cfg = design_scenario(base, design, exposure_ms, rng, frames, case_seed)
     rec = tmp / f"nuisance{i}.mcap"
-    nuisance_recording(cfg, nuisance, rec, rng)
+    size = nuisance_recording(cfg, nuisance, rec, rng)
     start = time.perf_counter()
     try:
         result, _ = diagnose_recording(rec, cfg, None, options, sim_source="bench base scenario")
@@ -663,7 +671,7 @@ def run_nuisance_case(i: int, nuisance: str, design: str, exposure_ms: float, ca
     noise = result.get("noise_check") or {}
     named = [e["name"] for e in result["effects"]]
     return {"case": i, "kind": "nuisance", "nuisance": nuisance, "design": design, "exposure_ms": exposure_ms,
-            "named": named, "ambiguous": [a["candidates"] for a in result["ambiguous"]],
+            "size_over_sigma": size, "named": named, "ambiguous": [a["candidates"] for a in result["ambiguous"]],
             "unexplained": result["unexplained_systematic"]["present"], "mismatch": result["mismatch"],
             "noise_factor": noise.get("factor"), "noise_factor_sigma": noise.get("factor_sigma"),
             "noise_factor_applied": noise.get("applied"), "seconds": seconds,
@@ -852,6 +860,7 @@ def nuisance_rows(rows: list[dict]) -> list[dict]:
         rs = [r for r in rows if r["nuisance"] == name]
         factors = [r["noise_factor"] for r in rs if r.get("noise_factor_applied")]
         out.append({"nuisance": name, "what": what, "cases": len(rs),
+                    "size_over_sigma": [round(r["size_over_sigma"], 2) for r in rs if r.get("size_over_sigma") is not None],
                     "false_names": sum(r["outcome"] == "false_name" for r in rs),
                     "named": sorted({n for r in rs for n in r["named"]}),
                     "unexplained": sum(bool(r.get("unexplained")) for r in rs),
@@ -920,10 +929,11 @@ def format_markdown(result: dict) -> str:
             lines.append(f"| {g['effect']} | {g['cases']} | {g['cases_above_3x']} | {f(g['correct_above_3x'])} | {', '.join(g['designs']) or '-'} |")
     if s.get("by_nuisance"):
         lines += ["", f"Nuisance-mismatch nulls ({s['nuisance_cases']} recordings; the simulation is the base scenario):", "",
-                  "| nuisance | what differs | recordings | false names | named | unexplained systematic | noise factor stated |",
-                  "|---|---|---|---|---|---|---|"]
+                  "| nuisance | what differs | recordings | RMS added / stated sigma | false names | named | unexplained systematic | noise factor stated |",
+                  "|---|---|---|---|---|---|---|---|"]
         for r in s["by_nuisance"]:
-            lines.append(f"| {r['nuisance']} | {r['what']} | {r['cases']} | {r['false_names']} | {', '.join(r['named']) or '-'} | "
+            size = ", ".join(f"{v:.2f}" for v in r.get("size_over_sigma", [])) or "-"
+            lines.append(f"| {r['nuisance']} | {r['what']} | {r['cases']} | {size} | {r['false_names']} | {', '.join(r['named']) or '-'} | "
                          f"{r['unexplained']} | {', '.join(f'{v:.2f}' for v in r['noise_factors']) or '-'} |")
     lines += ["", "| target | required | measured | met |", "|---|---|---|---|"]
     for k, t in s["targets"].items():

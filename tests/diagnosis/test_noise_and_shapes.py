@@ -89,7 +89,7 @@ def test_a_stitched_detector_is_described_as_a_step_and_corrected(tmp_path):
     assert desc["heldout_chi2_after"] < desc["heldout_chi2_before"]
     assert "steps by" in result["summary"]
     updated = d.updated_scenario()
-    assert [e.kind for e in updated.effects][-1] == "empirical_step"
+    assert "empirical_step" in [e.kind for e in updated.effects]
     # the user's simulation, updated, explains the recording: no systematic left
     with D.registered(D.OUT_OF_LIBRARY):
         again, _ = diagnose_recording(rec, updated, None, OPTIONS, exclude_effects=OOL_NAMES)
@@ -105,7 +105,7 @@ def test_a_column_ripple_is_described_with_its_period_and_axis(tmp_path):
     amplitude = float(np.hypot(*desc["coefficients_px"]))
     assert amplitude == pytest.approx(0.1, rel=0.25)
     assert "ripple of period" in result["summary"]
-    assert d.updated_scenario().effects[-1].kind == "empirical_ripple"
+    assert "empirical_ripple" in [e.kind for e in d.updated_scenario().effects]
 
 
 def test_empirical_shapes_are_never_candidates():
