@@ -30,7 +30,7 @@ from threadpoolctl import threadpool_limits
 
 from rollingstar.config import validate
 from rollingstar.estimators.diagnosis import summary
-from rollingstar.estimators.diagnosis.describe import Description, describe
+from rollingstar.estimators.diagnosis.describe import Description, describe, refine
 from rollingstar.estimators.diagnosis.gyro_channel import GyroData
 from rollingstar.estimators.diagnosis.inputs import DiagnoseOptions, SensorModel, sensor_model
 from rollingstar.estimators.diagnosis.library import Candidate, library
@@ -47,6 +47,10 @@ from rollingstar.sensors.scenario import ScenarioConfig
 
 #: Rounds of model-aware outlier rejection: the model as given, then the model each round named
 MAX_OUTLIER_ROUNDS = 3
+#: Rounds with an empirical correction in the model: its size is a linear estimate at the model as
+#: given (the rates the attitudes imply still carry part of the shape), so what the corrected model
+#: as given leaves of the same shape is added to it and the physics named again
+MAX_CORRECTION_ROUNDS = 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,6 +67,7 @@ class Diagnosis:
     noise: NoiseCheck | None = None  # the recording's noise against the stated (None: too few repeated stars)
     description: Description | None = None  # the shape of an unexplained systematic (None: none left, or none found)
     uncorrected_evidence: tuple = ()  # the systematic's evidence before its empirical correction joined the model
+    uncorrected_quality: object = None  # verifying.FitQuality of the round before the correction (its "before" is the model as given)
 
     @property
     def obs(self) -> Observations:
@@ -108,13 +113,20 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
             steps = _outlier_rounds(scaled(observations, noise), attitudes, sensor, cands, gyro, options)
         obs_used = scaled(observations, noise) if noise is not None and noise.applied else observations
         shape = _describe(steps[0], steps[2], steps[3], sensor) if steps[3].unexplained else None
-        evidence = tuple(steps[3].evidence)
-        if shape is not None and shape.correction is not None:
+        evidence, quality, given = tuple(steps[3].evidence), steps[3].quality, sensor.scenario
+        for _ in range(MAX_CORRECTION_ROUNDS):
+            if shape is None or shape.correction is None:
+                break
             # the shape joins the model as given and the physics is named again: an effect that only
             # absorbed part of the shape is no longer needed
-            sensor = sensor_model(with_correction(sensor.scenario, shape))
+            sensor = sensor_model(with_correction(given, shape))
             steps = _outlier_rounds(obs_used, attitudes, sensor, cands, gyro, options)
-    return Diagnosis(sensor, *steps[:4], choice, steps[4], noise, shape, evidence)
+            data = steps[0].data
+            refined = refine(shape, data.obs, steps[0].prediction, data.train)
+            if refined is None:  # nothing of the same shape left: the correction stands
+                break
+            shape = refined
+    return Diagnosis(sensor, *steps[:4], choice, steps[4], noise, shape, evidence, quality)
 
 
 def with_correction(scenario: ScenarioConfig, shape: Description) -> ScenarioConfig:
@@ -126,16 +138,21 @@ def with_correction(scenario: ScenarioConfig, shape: Description) -> ScenarioCon
 
 
 def _describe(location: Location, model: EffectModel, verification: Verification, sensor: SensorModel) -> Description | None:
-    """The shape of the systematic the named model leaves (:mod:`.describe`), the named effects free;
-    the model as given when the named one was rejected on the held-out data."""
+    """The shape of the systematic left (:mod:`.describe`): on the residual of the named model with
+    the named effects free, or on the residual of the model as given (the named effects then only
+    absorbed the shape), whichever leaves the lower held-out chi-square (the lower BIC without
+    held-out data); the model as given alone when the named model was rejected on the held-out data."""
     data = location.data
-    if not verification.named:
-        return describe(data.obs, location.prediction, data.train, sensor.camera)
-    named = None
-    if model.chosen:
-        named = tuple(_named_rows(data, model, mask) for mask in (data.train, data.heldout))
-        named = None if any(n is None for n in named) else named
-    return describe(data.obs, model.prediction, data.train, sensor.camera, named)
+    as_given = describe(data.obs, location.prediction, data.train, sensor.camera)
+    if not verification.named or not model.chosen:
+        return as_given
+    named = tuple(_named_rows(data, model, mask) for mask in (data.train, data.heldout))
+    named = None if any(n is None for n in named) else named
+    with_named = describe(data.obs, model.prediction, data.train, sensor.camera, named)
+    k_named = sum(len(c.parameters) for c in model.chosen)
+    options = [((d.heldout_chi2[1] if d.heldout_chi2 is not None else np.inf), d.bic(k), d)
+               for d, k in ((as_given, 0), (with_named, k_named)) if d is not None]
+    return min(options, key=lambda o: o[:2])[2] if options else None
 
 
 def _named_rows(data, model: EffectModel, mask) -> np.ndarray | None:
@@ -201,10 +218,13 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
                                    "description": d.description.as_json() if d.description is not None else None,
                                    "left_after_correction": v.evidence if d.corrected else None},
     }
-    for key, pair in (("train_rms", q.train_rms_px), ("heldout_rms", q.heldout_rms_px)):
-        out[f"{key}_before_px"], out[f"{key}_after_px"] = pair.before, pair.after
-    for key, pair in (("train_chi2_dof", q.train_chi2_dof), ("heldout_chi2_dof", q.heldout_chi2_dof)):
-        out[f"{key}_before"], out[f"{key}_after"] = pair.before, pair.after
+    # "before" is the model as given; with an empirical correction, the model as given without it
+    q0 = d.uncorrected_quality if d.corrected and d.uncorrected_quality is not None else q
+    for key, pair, pair0 in (("train_rms", q.train_rms_px, q0.train_rms_px), ("heldout_rms", q.heldout_rms_px, q0.heldout_rms_px)):
+        out[f"{key}_before_px"], out[f"{key}_after_px"] = pair0.before, pair.after
+    for key, pair, pair0 in (("train_chi2_dof", q.train_chi2_dof, q0.train_chi2_dof),
+                             ("heldout_chi2_dof", q.heldout_chi2_dof, q0.heldout_chi2_dof)):
+        out[f"{key}_before"], out[f"{key}_after"] = pair0.before, pair.after
     out.update({
         "heldout_residual_distribution": q.heldout_distribution,
         "gyro_channel": q.gyro,

@@ -23,11 +23,16 @@ perturbation gives it back to the shape that describes it better.
 
 A shape is reported only when its chi-square drop is significant after the look-elsewhere
 correction of its scan (Bonferroni over the scanned values): z above :data:`.catchall.Z_LIMIT`.
+Shapes are then compared in the units of what the best one leaves (quasi-likelihood BIC, Burnham
+& Anderson 2002): with ``c_hat`` the chi-square per dof left by the plain-BIC best, chi-square
+differences are divided by ``c_hat``. A large perturbation described by the right shape still
+leaves a small misfit (its effect on the rates the attitudes imply, say); in raw chi-square a
+20-parameter basis absorbs that misfit and wins, in its units the 2-parameter shape does.
 A described shape is a measurement, not an explanation: it says where and how big.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import stats
@@ -60,8 +65,9 @@ class Shape:
     def k(self) -> int:
         return int(self.coef.size) if self.rank is None else self.rank
 
-    def bic(self, n_rows: int) -> float:
-        return -self.delta_chi2 + (self.k + (self.scanned > 1)) * np.log(n_rows)
+    def bic(self, n_rows: int, c_hat: float = 1.0) -> float:
+        """``-delta chi2 / c_hat + (k + 1 if scanned) ln N``; ``c_hat`` the overdispersion (module doc)."""
+        return -self.delta_chi2 / c_hat + (self.k + (self.scanned > 1)) * np.log(n_rows)
 
     def z(self) -> float:
         p = min(1.0, float(stats.chi2.sf(self.delta_chi2, self.k)) * self.scanned)
@@ -79,6 +85,13 @@ class Description:
     alternatives: list[dict]  # every shape tried: kind, BIC, z
     correction: dict | None  # scenario effect entry (empirical shape), None when the library has no such kind
     named_shift: np.ndarray | None = None  # the named effects' (prior-scaled) change when the shape is added (q,)
+    chi2_left: float = 0.0  # training chi-square left after the shape
+    n_rows: int = 0  # training residual rows
+
+    def bic(self, n_named_params: int = 0) -> float:
+        """BIC of the model this description completes: what is left, the shape's parameters (and
+        its scanned position or period) and ``n_named_params`` named effect parameters."""
+        return self.chi2_left + (self.shape.k + (self.shape.scanned > 1) + n_named_params) * np.log(self.n_rows)
 
     def as_json(self) -> dict:
         s = self.shape
@@ -106,6 +119,11 @@ def describe(obs: Observations, pred: Prediction, train: np.ndarray, camera,
     best = min(shapes, key=lambda s: s.bic(n_rows))
     if best.bic(n_rows) >= 0 or best.z() <= catchall.Z_LIMIT:
         return None
+    # overdispersion: what the best shape leaves, per dof; chi-square differences between shapes
+    # are compared in its units (quasi-likelihood BIC), so that a flexible basis does not win by
+    # absorbing a small misfit of a large perturbation
+    c_hat = max(1.0, (float(r @ r) - best.delta_chi2) / max(n_rows - best.k, 1))
+    best = min(shapes, key=lambda s: s.bic(n_rows, c_hat))
     held = ~train
     heldout, shift = None, None
     if named is not None and named[0].size:  # the named effects' share, moved with the shape on training
@@ -119,14 +137,15 @@ def describe(obs: Observations, pred: Prediction, train: np.ndarray, camera,
     alts = sorted(({"shape": s.kind, **s.label, "bic": float(s.bic(n_rows)), "z": s.z()} for s in _best_per_kind(shapes, n_rows)),
                   key=lambda a: a["bic"])
     text = _text(best, obs, aj, train)
-    runner = min((s for s in shapes if s.kind != best.kind), key=lambda s: s.bic(n_rows), default=None)
-    if runner is not None and runner.bic(n_rows) - best.bic(n_rows) < CLOSE_BIC:
+    runner = min((s for s in shapes if s.kind != best.kind), key=lambda s: s.bic(n_rows, c_hat), default=None)
+    if runner is not None and runner.bic(n_rows, c_hat) - best.bic(n_rows, c_hat) < CLOSE_BIC:
         text += f" (about as likely, within {CLOSE_BIC:g} BIC: {_text(runner, obs, aj, train)})"
     correction = _correction(best)
     if heldout is not None and heldout[1] >= heldout[0]:  # a correction must hold up on data the fit never saw
         text += " (not confirmed on the held-out data: no correction written)"
         correction = None
-    return Description(best, text, heldout, int(2 * held.sum()), alts, correction, shift)
+    return Description(best, text, heldout, int(2 * held.sum()), alts, correction, shift,
+                       float(r @ r) - best.delta_chi2, n_rows)
 
 
 # ------------------------------------------------------------------------------------- shapes
@@ -252,19 +271,39 @@ def _best_per_kind(shapes: list[Shape], n_rows: int) -> list[Shape]:
     return list(best.values())
 
 
+REFINE_Z = 3.0  # what the corrected model leaves of the shape is added when beyond this many sigma
+
+
+def refine(first: Description, obs: Observations, pred: Prediction, train: np.ndarray) -> Description | None:
+    """``first`` with what ``pred`` (the model as given with ``first``'s correction in it) still
+    leaves of the same shape (same position or period, coefficients refitted) added to it; None
+    when that is below ``REFINE_Z`` sigma."""
+    s = first.shape
+    aj = _Projector(obs, pred, None)
+    r = aj.rows(whitened_residuals(obs, pred)[:, :, None], train)[:, 0]
+    more = _fit(s.kind, s.label, _shape_columns(s, obs), obs, aj, r, train, 1)
+    if more is None or more.coef.size != s.coef.size:
+        return None
+    z = float(np.sqrt(more.coef @ np.linalg.pinv(more.cov) @ more.coef))
+    if z < REFINE_Z:
+        return None
+    shape = Shape(s.kind, s.label, _shape_columns(s, obs), s.coef + more.coef, more.cov, s.delta_chi2, s.scanned, s.rank)
+    return replace(first, shape=shape, text=_shape_text(shape), correction=_correction(shape))
+
+
+def _shape_columns(s: Shape, obs: Observations) -> np.ndarray:
+    """The columns of a step or a ripple at ``obs``'s stars (n, 2, k)."""
+    coord = obs.x if s.label["coordinate"] == "column" else obs.y
+    axis = AXES.index(s.label["axis"])
+    if s.kind == "step":
+        return _single_axis((coord > s.label["position_px"]).astype(float)[:, None], axis)
+    return _single_axis(_wave(coord, np.array([s.label["period_px"]])), axis)
+
+
 # -------------------------------------------------------------------------------- words, scenario
 def _text(s: Shape, obs: Observations, aj: "_Projector", train: np.ndarray) -> str:
-    sig = np.sqrt(np.diag(s.cov))
-    if s.kind == "step":
-        lo, hi = s.label["between_px"]
-        return (f"{s.label['axis']} residual steps by {s.coef[0]:+.3g} +- {sig[0]:.2g} px across {s.label['coordinate']} "
-                f"{s.label['position_px']:.0f} (between the stars at {lo:.0f} and {hi:.0f}): stars beyond it are displaced")
-    if s.kind == "ripple":
-        amp = float(np.hypot(*s.coef))
-        amp_sigma = float(np.sqrt(s.coef @ s.cov @ s.coef)) / max(amp, 1e-300)
-        along = "rows" if s.label["coordinate"] == "row" else "columns"
-        return (f"ripple of period {s.label['period_px']:.0f} px along the {along}, amplitude {amp:.3g} +- {amp_sigma:.2g} px "
-                f"in {s.label['axis']}")
+    if s.kind in ("step", "ripple"):
+        return _shape_text(s)
     # a generic basis: the displacement it fits once every frame's attitude is taken out, in px
     fitted = aj.rows(whiten(obs, s.columns), train, free=False) @ s.coef
     n = int(train.sum())
@@ -279,6 +318,20 @@ def _text(s: Shape, obs: Observations, aj: "_Projector", train: np.ndarray) -> s
             "pixel phase": "an S-curve against the sub-pixel position",
             "row x image velocity": "a shift along the motion growing with the row (a timing error)"}.get(s.kind, s.kind)
     return f"{what}: {rms:.3g} px RMS after the attitudes, largest {size:.3g} px at ({at[0]:.0f}, {at[1]:.0f})"
+
+
+def _shape_text(s: Shape) -> str:
+    """A step or a ripple in words and numbers."""
+    sig = np.sqrt(np.diag(s.cov))
+    if s.kind == "step":
+        lo, hi = s.label["between_px"]
+        return (f"{s.label['axis']} residual steps by {s.coef[0]:+.3g} +- {sig[0]:.2g} px across {s.label['coordinate']} "
+                f"{s.label['position_px']:.0f} (between the stars at {lo:.0f} and {hi:.0f}): stars beyond it are displaced")
+    amp = float(np.hypot(*s.coef))
+    amp_sigma = float(np.sqrt(s.coef @ s.cov @ s.coef)) / max(amp, 1e-300)
+    along = "rows" if s.label["coordinate"] == "row" else "columns"
+    return (f"ripple of period {s.label['period_px']:.0f} px along the {along}, amplitude {amp:.3g} +- {amp_sigma:.2g} px "
+            f"in {s.label['axis']}")
 
 
 def _correction(s: Shape) -> dict | None:

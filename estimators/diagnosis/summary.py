@@ -61,14 +61,25 @@ def _heldout(r: dict) -> str:
     return text + "."
 
 
+MAX_PAIRS = 3  # ambiguous pairs spelled out in the paragraph (the report lists them all)
+
+
 def _ambiguous(r: dict) -> list[str]:
+    named = {e["name"] for e in r["effects"]}
+    pairs = sorted(r["ambiguous"], key=lambda a: abs(a["delta_bic_swap"]))
     out = []
-    for a in r["ambiguous"]:
+    for a in pairs[:MAX_PAIRS]:
         first, second = a["candidates"]
-        named = {e["name"] for e in r["effects"]}
-        how = ("both are named and trade off against each other" if {first, second} <= named
-               else f"swapping them costs {a['delta_bic_swap']:.3g} BIC")
+        swap = a["delta_bic_swap"]
+        if {first, second} <= named:
+            how = "both are named and trade off against each other"
+        elif swap >= 0:
+            how = f"swapping them costs {swap:.3g} BIC"
+        else:
+            how = f"the linearised fit prefers the other by {-swap:.3g} BIC"
         out.append(f"Cannot tell {first} from {second} here ({how}); to separate them: {a['separating_experiment']}.")
+    if len(pairs) > MAX_PAIRS:
+        out.append(f"{len(pairs) - MAX_PAIRS} more pairs cannot be told apart (listed in the report).")
     return out
 
 

@@ -88,12 +88,26 @@ def test_a_stitched_detector_is_described_as_a_step_and_corrected(tmp_path):
     assert abs(desc["coefficients_px"][0] - 0.3) < 4 * desc["sigmas_px"][0], desc
     assert desc["heldout_chi2_after"] < desc["heldout_chi2_before"]
     assert "steps by" in result["summary"]
+    # with the correction in the model no library effect is needed (none was injected)
+    assert result["effects"] == [], result["summary"]
+    assert result["heldout_rms_after_px"] < result["heldout_rms_before_px"]
     updated = d.updated_scenario()
     assert "empirical_step" in [e.kind for e in updated.effects]
     # the user's simulation, updated, explains the recording: no systematic left
     with D.registered(D.OUT_OF_LIBRARY):
         again, _ = diagnose_recording(rec, updated, None, OPTIONS, exclude_effects=OOL_NAMES)
     assert not again["unexplained_systematic"]["present"], again["summary"]
+
+
+def test_a_large_step_is_sized_through_the_correction_rounds(tmp_path):
+    """A 1.4 px stitch in a rate-reversal design: the first linear estimate of the step is biased by
+    the rates the attitudes imply; the correction rounds add what the corrected model still leaves,
+    and the physics named again is none."""
+    _, _, (result, _) = _with_effect(tmp_path, "rate_reversal", "bench_stitch_step", {"dy": 1.4})
+    desc = result["unexplained_systematic"]["description"]
+    assert (desc["shape"], desc["axis"], desc["coordinate"]) == ("step", "y", "column"), desc["text"]
+    assert abs(desc["correction"]["params"]["size_px"] - 1.4) < 0.03, desc["correction"]
+    assert result["effects"] == [], result["summary"]
 
 
 def test_a_column_ripple_is_described_with_its_period_and_axis(tmp_path):
