@@ -60,3 +60,17 @@ def rotate_at_rate(omega, w: np.ndarray, dt_s: np.ndarray) -> np.ndarray:
     t = norm * dt_s
     c, s = np.cos(t)[:, None], np.sin(t)[:, None]
     return w * c + cross(k[None, :], w) * s + np.outer(w @ k, k) * (1.0 - c)
+
+
+def quat_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product ``p q`` of scalar-last quaternions (..., 4): the rotation ``R(p) R(q)``.
+    Written out because ``scipy.spatial.transform.Rotation`` composition costs about 0.5 us per
+    rotation (2 ms for 4000 stars), which dominated the diagnosis's predictions."""
+    px, py, pz, pw = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
+    qx, qy, qz, qw = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    out = np.empty(np.broadcast_shapes(p.shape, q.shape))
+    out[..., 0] = pw * qx + px * qw + py * qz - pz * qy
+    out[..., 1] = pw * qy - px * qz + py * qw + pz * qx
+    out[..., 2] = pw * qz + px * qy - py * qx + pz * qw
+    out[..., 3] = pw * qw - px * qx - py * qy - pz * qz
+    return out

@@ -30,7 +30,7 @@ alternating exposure times ``T_k``.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -38,6 +38,7 @@ from scipy.spatial.transform import Rotation
 from rollingstar.estimators.diagnosis.observations import frame_normal, solve_frames
 from rollingstar.sensors.conventions import NS_PER_S
 from rollingstar.sensors.effects.chain import gyro_effects
+from rollingstar.sensors.so3 import quat_multiply
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,19 +86,22 @@ def covered(gyro: GyroData | None, t_ref_ns: np.ndarray) -> np.ndarray:
 def gyro_increments(gyro: GyroData, t_ref_ns: np.ndarray, effects=()) -> Rotation:
     """``G_k`` for every consecutive pair (module doc), composed exactly sample by sample.
 
-    Hand-written: the composition is sequential in time (a Python loop over the few samples of a
-    window is the clearest exact form; the number of samples per pair is tens).
+    The composition is sequential in time within a window; it runs over the sample position in the
+    window (tens of steps), every pair at once, as quaternion products (padding with the identity).
     """
     w = corrected(gyro, effects)
     ov = overlaps(gyro, t_ref_ns)
-    out = []
-    for k in range(ov.shape[0]):  # frames pairs (tens), each a product over its few samples
-        j = np.flatnonzero(ov[k] > 0)
-        r = Rotation.identity()
-        for jj in j:
-            r = r * Rotation.from_rotvec(w[jj] * ov[k, jj])
-        out.append(r.as_quat())
-    return Rotation.from_quat(np.asarray(out))
+    rows, cols = np.nonzero(ov > 0)  # row-major: each pair's samples in time order
+    n_pairs = ov.shape[0]
+    q = np.zeros((n_pairs, max(int(np.bincount(rows, minlength=n_pairs).max(initial=0)), 1), 4))
+    q[..., 3] = 1.0
+    if rows.size:
+        first = np.searchsorted(rows, np.arange(n_pairs))
+        q[rows, np.arange(rows.size) - first[rows]] = Rotation.from_rotvec(w[cols] * ov[rows, cols][:, None]).as_quat()
+    out = q[:, 0]
+    for s in range(1, q.shape[1]):
+        out = quat_multiply(out, q[:, s])
+    return Rotation.from_quat(out)
 
 
 def increment_residual(attitude: Rotation, t_ref_ns: np.ndarray, gyro: GyroData, effects=()) -> np.ndarray:
@@ -139,6 +143,9 @@ def whitener(cov_att: np.ndarray, pairs: np.ndarray, t_ref_ns: np.ndarray, arw_r
     return np.linalg.inv(np.linalg.cholesky(cov))
 
 
+INCREMENT_CACHE = 8  # gyro integrations a channel remembers
+
+
 @dataclass(frozen=True, eq=False)
 class GyroChannel:
     """The channel of one recording: gyro data, the training pairs and their whitener."""
@@ -146,14 +153,28 @@ class GyroChannel:
     gyro: GyroData
     pairs: np.ndarray  # first frame of each training pair
     w: np.ndarray  # (3P, 3P) whitener
+    _increments: dict = field(default_factory=dict, repr=False)  # recent gyro integrations (:meth:`increments`)
 
     @property
     def rows(self) -> int:
         return int(3 * self.pairs.size)
 
-    def residual(self, attitude: Rotation, t_ref_ns: np.ndarray, effects=()) -> np.ndarray:
-        """Whitened increment residuals of the training pairs, (3P,)."""
-        e = increment_residual(attitude, t_ref_ns, self.gyro, effects)[self.pairs]
+    def increments(self, t_ref_ns: np.ndarray, effects=()) -> Rotation:
+        """:func:`gyro_increments` under ``effects``, remembered for the last few gyro-effect values:
+        fits evaluate the residual many times with the same gyro effects (most candidates act on
+        the image only)."""
+        key = (t_ref_ns.tobytes(), tuple((e.name, tuple(sorted(e._values.items()))) for e in gyro_effects(tuple(effects))))
+        if key not in self._increments:
+            if len(self._increments) >= INCREMENT_CACHE:
+                self._increments.pop(next(iter(self._increments)))
+            self._increments[key] = gyro_increments(self.gyro, t_ref_ns, effects)
+        return self._increments[key]
+
+    def residual(self, attitude: Rotation, t_ref_ns: np.ndarray, effects=(), increments: Rotation | None = None) -> np.ndarray:
+        """Whitened increment residuals of the training pairs, (3P,); ``increments``: the gyro's
+        integrated increments under ``effects`` (default: :meth:`increments`)."""
+        g = self.increments(t_ref_ns, effects) if increments is None else increments
+        e = (g.inv() * (attitude[:-1].inv() * attitude[1:])).as_rotvec()[self.pairs]
         return self.w @ e.reshape(-1)
 
     def whiten(self, sig: np.ndarray) -> np.ndarray:

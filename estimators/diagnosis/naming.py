@@ -72,7 +72,7 @@ def name_effects(location: Location, sensor: SensorModel, cands: dict[str, Candi
     problem, _ = linear_problem(data.obs, model.prediction, cands, model.effects, data.train, blocks,
                                 add_back={c.name: (th - c.defaults) / c.scales for c, th in zip(model.chosen, model.fit["thetas"])})
     sel = selection.select(problem, n_boot=options.n_boot, seed=options.seed, min_delta_bic=options.min_delta_bic)
-    drop_one = drop_one_delta_bic(data, sensor, nuis0, model.chosen, model.fit)
+    drop_one = drop_one_delta_bic(data, sensor, nuis0, model.chosen, model.fit, options.min_delta_bic)
     pooled = pooled_inclusion(problem, sel, model.names)
     weak = [n for n in model.names if (options.n_boot > 0 and pooled[n] < MIN_INCLUSION)
             or drop_one.get(n, 0.0) < options.min_delta_bic]  # or no longer earning its place nonlinearly
@@ -81,7 +81,7 @@ def name_effects(location: Location, sensor: SensorModel, cands: dict[str, Candi
         weak_rows = [{"name": n, "delta_bic_nonlinear": drop_one.get(n), "inclusion_probability": sel["inclusion"].get(n),
                       "inclusion_with_aliases": pooled[n]} for n in weak]
         model = refit_named(data, sensor, nuis0, cands, [n for n in model.names if n not in weak])
-        drop_one = drop_one_delta_bic(data, sensor, nuis0, model.chosen, model.fit)
+        drop_one = drop_one_delta_bic(data, sensor, nuis0, model.chosen, model.fit, options.min_delta_bic)
     screened = [row["name"] for row in sel["screen"]]
     correlations = {g: {h: selection.canonical_correlation(selection.design(problem, [g]), selection.design(problem, [h]))
                         for h in screened if h != g} for g in model.names if g in problem.groups}
@@ -185,6 +185,8 @@ def backward_eliminate(data: Dataset, sensor: SensorModel, nuis0: Nuisance, cand
 def wald_delta_bic(chosen: list[Candidate], fit: dict, n_residuals: int) -> list[tuple[str, float]]:
     """Each effect's Wald delta BIC, ``dtheta^T C^-1 dtheta - p ln N`` from the fit's covariance,
     ascending; an effect without a finite covariance comes first (-inf: refit it)."""
+    if not chosen:
+        return []
     sig = np.concatenate([np.asarray(s, dtype=float) for s in fit["sigmas"]])
     cov = np.asarray(fit["corr"], dtype=float) * np.outer(sig, sig)
     out, i = [], 0
@@ -200,11 +202,19 @@ def wald_delta_bic(chosen: list[Candidate], fit: dict, n_residuals: int) -> list
 
 
 def drop_one_delta_bic(data: Dataset, sensor: SensorModel, nuis0: Nuisance, chosen: list[Candidate],
-                       fit: dict) -> dict[str, float]:
-    """Nonlinear delta BIC of each selected effect: chi2 without it minus chi2 with all, minus its penalty."""
+                       fit: dict, min_delta_bic: float) -> dict[str, float]:
+    """Delta BIC of each selected effect: chi2 without it minus chi2 with all, minus its penalty.
+
+    By a nonlinear refit without it when its Wald delta BIC (:func:`wald_delta_bic`) is below
+    ``WALD_SLACK`` x the margin (where the decision is made); beyond, the Wald value itself: the
+    effect earns its place either way and each refit is a nonlinear fit of every other effect."""
     out = {}
     warm = {c.name: t for c, t in zip(chosen, fit["thetas"])}
+    wald = dict(wald_delta_bic(chosen, fit, data.n_residuals))
     for c in chosen:
+        if wald[c.name] >= WALD_SLACK * min_delta_bic:
+            out[c.name] = wald[c.name]
+            continue
         rest = [d for d in chosen if d is not c]
         f = refit_chi2(data, sensor, nuis0, rest, warm)
         out[c.name] = float(f["cost"] - fit["cost"] - len(c.parameters) * np.log(data.n_residuals))

@@ -39,7 +39,7 @@ from scipy.spatial.transform import Rotation
 from rollingstar.sensors.conventions import NS_PER_S
 from rollingstar.sensors.effects.base import EffectContext
 from rollingstar.sensors.effects.chain import predict as chain_predict
-from rollingstar.sensors.so3 import skew
+from rollingstar.sensors.so3 import quat_multiply, skew
 
 POS_STEP_PX = 1e-3
 # A frame takes a one-sided (backward/forward) rate instead of the central difference only when it
@@ -166,8 +166,10 @@ class Prediction:
 
 
 def camera_rotations(obs: Observations, nuis: Nuisance) -> Rotation:
-    """Camera->ICRS attitude at every observation's time, ``R_k Exp(omega_k dt_i)``."""
-    return nuis.attitude[obs.frame] * Rotation.from_rotvec(nuis.omega[obs.frame] * obs.dt_s()[:, None])
+    """Camera->ICRS attitude at every observation's time, ``R_k Exp(omega_k dt_i)`` (composed as
+    quaternions: :func:`rollingstar.sensors.so3.quat_multiply`)."""
+    step = Rotation.from_rotvec(nuis.omega[obs.frame] * obs.dt_s()[:, None]).as_quat()
+    return Rotation.from_quat(quat_multiply(nuis.attitude.as_quat()[obs.frame], step))
 
 
 def effect_context(obs: Observations, camera, timing, rot: Rotation, x, y, vx, vy, omega) -> EffectContext:
@@ -210,8 +212,11 @@ def frame_reference_times(t0_ns: np.ndarray, timing, exposure_ns: np.ndarray | N
     return t_ref
 
 
-def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=()) -> Prediction:
-    """Predict every observation: ideal pinhole position, then the effect chain in stage order."""
+def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=(), attitude_jacobian: bool = True) -> Prediction:
+    """Predict every observation: ideal pinhole position, then the effect chain in stage order.
+
+    ``attitude_jacobian=False``: positions only; ``att_jac`` is then the pinhole's, without the
+    chain's position Jacobian (four more chain evaluations), for callers that difference positions."""
     rot = camera_rotations(obs, nuis)
     w = rot.inv().apply(obs.u_icrs)
     x0, y0, _ = camera.project(w)
@@ -221,7 +226,9 @@ def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=()) 
     ctx = effect_context(obs, camera, timing, rot, x0, y0, v[:, 0], v[:, 1], omega)
     x, y = (x0, y0)
     expo = None if obs.exposure_ns is None else obs.exposure_ns[obs.frame]
-    if len(effects):
+    if len(effects) and not attitude_jacobian:
+        x, y = by_exposure(ctx, expo, lambda c: chain_predict(tuple(effects), c))
+    elif len(effects):
         effects = tuple(effects)
 
         def chain(c):

@@ -122,7 +122,7 @@ def projected_jacobian(obs: Observations, nuis: Nuisance, camera, timing, base_e
         zz[j] = z[j] + h if z[j] + h <= hi[j] else z[j] - h
         steps[j] = zz[j] - z[j]
         chains.append(chain_with(base_effects, candidates, split_theta(candidates, zz)))
-        pp = predict(obs, nuis, camera, timing, chains[-1])
+        pp = predict(obs, nuis, camera, timing, chains[-1], attitude_jacobian=False)
         cols[:, 0, j], cols[:, 1, j] = (pp.x - base.x) / steps[j], (pp.y - base.y) / steps[j]
     idx = np.flatnonzero(mask)
     aj = whiten(obs, base.att_jac[idx], idx)
@@ -131,11 +131,15 @@ def projected_jacobian(obs: Observations, nuis: Nuisance, camera, timing, base_e
     if obs.channel is not None:
         a, b = frame_normal(obs.frame, obs.n_frames, base.att_jac, star_weights(obs, mask), -cols)
         absorbed = solve_frames(a, b)  # (F, 3, m): each frame's attitude change per unit z
-        g0 = obs.channel.residual(nuis.attitude, obs.t_ref_ns, effects)
+        chan = obs.channel
+        inc = chan.increments(obs.t_ref_ns, effects)  # the integration is the costly part
+        g0 = chan.residual(nuis.attitude, obs.t_ref_ns, increments=inc)
+        on_gyro = np.concatenate([np.full(len(c.parameters), "gyro" in c.channels) for c in candidates])
         g = np.empty((g0.size, z.size))
-        for j in range(z.size):
+        for j in range(z.size):  # the gyro is integrated again only for the effects that act on it
             att = nuis.attitude * Rotation.from_rotvec(absorbed[:, :, j] * steps[j])
-            g[:, j] = (obs.channel.residual(att, obs.t_ref_ns, chains[j]) - g0) / steps[j]
+            gj = chan.residual(att, obs.t_ref_ns, chains[j]) if on_gyro[j] else chan.residual(att, obs.t_ref_ns, increments=inc)
+            g[:, j] = (gj - g0) / steps[j]
         rows.append(g)
     return np.nan_to_num(np.concatenate(rows))
 

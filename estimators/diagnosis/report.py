@@ -162,6 +162,17 @@ def write_report(result: dict, d: Diagnosis, out_dir: Path) -> Path:
     ue = result["unexplained_systematic"]
     parts.append(_table([[t["basis"], _f(t["delta_chi2"]), t["dof"], _f(t["z"]), t["significant"]] for t in ue["tests"]],
                         ["generic basis on the residual left", "delta chi2", "dof", "z", "significant"]))
+    desc = ue.get("description")
+    if desc:
+        parts.append(f"<p><b>Outside the library:</b> {html.escape(desc['text'])}"
+                     + (" Written to the updated scenario as an empirical correction." if desc.get("correction") else "") + "</p>")
+        parts.append(_table([[a["shape"], a.get("axis", ""), a.get("coordinate", ""), _f(a["bic"]), _f(a["z"])]
+                             for a in desc["alternatives"]], ["shape tried (best of its kind)", "axis", "along", "BIC", "z"]))
+    noise = result.get("noise_check")
+    if noise:
+        parts.append(f"<p><b>Noise:</b> measured {_f(noise['factor'], '{:.3f}')} ± {_f(noise['factor_sigma'], '{:.3f}')} x the "
+                     f"stated ({html.escape(noise['stated_source'])}, {noise['pairs']} star pairs in consecutive frames)"
+                     + ("; applied." if noise["applied"] else "; consistent with the stated noise, not applied.") + "</p>")
     if result["stability"]:
         parts.append(_table([[s["subset"], s["effect"], s["param"], _f(s["a"]), _f(s["sigma_a"]), _f(s["b"]), _f(s["sigma_b"]), _f(s["z"])]
                              for s in result["stability"]], ["subsets", "effect", "param", "a", "sigma a", "b", "sigma b", "z"]))

@@ -24,6 +24,7 @@ from rollingstar.sensors.effects.base import (
     Effect,
     EffectContext,
 )
+from rollingstar.sensors.so3 import quat_multiply
 
 
 def ordered(effects: Sequence[Effect]) -> tuple[Effect, ...]:
@@ -66,7 +67,8 @@ def shifted_context(effects: Sequence[Effect], ctx: EffectContext) -> EffectCont
 
     changes = {"t_ns": ctx.t_ns + np.rint(dt * NS_PER_S).astype(np.int64)}
     if ctx.attitude is not None and ctx.omega_rad_s is not None:
-        changes["attitude"] = ctx.attitude * Rotation.from_rotvec(ctx.omega_rad_s * dt[:, None])
+        step = Rotation.from_rotvec(ctx.omega_rad_s * dt[:, None]).as_quat()
+        changes["attitude"] = Rotation.from_quat(quat_multiply(ctx.attitude.as_quat(), step))
     return ctx.evolve(**changes)
 
 
