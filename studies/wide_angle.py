@@ -2,7 +2,7 @@
 
 Each case simulates a centroid-level recording (12 frames, 0.5 deg/s, rolling shutter, 0.05 px
 noise, Hipparcos to Hp 4.5) through a lens of one projection (:data:`rollingstar.sensors.camera.PROJECTIONS`)
-over a 60 or 100 deg horizontal field with a radial distortion ``k1 = K1_TRUE``, and diagnoses it
+over a 60, 100 or 120 deg horizontal field with a radial distortion ``k1 = K1_TRUE``, and diagnoses it
 against a scenario that declares a pinhole of the same nominal field (the focal length a pinhole
 needs for that field, as a user reading the lens's data sheet would write). Reported per case:
 the projection named, its fitted focal length against the truth's, the distortion named after it
@@ -29,7 +29,7 @@ K1_TRUE = 0.005
 SIGMA_PX = 0.05
 WIDTH_PX = 1024
 PIXEL_UM = 5.5
-FIELDS_DEG = (60.0, 100.0)
+FIELDS_DEG = (60.0, 100.0, 120.0)
 
 
 def scenario(projection: str, field_deg: float, k1: float | None, seed: int) -> ScenarioConfig:

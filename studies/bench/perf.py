@@ -36,6 +36,10 @@ Lines (full sizes; ``--quick`` shrinks every one to a few seconds):
    budgets: 5 ms at low rate, 20 ms at 10 deg/s, in the note).
 8. ``compare``: ``rollingstar compare configs/compare/scaling.yaml`` on dask with 2 workers vs serial,
    two interleaved runs of each, the faster of each (target >= 1.7x).
+9. ``diagnose``: ``rollingstar diagnose`` (default options: stability refits, 50 bootstrap
+   resamples, re-simulation) of a 100-frame he2021b centroid-level recording (about 3,800 stars)
+   with a radial distortion and a line-delay error, CPU time of the whole command (pipeline run
+   included) against the 10 s budget; checks that it names exactly those two effects.
 """
 from __future__ import annotations
 
@@ -87,6 +91,7 @@ SIZES = {
     "replay_image": ((1_000, 10_000), (4, 12)), "replay_image_px": (256, 64),
     "repeats": (15, 3),
     "chain_frames": (24, 3),
+    "diagnose_frames": (100, 12),
 }
 
 
@@ -401,6 +406,47 @@ def bench_chain(quick: bool) -> list[dict]:
     return lines
 
 
+DIAGNOSE_BUDGET_S = 10.0
+DIAGNOSE_SCENARIO = """
+name: bench-diagnose
+level: centroid
+sensor: {focal_length_mm: 24.09, pixel_size_um: 5.5, width_px: 1024, height_px: 1024}
+shutter: {mode: rolling, exposure_ms: 50.0, line_delay_us: 49.0}
+catalog: {source: hipparcos, magnitude_limit: 6.0, epoch_year: 2025.0}
+motion:
+  initial_attitude: {ra_deg: 83.8, dec_deg: -5.4, roll_deg: 0.0}
+  rate_deg_s: [0.5, 0.2, 0.0]
+noise: {centroid_sigma_px: 0.05}
+seed: 3
+"""
+DIAGNOSE_EFFECTS = [{"kind": "radial_distortion", "params": {"k1": 0.01}},
+                    {"kind": "rolling_shutter", "params": {"line_delay_error_us": 2.0}}]
+
+
+def bench_diagnose(quick: bool) -> dict:
+    """CPU time of one diagnosis of a recording with two concealed effects, against the budget."""
+    from rollingstar.config import parse_yaml, validate
+    from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose_recording
+    from rollingstar.sensors.scenario import ScenarioConfig
+
+    frames = _size("diagnose_frames", quick)
+    data = {**parse_yaml(DIAGNOSE_SCENARIO, "<bench diagnose>"), "frames": frames}
+    base = validate(ScenarioConfig, data, "<bench diagnose>")
+    truth = validate(ScenarioConfig, {**data, "effects": DIAGNOSE_EFFECTS}, "<bench diagnose truth>")
+    with tempfile.TemporaryDirectory() as tmp, threadpool_limits(1):
+        rec = Path(tmp) / "recording.mcap"
+        simulate_to_log(truth, rec, show_progress=False)
+        t_cpu, (result, _) = _once(lambda: diagnose_recording(rec, base, None, DiagnoseOptions(seed=0)))
+    stars = result["split"]["train_observations"] + result["split"]["heldout_observations"]
+    named = sorted(e["name"] for e in result["effects"])
+    wrong = len(set(named) ^ {e["kind"] for e in DIAGNOSE_EFFECTS})
+    return _line("diagnose", "rollingstar diagnose, two concealed effects, vs the 10 s budget",
+                 f"he2021b centroid level, {frames} frames, {stars} stars", ("diagnose (CPU)", t_cpu),
+                 (f"budget {DIAGNOSE_BUDGET_S:g} s", DIAGNOSE_BUDGET_S), "over_floor", ("<=", 1.0),
+                 [_check("effects named other than the two concealed", float(wrong), 0.0)],
+                 note=f"named: {', '.join(named) or 'none'}")
+
+
 def _noise_checks(model) -> list[dict]:
     """Same distribution before/after: mean and variance of a flat field and of a bright one."""
     checks = []
@@ -543,7 +589,7 @@ def run_perf(quick: bool = False, show_progress: bool = True, only: list[str] | 
     steps = [("quest", lambda: [bench_quest(quick)]), ("kf", lambda: [bench_kf(quick)]),
              ("rate", lambda: [bench_rate(quick)]), ("centroid", lambda: bench_frames(quick)),
              ("chain", lambda: bench_chain(quick)), ("replay", lambda: bench_replay(quick)),
-             ("compare", lambda: [bench_compare(quick)])]
+             ("compare", lambda: [bench_compare(quick)]), ("diagnose", lambda: [bench_diagnose(quick)])]
     if only:
         names = [name for name, _ in steps]
         unknown = [o for o in only if o not in names]
