@@ -18,7 +18,7 @@ pytestmark = pytest.mark.slow  # whole reproductions, benchmarks or killed proce
 
 EXPECTED = {"quest", "kf", "rate", "centroid_full", "centroid_windowed", "render", "render_speedup",
             "replay_centroid", "replay_image", "compare",
-            "chain_high_dynamic_0_5", "chain_baseline_0_5", "chain_high_dynamic_10", "chain_baseline_10"}
+            "chain_high_dynamic_0_5", "chain_baseline_0_5", "chain_high_dynamic_10", "chain_baseline_10", "diagnose"}
 
 
 @pytest.fixture(scope="module")
