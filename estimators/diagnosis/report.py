@@ -118,6 +118,33 @@ def _f(v, fmt="{:.4g}"):
     return "n/a" if v is None else fmt.format(v)
 
 
+def _model_section(result: dict) -> list[str]:
+    """Step 3 of the report: what is left after the named model (catch-all tests, the described
+    shape, the noise check), stability and the updated scenario."""
+    out = []
+    out.append("<h2>3. Model</h2>")
+    ue = result["unexplained_systematic"]
+    out.append(_table([[t["basis"], _f(t["delta_chi2"]), t["dof"], _f(t["z"]), t["significant"]] for t in ue["tests"]],
+                        ["generic basis on the residual left", "delta chi2", "dof", "z", "significant"]))
+    desc = ue.get("description")
+    if desc:
+        out.append(f"<p><b>Outside the library:</b> {html.escape(desc['text'])}"
+                     + (" Written to the updated scenario as an empirical correction." if desc.get("correction") else "") + "</p>")
+        out.append(_table([[a["shape"], a.get("axis", ""), a.get("coordinate", ""), _f(a["bic"]), _f(a["z"])]
+                             for a in desc["alternatives"]], ["shape tried (best of its kind)", "axis", "along", "BIC", "z"]))
+    noise = result.get("noise_check")
+    if noise:
+        out.append(f"<p><b>Noise:</b> measured {_f(noise['factor'], '{:.3f}')} ± {_f(noise['factor_sigma'], '{:.3f}')} x the "
+                     f"stated ({html.escape(noise['stated_source'])}, {noise['pairs']} star pairs in consecutive frames)"
+                     + ("; applied." if noise["applied"] else "; consistent with the stated noise, not applied.") + "</p>")
+    if result["stability"]:
+        out.append(_table([[s["subset"], s["effect"], s["param"], _f(s["a"]), _f(s["sigma_a"]), _f(s["b"]), _f(s["sigma_b"]), _f(s["z"])]
+                             for s in result["stability"]], ["subsets", "effect", "param", "a", "sigma a", "b", "sigma b", "z"]))
+    if result.get("scenario_updated"):
+        out.append(f"<p>Updated scenario: <code>{html.escape(Path(result['scenario_updated']).name)}</code></p>")
+    return out
+
+
 def write_report(result: dict, d: Diagnosis, out_dir: Path) -> Path:
     """Write ``index.html``, ``result.json`` (``result``: :func:`.algorithm.as_json` of ``d``) and
     the PNGs into ``out_dir``; returns the HTML path."""
@@ -158,26 +185,7 @@ def write_report(result: dict, d: Diagnosis, out_dir: Path) -> Path:
     if result["absorbed_by_attitude"] or result["not_testable"]:
         parts.append(_table([[a["name"], "absorbed by the per-frame attitude", a["separating_experiment"]] for a in result["absorbed_by_attitude"]]
                             + [[a["name"], "not testable", a["reason"]] for a in result["not_testable"]], ["effect", "status", "why / what would show it"]))
-    parts.append("<h2>3. Model</h2>")
-    ue = result["unexplained_systematic"]
-    parts.append(_table([[t["basis"], _f(t["delta_chi2"]), t["dof"], _f(t["z"]), t["significant"]] for t in ue["tests"]],
-                        ["generic basis on the residual left", "delta chi2", "dof", "z", "significant"]))
-    desc = ue.get("description")
-    if desc:
-        parts.append(f"<p><b>Outside the library:</b> {html.escape(desc['text'])}"
-                     + (" Written to the updated scenario as an empirical correction." if desc.get("correction") else "") + "</p>")
-        parts.append(_table([[a["shape"], a.get("axis", ""), a.get("coordinate", ""), _f(a["bic"]), _f(a["z"])]
-                             for a in desc["alternatives"]], ["shape tried (best of its kind)", "axis", "along", "BIC", "z"]))
-    noise = result.get("noise_check")
-    if noise:
-        parts.append(f"<p><b>Noise:</b> measured {_f(noise['factor'], '{:.3f}')} ± {_f(noise['factor_sigma'], '{:.3f}')} x the "
-                     f"stated ({html.escape(noise['stated_source'])}, {noise['pairs']} star pairs in consecutive frames)"
-                     + ("; applied." if noise["applied"] else "; consistent with the stated noise, not applied.") + "</p>")
-    if result["stability"]:
-        parts.append(_table([[s["subset"], s["effect"], s["param"], _f(s["a"]), _f(s["sigma_a"]), _f(s["b"]), _f(s["sigma_b"]), _f(s["z"])]
-                             for s in result["stability"]], ["subsets", "effect", "param", "a", "sigma a", "b", "sigma b", "z"]))
-    if result.get("scenario_updated"):
-        parts.append(f"<p>Updated scenario: <code>{html.escape(Path(result['scenario_updated']).name)}</code></p>")
+    parts += _model_section(result)
     parts.append("<h2>4. The fit improves</h2>")
     parts.append(_table([["training", _f(result["train_rms_before_px"]), _f(result["train_rms_after_px"]),
                           _f(result["train_chi2_dof_before"]), _f(result["train_chi2_dof_after"])],

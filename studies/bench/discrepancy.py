@@ -816,7 +816,6 @@ def aggregate(rows: list[dict]) -> dict:
     nulls = [r for r in rows if r["kind"] == "null"]
     nuis = [r for r in rows if r["kind"] == "nuisance" and r["outcome"] != "identification_failed"]
     ool = [r for r in rows if r["kind"] == "out_of_library"]
-    ool_vis = [r for r in ool if r.get("multiple") is not None and r["multiple"] >= 3.0]
     return {
         "cases": len(main),
         "nulls": len(nulls),
@@ -835,13 +834,7 @@ def aggregate(rows: list[dict]) -> dict:
         "coverage_2sigma_all": frac(sum(e["within_2sigma"] for e in errs_all), len(errs_all)),
         "parameters_all": len(errs_all),
         "coverage_2sigma_above_3x": frac(sum(e["within_2sigma"] for e in errs3), len(errs3)),
-        "out_of_library_cases": len(ool),
-        "out_of_library_unexplained": frac(sum(r["outcome"] == "unexplained" for r in ool), len(ool)),
-        "out_of_library_unexplained_above_3x": frac(sum(r["outcome"] == "unexplained" for r in ool_vis), len(ool_vis)),
-        "out_of_library_confident_wrong_name": frac(sum(r["outcome"] == "confident_wrong_name" for r in ool), len(ool)),
-        "out_of_library_located": frac(sum(bool(r.get("located")) for r in ool), len(ool)),
-        "out_of_library_located_above_3x": frac(sum(bool(r.get("located")) for r in ool_vis), len(ool_vis)),
-        "out_of_library_cases_above_3x": len(ool_vis),
+        **out_of_library_summary(ool),
         "invisible_in_design": sum(r["outcome"] == "invisible_in_design" for r in rows),
         "max_seconds_per_diagnosis": float(np.max([r["seconds"] for r in rows])) if rows else None,
         "identification_failed": sum(r["outcome"] == "identification_failed" for r in rows),
@@ -851,6 +844,20 @@ def aggregate(rows: list[dict]) -> dict:
         "gyro_channel_effects": by_gyro_effect,
         "median_seconds_per_diagnosis": float(np.median([r["seconds"] for r in rows])) if rows else None,
     }
+
+
+def out_of_library_summary(ool: list[dict]) -> dict:
+    """Out-of-library scores: reported as unexplained, confidently misnamed, located by the description."""
+    def frac(a, b):
+        return None if b == 0 else a / b
+
+    vis = [r for r in ool if r.get("multiple") is not None and r["multiple"] >= 3.0]
+    return {"out_of_library_cases": len(ool), "out_of_library_cases_above_3x": len(vis),
+            "out_of_library_unexplained": frac(sum(r["outcome"] == "unexplained" for r in ool), len(ool)),
+            "out_of_library_unexplained_above_3x": frac(sum(r["outcome"] == "unexplained" for r in vis), len(vis)),
+            "out_of_library_confident_wrong_name": frac(sum(r["outcome"] == "confident_wrong_name" for r in ool), len(ool)),
+            "out_of_library_located": frac(sum(bool(r.get("located")) for r in ool), len(ool)),
+            "out_of_library_located_above_3x": frac(sum(bool(r.get("located")) for r in vis), len(vis))}
 
 
 def nuisance_rows(rows: list[dict]) -> list[dict]:
