@@ -407,30 +407,21 @@ def bench_chain(quick: bool) -> list[dict]:
 
 
 DIAGNOSE_BUDGET_S = 10.0
-DIAGNOSE_SCENARIO = """
-name: bench-diagnose
-level: centroid
-sensor: {focal_length_mm: 24.09, pixel_size_um: 5.5, width_px: 1024, height_px: 1024}
-shutter: {mode: rolling, exposure_ms: 50.0, line_delay_us: 49.0}
-catalog: {source: hipparcos, magnitude_limit: 6.0, epoch_year: 2025.0}
-motion:
-  initial_attitude: {ra_deg: 83.8, dec_deg: -5.4, roll_deg: 0.0}
-  rate_deg_s: [0.5, 0.2, 0.0]
-noise: {centroid_sigma_px: 0.05}
-seed: 3
-"""
 DIAGNOSE_EFFECTS = [{"kind": "radial_distortion", "params": {"k1": 0.01}},
                     {"kind": "rolling_shutter", "params": {"line_delay_error_us": 2.0}}]
 
 
 def bench_diagnose(quick: bool) -> dict:
     """CPU time of one diagnosis of a recording with two concealed effects, against the budget."""
-    from rollingstar.config import parse_yaml, validate
+    from rollingstar.config import validate
     from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose_recording
     from rollingstar.sensors.scenario import ScenarioConfig
+    from rollingstar.studies.bench.discrepancy import base_scenario
 
     frames = _size("diagnose_frames", quick)
-    data = {**parse_yaml(DIAGNOSE_SCENARIO, "<bench diagnose>"), "frames": frames}
+    data = base_scenario(frames).model_dump(mode="json")  # he2021b optics, Hipparcos to 6, 0.05 px
+    data["motion"]["rate_deg_s"] = [0.5, 0.2, 0.0]
+    data["seed"] = 3
     base = validate(ScenarioConfig, data, "<bench diagnose>")
     truth = validate(ScenarioConfig, {**data, "effects": DIAGNOSE_EFFECTS}, "<bench diagnose truth>")
     with tempfile.TemporaryDirectory() as tmp, threadpool_limits(1):

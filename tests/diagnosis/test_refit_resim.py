@@ -37,12 +37,9 @@ def test_rate_operator_recovers_the_chosen_difference_and_ties_rates():
     assert np.allclose(c.sum(axis=1), 1.0)  # every rate is an average of steps
 
 
-def test_joint_jacobian_matches_finite_differences_and_noise_free_recovery():
-    eff = RS.instance(np.array([2.0]))
-    obs, truth, cam, tim = synthetic((eff,), frames=8, stars=15, seed=1, noise=False)
-    mask = np.ones(obs.n, bool)
-    captured = {}
-    orig = R.least_squares
+def _with_problem(fit):
+    """``fit()``'s result and the residual function and Jacobian it handed to least_squares."""
+    captured, orig = {}, R.least_squares
 
     def spy(fun, x0, jac=None, **kw):
         captured["fun"], captured["jac"] = fun, jac
@@ -50,9 +47,16 @@ def test_joint_jacobian_matches_finite_differences_and_noise_free_recovery():
 
     R.least_squares = spy
     try:
-        out = R.joint_refit(obs, truth, cam, tim, (), [RS], [np.array([1.5])], mask, moving=True)
+        return fit(), captured
     finally:
         R.least_squares = orig
+
+
+def test_joint_jacobian_matches_finite_differences_and_noise_free_recovery():
+    eff = RS.instance(np.array([2.0]))
+    obs, truth, cam, tim = synthetic((eff,), frames=8, stars=15, seed=1, noise=False)
+    mask = np.ones(obs.n, bool)
+    out, captured = _with_problem(lambda: R.joint_refit(obs, truth, cam, tim, (), [RS], [np.array([1.5])], mask, moving=True))
     assert out["thetas"][0][0] == pytest.approx(2.0, abs=2e-3)  # sigma is ~0.2 us: 1 % of it
     fun, jac = captured["fun"], captured["jac"]
     x = np.zeros(3 * obs.n_frames + 1)
@@ -135,18 +139,7 @@ def test_variable_projection_jacobian_matches_finite_differences():
     obs, truth, cam, tim = synthetic((RS.instance(np.array([2.0])), rad.instance(np.array([0.02, 0.0]))),
                                      frames=8, stars=20, seed=2, noise=False)
     mask = np.ones(obs.n, bool)
-    captured = {}
-    orig = R.least_squares
-
-    def spy(fun, x0, jac=None, **kw):
-        captured["fun"], captured["jac"] = fun, jac
-        return orig(fun, x0, jac=jac, **kw)
-
-    R.least_squares = spy
-    try:
-        out = R.refit(obs, truth, cam, tim, (), [RS, rad], mask)
-    finally:
-        R.least_squares = orig
+    out, captured = _with_problem(lambda: R.refit(obs, truth, cam, tim, (), [RS, rad], mask))
     assert out["thetas"][0][0] == pytest.approx(2.0, abs=2e-3) and out["thetas"][1][0] == pytest.approx(0.02, abs=1e-4)
     fun, jac = captured["fun"], captured["jac"]
     z = np.concatenate([(t - c.defaults) / c.scales for c, t in zip([RS, rad], out["thetas"])]) * 0.98
