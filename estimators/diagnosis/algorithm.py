@@ -37,12 +37,12 @@ from rollingstar.estimators.diagnosis.library import Candidate, library
 from rollingstar.estimators.diagnosis.locating import Location, locate
 from rollingstar.estimators.diagnosis.modelling import EffectModel, known_noise, model_effects, updated_scenario
 from rollingstar.estimators.diagnosis.naming import Naming, name_effects
-from rollingstar.estimators.diagnosis.noise import NoiseCheck, scaled
+from rollingstar.estimators.diagnosis.noise import NoiseCheck, combined, scaled
 from rollingstar.estimators.diagnosis.noise import measure as measure_noise
-from rollingstar.estimators.diagnosis.observations import Observations
+from rollingstar.estimators.diagnosis.observations import Observations, fit_nuisance
 from rollingstar.estimators.diagnosis.projection import ProjectionChoice, choose_projection, with_projection
 from rollingstar.estimators.diagnosis.signatures import candidate_signatures
-from rollingstar.estimators.diagnosis.verifying import Verification, verify
+from rollingstar.estimators.diagnosis.verifying import Verification, chi2_dof, rms_px, verify
 from rollingstar.sensors.scenario import ScenarioConfig
 
 #: Rounds of model-aware outlier rejection: the model as given, then the model each round named
@@ -67,7 +67,7 @@ class Diagnosis:
     noise: NoiseCheck | None = None  # the recording's noise against the stated (None: too few repeated stars)
     description: Description | None = None  # the shape of an unexplained systematic (None: none left, or none found)
     uncorrected_evidence: tuple = ()  # the systematic's evidence before its empirical correction joined the model
-    uncorrected_quality: object = None  # verifying.FitQuality of the round before the correction (its "before" is the model as given)
+    as_given: dict | None = None  # with a correction: the model as given without it, on the final stars (:func:`_as_given`)
 
     @property
     def obs(self) -> Observations:
@@ -113,20 +113,61 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
             steps = _outlier_rounds(scaled(observations, noise), attitudes, sensor, cands, gyro, options)
         obs_used = scaled(observations, noise) if noise is not None and noise.applied else observations
         shape = _describe(steps[0], steps[2], steps[3], sensor) if steps[3].unexplained else None
-        evidence, quality, given = tuple(steps[3].evidence), steps[3].quality, sensor.scenario
-        for _ in range(MAX_CORRECTION_ROUNDS):
-            if shape is None or shape.correction is None:
-                break
-            # the shape joins the model as given and the physics is named again: an effect that only
-            # absorbed part of the shape is no longer needed
-            sensor = sensor_model(with_correction(given, shape))
-            steps = _outlier_rounds(obs_used, attitudes, sensor, cands, gyro, options)
-            data = steps[0].data
-            refined = refine(shape, data.obs, steps[0].prediction, data.train)
-            if refined is None:  # nothing of the same shape left: the correction stands
-                break
-            shape = refined
-    return Diagnosis(sensor, *steps[:4], choice, steps[4], noise, shape, evidence, quality)
+        evidence, given, before = tuple(steps[3].evidence), sensor_model(sensor.scenario), None
+        if shape is not None and shape.correction is not None:
+            sensor, steps, shape = _corrected(shape, given.scenario, obs_used, attitudes, cands, gyro, options)
+            steps, noise = _noise_again(noise, steps, observations, attitudes, sensor, cands, gyro, options)
+            before = _as_given(steps[0], given)
+    return Diagnosis(sensor, *steps[:4], choice, steps[4], noise, shape, evidence, before)
+
+
+def _corrected(shape: Description, given: ScenarioConfig, obs: Observations, attitudes: Rotation,
+               cands: dict[str, Candidate], gyro: GyroData | None, options: DiagnoseOptions):
+    """The diagnosis with ``shape``'s empirical correction in the model as given: the physics is
+    named again (an effect that only absorbed part of the shape drops), and what the corrected
+    model still leaves of the same shape, with the named effects free, is added to the correction
+    (:data:`MAX_CORRECTION_ROUNDS`). Returns the sensor model, the last round's steps and the
+    shape that round ran with."""
+    for k in range(MAX_CORRECTION_ROUNDS):
+        sensor = sensor_model(with_correction(given, shape))
+        steps = _outlier_rounds(obs, attitudes, sensor, cands, gyro, options)
+        if k == MAX_CORRECTION_ROUNDS - 1:
+            break
+        data, model, verification = steps[0].data, steps[2], steps[3]
+        named = _named_rows(data, model, data.train) if verification.named and model.chosen else None
+        refined = refine(shape, data.obs, model.prediction, data.train, named)
+        if refined is None:  # nothing of the same shape left: the correction stands
+            break
+        shape = refined
+    return sensor, steps, shape
+
+
+def _noise_again(noise: NoiseCheck | None, steps: tuple, observations: Observations, attitudes: Rotation,
+                 sensor: SensorModel, cands: dict[str, Candidate], gyro: GyroData | None, options: DiagnoseOptions):
+    """The noise measured once more on the corrected model (a shape left in the first residual
+    moves stars between frames too); the last round runs again when the factor it used changes."""
+    if noise is None:
+        return steps, noise
+    data = steps[0].data
+    again = measure_noise(data.obs, steps[2].prediction, data.train, data.att_mask, sensor.camera)
+    if again is None:
+        return steps, noise
+    total = combined(noise, again)
+    if total.applied == noise.applied and not again.applied:  # the factor the rounds used stands
+        return steps, noise if noise.applied else total
+    obs = scaled(observations, total) if total.applied else observations
+    return _outlier_rounds(obs, attitudes, sensor, cands, gyro, options), total
+
+
+def _as_given(location: Location, given: SensorModel) -> dict:
+    """Training and held-out RMS and chi2/dof of the model as given, without the empirical
+    correction, on the final round's stars (the "before" of a corrected diagnosis)."""
+    data = location.data
+    _, pred = fit_nuisance(data.obs, location.nuisance, given.camera, given.timing, given.effects, data.att_mask,
+                           given.moving)
+    return {"train_rms_px": rms_px(data.obs, pred, data.train), "heldout_rms_px": rms_px(data.obs, pred, data.heldout),
+            "train_chi2_dof": chi2_dof(data.obs, pred, data.train, data.n_train_frames),
+            "heldout_chi2_dof": chi2_dof(data.obs, pred, data.heldout, data.heldout_frames_fitted)}
 
 
 def with_correction(scenario: ScenarioConfig, shape: Description) -> ScenarioConfig:
@@ -219,12 +260,11 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
                                    "left_after_correction": v.evidence if d.corrected else None},
     }
     # "before" is the model as given; with an empirical correction, the model as given without it
-    q0 = d.uncorrected_quality if d.corrected and d.uncorrected_quality is not None else q
-    for key, pair, pair0 in (("train_rms", q.train_rms_px, q0.train_rms_px), ("heldout_rms", q.heldout_rms_px, q0.heldout_rms_px)):
-        out[f"{key}_before_px"], out[f"{key}_after_px"] = pair0.before, pair.after
-    for key, pair, pair0 in (("train_chi2_dof", q.train_chi2_dof, q0.train_chi2_dof),
-                             ("heldout_chi2_dof", q.heldout_chi2_dof, q0.heldout_chi2_dof)):
-        out[f"{key}_before"], out[f"{key}_after"] = pair0.before, pair.after
+    given = d.as_given if d.corrected and d.as_given is not None else {}
+    for key, pair in (("train_rms", q.train_rms_px), ("heldout_rms", q.heldout_rms_px)):
+        out[f"{key}_before_px"], out[f"{key}_after_px"] = given.get(f"{key}_px", pair.before), pair.after
+    for key, pair in (("train_chi2_dof", q.train_chi2_dof), ("heldout_chi2_dof", q.heldout_chi2_dof)):
+        out[f"{key}_before"], out[f"{key}_after"] = given.get(key, pair.before), pair.after
     out.update({
         "heldout_residual_distribution": q.heldout_distribution,
         "gyro_channel": q.gyro,

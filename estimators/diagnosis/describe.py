@@ -24,8 +24,9 @@ perturbation gives it back to the shape that describes it better.
 A shape is reported only when its chi-square drop is significant after the look-elsewhere
 correction of its scan (Bonferroni over the scanned values): z above :data:`.catchall.Z_LIMIT`.
 Shapes are then compared in the units of what the best one leaves (quasi-likelihood BIC, Burnham
-& Anderson 2002): with ``c_hat`` the chi-square per dof left by the plain-BIC best, chi-square
-differences are divided by ``c_hat``. A large perturbation described by the right shape still
+& Anderson 2002): with ``c_hat`` the chi-square per dof left by the plain-BIC best (dof net of the
+shape, the attitudes and the named effects), chi-square differences are divided by ``c_hat``; the
+shape so chosen must still be significant and lower the quasi-BIC. A large perturbation described by the right shape still
 leaves a small misfit (its effect on the rates the attitudes imply, say); in raw chi-square a
 20-parameter basis absorbs that misfit and wins, in its units the 2-parameter shape does.
 A described shape is a measurement, not an explanation: it says where and how big.
@@ -95,8 +96,9 @@ class Description:
 
     def as_json(self) -> dict:
         s = self.shape
-        return {"shape": s.kind, **s.label, "text": self.text, "coefficients_px": s.coef.tolist(),
-                "sigmas_px": np.sqrt(np.diag(s.cov)).tolist(), "delta_chi2": s.delta_chi2, "dof": s.k,
+        exact = s.kind in ("step", "ripple")  # a generic basis's coefficients are not identifiable (the attitudes absorb directions)
+        return {"shape": s.kind, **s.label, "text": self.text, "coefficients_px": s.coef.tolist() if exact else None,
+                "sigmas_px": np.sqrt(np.diag(s.cov)).tolist() if exact else None, "delta_chi2": s.delta_chi2, "dof": s.k,
                 "z": s.z(), "heldout_chi2_before": None if self.heldout_chi2 is None else self.heldout_chi2[0],
                 "heldout_chi2_after": None if self.heldout_chi2 is None else self.heldout_chi2[1],
                 "heldout_rows": self.heldout_rows, "alternatives": self.alternatives, "correction": self.correction}
@@ -122,8 +124,11 @@ def describe(obs: Observations, pred: Prediction, train: np.ndarray, camera,
     # overdispersion: what the best shape leaves, per dof; chi-square differences between shapes
     # are compared in its units (quasi-likelihood BIC), so that a flexible basis does not win by
     # absorbing a small misfit of a large perturbation
-    c_hat = max(1.0, (float(r @ r) - best.delta_chi2) / max(n_rows - best.k, 1))
-    best = min(shapes, key=lambda s: s.bic(n_rows, c_hat))
+    fixed = 3 * np.unique(obs.frame[train]).size + (0 if named is None else named[0].shape[1])  # attitudes, named
+    c_hat = max(1.0, (float(r @ r) - best.delta_chi2) / max(n_rows - best.k - fixed, 1))
+    quasi = min(shapes, key=lambda s: s.bic(n_rows, c_hat))
+    if quasi.bic(n_rows, c_hat) < 0 and quasi.z() > catchall.Z_LIMIT:
+        best = quasi
     held = ~train
     heldout, shift = None, None
     if named is not None and named[0].size:  # the named effects' share, moved with the shape on training
@@ -134,8 +139,8 @@ def describe(obs: Observations, pred: Prediction, train: np.ndarray, camera,
         if shift is not None:
             fitted = fitted + named[1] @ shift
         heldout = (float(rh @ rh), float(np.sum((rh - fitted) ** 2)))
-    alts = sorted(({"shape": s.kind, **s.label, "bic": float(s.bic(n_rows)), "z": s.z()} for s in _best_per_kind(shapes, n_rows)),
-                  key=lambda a: a["bic"])
+    alts = sorted(({"shape": s.kind, **s.label, "bic": float(s.bic(n_rows, c_hat)), "z": s.z()}
+                   for s in _best_per_kind(shapes, n_rows, c_hat)), key=lambda a: a["bic"])
     text = _text(best, obs, aj, train)
     runner = min((s for s in shapes if s.kind != best.kind), key=lambda s: s.bic(n_rows, c_hat), default=None)
     if runner is not None and runner.bic(n_rows, c_hat) - best.bic(n_rows, c_hat) < CLOSE_BIC:
@@ -234,12 +239,18 @@ def _wave(coord: np.ndarray, periods: np.ndarray) -> np.ndarray:
     return np.stack([np.sin(arg), np.cos(arg)], axis=-1).reshape(coord.size, -1)
 
 
+PERIOD_CHUNK = 128  # periods projected at once (memory: stars x 2 x 2 x this)
+
+
 def _best_period(obs, aj, r, train, coord, axis, periods) -> float:
-    g = aj.rows(whiten(obs, _single_axis(_wave(coord, periods), axis)), train)
-    g = g.reshape(g.shape[0], periods.size, 2)
-    a = np.einsum("npi,npj->pij", g, g) + 1e-12 * np.eye(2)
-    b = np.einsum("npi,n->pi", g, r)
-    d = np.einsum("pi,pi->p", b, np.linalg.solve(a, b[..., None])[..., 0])
+    """The period of ``periods`` whose sine and cosine explain most of ``r`` (in chunks)."""
+    d = np.empty(periods.size)
+    for i in range(0, periods.size, PERIOD_CHUNK):
+        chunk = periods[i:i + PERIOD_CHUNK]
+        g = aj.rows(whiten(obs, _single_axis(_wave(coord, chunk), axis)), train).reshape(-1, chunk.size, 2)
+        a = np.einsum("npi,npj->pij", g, g) + 1e-12 * np.eye(2)
+        b = np.einsum("npi,n->pi", g, r)
+        d[i:i + chunk.size] = np.einsum("pi,pi->p", b, np.linalg.solve(a, b[..., None])[..., 0])
     return float(periods[int(np.argmax(d))])
 
 
@@ -263,10 +274,10 @@ def _fit(kind: str, label: dict, cols: np.ndarray, obs, aj, r, train, scanned: i
     return Shape(kind, label, cols, coef, cov, float(np.sum((u.T @ r) ** 2)), scanned, int(keep.sum()))
 
 
-def _best_per_kind(shapes: list[Shape], n_rows: int) -> list[Shape]:
+def _best_per_kind(shapes: list[Shape], n_rows: int, c_hat: float) -> list[Shape]:
     best: dict[str, Shape] = {}
     for s in shapes:
-        if s.kind not in best or s.bic(n_rows) < best[s.kind].bic(n_rows):
+        if s.kind not in best or s.bic(n_rows, c_hat) < best[s.kind].bic(n_rows, c_hat):
             best[s.kind] = s
     return list(best.values())
 
@@ -274,12 +285,14 @@ def _best_per_kind(shapes: list[Shape], n_rows: int) -> list[Shape]:
 REFINE_Z = 3.0  # what the corrected model leaves of the shape is added when beyond this many sigma
 
 
-def refine(first: Description, obs: Observations, pred: Prediction, train: np.ndarray) -> Description | None:
-    """``first`` with what ``pred`` (the model as given with ``first``'s correction in it) still
-    leaves of the same shape (same position or period, coefficients refitted) added to it; None
-    when that is below ``REFINE_Z`` sigma."""
+def refine(first: Description, obs: Observations, pred: Prediction, train: np.ndarray,
+           named: np.ndarray | None = None) -> Description | None:
+    """``first`` with what ``pred`` (the model with ``first``'s correction in it) still leaves of
+    the same shape (same position or period, coefficients refitted, the named effects' training
+    rows ``named`` free) added to it; None when that is below ``REFINE_Z`` sigma. A ripple keeps
+    its period: only its sine and cosine parts are refined."""
     s = first.shape
-    aj = _Projector(obs, pred, None)
+    aj = _Projector(obs, pred, named)
     r = aj.rows(whitened_residuals(obs, pred)[:, :, None], train)[:, 0]
     more = _fit(s.kind, s.label, _shape_columns(s, obs), obs, aj, r, train, 1)
     if more is None or more.coef.size != s.coef.size:

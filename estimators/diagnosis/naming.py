@@ -10,7 +10,7 @@ a weak candidate and the rest refitted.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -56,9 +56,10 @@ class Naming:
     selection: dict  # :func:`selection.select` on ``problem``: screen, steps, inclusion, bootstrap sets
     pooled_inclusion: dict[str, float]  # bootstrap inclusion pooled over each selected effect's aliases
     weak: list[dict]  # selected effects not named (weak bootstrap support or nonlinear delta BIC)
-    delta_bic: dict[str, float]  # nonlinear drop-one delta BIC of every named effect
+    delta_bic: dict[str, float]  # drop-one delta BIC of every named effect (:func:`drop_one_delta_bic`)
     ambiguous: list[dict]  # named effects the data cannot tell from another candidate
     correlations: dict[str, dict[str, float]]  # canonical correlation of each named effect with every screened one
+    delta_bic_method: dict[str, str] = field(default_factory=dict)  # "refit" (nonlinear) or "wald", per effect
 
 
 def name_effects(location: Location, sensor: SensorModel, cands: dict[str, Candidate],
@@ -72,7 +73,7 @@ def name_effects(location: Location, sensor: SensorModel, cands: dict[str, Candi
     problem, _ = linear_problem(data.obs, model.prediction, cands, model.effects, data.train, blocks,
                                 add_back={c.name: (th - c.defaults) / c.scales for c, th in zip(model.chosen, model.fit["thetas"])})
     sel = selection.select(problem, n_boot=options.n_boot, seed=options.seed, min_delta_bic=options.min_delta_bic)
-    drop_one = drop_one_delta_bic(data, sensor, nuis0, model.chosen, model.fit, options.min_delta_bic)
+    drop_one, method = drop_one_delta_bic(data, sensor, nuis0, model.chosen, model.fit, options.min_delta_bic)
     pooled = pooled_inclusion(problem, sel, model.names)
     weak = [n for n in model.names if (options.n_boot > 0 and pooled[n] < MIN_INCLUSION)
             or drop_one.get(n, 0.0) < options.min_delta_bic]  # or no longer earning its place nonlinearly
@@ -81,12 +82,12 @@ def name_effects(location: Location, sensor: SensorModel, cands: dict[str, Candi
         weak_rows = [{"name": n, "delta_bic_nonlinear": drop_one.get(n), "inclusion_probability": sel["inclusion"].get(n),
                       "inclusion_with_aliases": pooled[n]} for n in weak]
         model = refit_named(data, sensor, nuis0, cands, [n for n in model.names if n not in weak])
-        drop_one = drop_one_delta_bic(data, sensor, nuis0, model.chosen, model.fit, options.min_delta_bic)
+        drop_one, method = drop_one_delta_bic(data, sensor, nuis0, model.chosen, model.fit, options.min_delta_bic)
     screened = [row["name"] for row in sel["screen"]]
     correlations = {g: {h: selection.canonical_correlation(selection.design(problem, [g]), selection.design(problem, [h]))
                         for h in screened if h != g} for g in model.names if g in problem.groups}
     return Naming(model, rounds, problem, sel, pooled, weak_rows, drop_one,
-                  selection.ambiguities(problem, model.names, screened), correlations)
+                  selection.ambiguities(problem, model.names, screened), correlations, method)
 
 
 def pooled_inclusion(problem: selection.LinearProblem, sel: dict, names: list[str]) -> dict[str, float]:
@@ -202,20 +203,23 @@ def wald_delta_bic(chosen: list[Candidate], fit: dict, n_residuals: int) -> list
 
 
 def drop_one_delta_bic(data: Dataset, sensor: SensorModel, nuis0: Nuisance, chosen: list[Candidate],
-                       fit: dict, min_delta_bic: float) -> dict[str, float]:
-    """Delta BIC of each selected effect: chi2 without it minus chi2 with all, minus its penalty.
+                       fit: dict, min_delta_bic: float) -> tuple[dict[str, float], dict[str, str]]:
+    """Delta BIC of each selected effect: chi2 without it minus chi2 with all, minus its penalty,
+    and how it was computed.
 
-    By a nonlinear refit without it when its Wald delta BIC (:func:`wald_delta_bic`) is below
-    ``WALD_SLACK`` x the margin (where the decision is made); beyond, the Wald value itself: the
-    effect earns its place either way and each refit is a nonlinear fit of every other effect."""
-    out = {}
+    By a nonlinear refit without it ("refit") when its Wald delta BIC (:func:`wald_delta_bic`) is
+    below ``WALD_SLACK`` x the margin (where the decision is made); beyond, the Wald value itself
+    ("wald"): the effect earns its place either way and each refit is a nonlinear fit of every
+    other effect."""
+    out, method = {}, {}
     warm = {c.name: t for c, t in zip(chosen, fit["thetas"])}
     wald = dict(wald_delta_bic(chosen, fit, data.n_residuals))
     for c in chosen:
         if wald[c.name] >= WALD_SLACK * min_delta_bic:
-            out[c.name] = wald[c.name]
+            out[c.name], method[c.name] = wald[c.name], "wald"
             continue
         rest = [d for d in chosen if d is not c]
         f = refit_chi2(data, sensor, nuis0, rest, warm)
         out[c.name] = float(f["cost"] - fit["cost"] - len(c.parameters) * np.log(data.n_residuals))
-    return out
+        method[c.name] = "refit"
+    return out, method

@@ -118,3 +118,11 @@ def scaled(obs: Observations, check: NoiseCheck) -> Observations:
     f = check.factor
     return replace(obs, sigma=obs.sigma * f, cov=None if obs.cov is None else obs.cov * f * f, noise_sigma_ln=check.sigma_ln,
                    sigma_source=f"{obs.sigma_source}, scaled by {f:.3g} (measured noise factor)")
+
+
+def combined(first: NoiseCheck, again: NoiseCheck) -> NoiseCheck:
+    """The factor against the stated noise when ``again`` was measured on observations scaled by
+    ``first`` (when ``first`` was applied) or unscaled; its uncertainty is ``again``'s."""
+    factor = (first.factor if first.applied else 1.0) * again.factor
+    big = abs(np.log(factor)) > max(NOISE_Z * again.sigma_ln, MIN_CHANGE)
+    return NoiseCheck(factor, again.sigma_ln, again.pairs, first.stated_source, first.stated_sigma_px, bool(big))

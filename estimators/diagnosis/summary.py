@@ -56,8 +56,8 @@ def _heldout(r: dict) -> str:
     cb, ca = r.get("heldout_chi2_dof_before"), r.get("heldout_chi2_dof_after")
     if cb is not None and ca is not None:
         text += f", chi2/dof {cb:.3g} -> {ca:.3g}"
-    if r["mismatch"] and not r.get("heldout_confirms", True):
-        text += " (no held-out improvement: nothing is claimed)"
+    if r.get("rejected_on_heldout"):
+        text += f" (no held-out improvement: {', '.join(r['rejected_on_heldout'])} not named)"
     return text + "."
 
 

@@ -175,6 +175,7 @@ def effect_row(c: Candidate, theta: np.ndarray, sigma: np.ndarray, naming: Namin
                                     ("parameter at its bound", bool(at_bound)),
                                     ("no held-out improvement", not confirms)) if flag]
     return {"name": c.name, "params": params, "delta_bic": naming.delta_bic.get(c.name),
+            "delta_bic_method": naming.delta_bic_method.get(c.name),
             "inclusion_probability": naming.selection["inclusion"].get(c.name),
             "inclusion_with_aliases": naming.pooled_inclusion.get(c.name), "aliases_checked": checked,
             "declared_aliases": [getattr(a, "other", str(a)) for a in c.aliases],
