@@ -140,6 +140,10 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
             _, pred_gate = fit_nuisance(obs, attitudes, *gate_fit, att_mask & ~far, gate.moving)
         far = _beyond_gate(obs, pred_gate)
     n_rejected = int(far.sum())
+    if np.count_nonzero(~obs.heldout) < MIN_TRAINING_STARS:
+        raise UserError(f"only {np.count_nonzero(~obs.heldout)} of the {obs.n} identified stars are left for training "
+                        f"after holding out {obs.n - np.count_nonzero(~obs.heldout)} to check the fit; at least "
+                        f"{MIN_TRAINING_STARS} are needed: diagnose a recording with more stars or frames")
     if np.count_nonzero(~far & ~obs.heldout) < MIN_TRAINING_STARS:
         miss = float(np.nanmedian(np.hypot(obs.x - pred0.x, obs.y - pred0.y)))
         raise UserError(f"the simulation as given misses {n_rejected} of the {obs.n} identified stars by more than "

@@ -143,3 +143,15 @@ def test_separating_experiments_are_specific_to_the_pair():
     assert "vary the motion" not in generic
     for c in lib.values():  # every physical effect states what its displacement follows
         assert c.follows and c.shown_by, c.name
+
+
+def test_too_few_stars_to_train_on_is_said_as_such(tmp_path):
+    """A single frame of ten stars leaves too few training stars after the held-out split: the
+    message says so (not that the sensor model is far off)."""
+    from rollingstar.errors import UserError
+
+    cfg = _design("inertial_hold", 3, frames=1)
+    rec = tmp_path / "one.mcap"
+    simulate_to_log(cfg, rec, show_progress=False)
+    with pytest.raises(UserError, match="left for training"):
+        diagnose_recording(rec, cfg, None, OPTIONS)
