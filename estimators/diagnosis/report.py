@@ -110,8 +110,24 @@ def heldout_plot(result: dict, path: Path) -> None:
 
 def _table(rows: list[list], head: list[str]) -> str:
     h = "".join(f"<th>{html.escape(str(c))}</th>" for c in head)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(_cell(c))}</td>" for c in r) + "</tr>" for r in rows)
     return f"<table><tr>{h}</tr>{body}</table>"
+
+
+def _cell(v) -> str:
+    """A table cell a reader can read: numbers rounded, no bare None/True/False, mappings as
+    ``key value`` pairs instead of JSON."""
+    if v is None:
+        return "n/a"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, float):
+        return _f(v)
+    if isinstance(v, dict):
+        return ", ".join(f"{k.replace('_', ' ')} {_cell(x)}" for k, x in v.items())
+    if isinstance(v, (list, tuple)):
+        return ", ".join(_cell(x) for x in v)
+    return str(v)
 
 
 def _f(v, fmt="{:.4g}"):
@@ -161,8 +177,8 @@ def write_report(result: dict, d: Diagnosis, out_dir: Path) -> Path:
              _table([["chi2 / dof (training)", _f(loc["chi2_dof"])], ["z of chi2 against the noise", _f(loc["z"])],
                      ["noise sigma (px)", f"{_f(result['noise']['sigma_px_median'])} ({result['noise']['source']})"],
                      ["strongest covariate", f"{loc['strongest_covariate']} ({loc['strongest_channel']}, z = {_f(loc['strongest_z'])})"],
-                     ["worst field region (3x3)", json.dumps(loc["worst_region"])],
-                     ["worst time span", json.dumps(loc["worst_time_span"])]], ["quantity", "value"]),
+                     ["worst field region (3x3)", loc["worst_region"]],
+                     ["worst time span", loc["worst_time_span"]]], ["quantity", "value"]),
              _table([[s["covariate"], s["channel"], _f(s["chi2"]), s["dof"], _f(s["z"])] for s in loc["structure"]],
                     ["covariate", "channel", "chi2", "dof", "z"]),
              "<h2>2. Name</h2>",
