@@ -283,8 +283,10 @@ def print_summary(result: dict, console) -> None:
     console.print(result["summary"], highlight=False, markup=False)
     console.print()
     console.print(f"[bold]verdict:[/] {result['verdict']}", highlight=False)
-    console.print(f"located: chi2/dof {f(loc['chi2_dof'])} (z {f(loc['z'])}), strongest covariate "
-                  f"{loc['strongest_covariate']} / {loc['strongest_channel']} (z {f(loc['strongest_z'])})", highlight=False)
+    corrected = bool((result["unexplained_systematic"].get("description") or {}).get("correction"))
+    where = "none" if loc["strongest_covariate"] is None else f"{loc['strongest_covariate']} / {loc['strongest_channel']}"
+    console.print(f"located{' (the empirical correction in the model)' if corrected else ''}: chi2/dof {f(loc['chi2_dof'])} "
+                  f"(z {f(loc['z'])}), strongest covariate {where} (z {f(loc['strongest_z'])})", highlight=False)
     if result["effects"]:
         t = Table(title="effects")
         for col in ("effect", "parameter", "value", "sigma", "unit", "delta BIC", "inclusion", "confidence"):

@@ -108,6 +108,7 @@ def updated_scenario(scenario: ScenarioConfig, chosen: list[Candidate], thetas: 
             effects.append(c.scenario_entry(th))
     data = scenario.model_dump(mode="json")
     data["effects"] = effects
-    data["description"] = (scenario.description + "\n" if scenario.description else "") + \
-        "updated by rollingstar diagnose: " + ", ".join(c.name for c in chosen)
+    if chosen:
+        data["description"] = (scenario.description + "\n" if scenario.description else "") + \
+            "updated by rollingstar diagnose: " + ", ".join(c.name for c in chosen)
     return validate(ScenarioConfig, data, "<updated scenario>")
