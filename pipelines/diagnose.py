@@ -36,6 +36,7 @@ from rollingstar.logs.topics import TOPIC_EST_ATTITUDE, TOPIC_EST_STARS
 from rollingstar.outputs import safe_output
 from rollingstar.pipelines.config import PipelineConfig, load_pipeline
 from rollingstar.pipelines.runner import run_pipeline
+from rollingstar.pipelines.truth import TruthTrajectory
 from rollingstar.sensors import build
 from rollingstar.sensors.scenario import ScenarioConfig, load_scenario
 from rollingstar.sensors.timing import DetectorTiming
@@ -209,6 +210,18 @@ def _position_covariance(cov3: np.ndarray, sigma: np.ndarray, source: str) -> tu
     return cov, source + "; 2 x 2 position covariances (cov_xx, cov_xy, cov_yy)"
 
 
+def read_reference(recording: Path, obs: Observations) -> tuple[Rotation, np.ndarray]:
+    """The recording's ``/truth/attitude`` at every frame's reference time, and the frames its
+    samples cover; exit 2 (UserError) when the recording carries none."""
+    samples = LogReader(recording).truth_attitude()
+    if samples["t_ns"].size < 2:
+        raise UserError(f"{recording}: --reference-attitude-arcsec needs a reference attitude in the recording "
+                        f"(/truth/attitude, at least two samples); it has {samples['t_ns'].size}")
+    truth = TruthTrajectory(**samples)
+    covered = truth.covers(obs.t_ref_ns)
+    return truth.attitude(np.where(covered, obs.t_ref_ns, truth.t_ns[0])), covered
+
+
 def read_gyro(recording: Path, scenario: ScenarioConfig) -> GyroData | None:
     """The recording's gyro samples (``/gyro``) as :class:`GyroData`, None without any.
 
@@ -250,7 +263,8 @@ def diagnose_recording(recording: str | Path, scenario: ScenarioConfig | None = 
             catalog = None
         pipeline, stars, att = identify_stars(recording, pipeline, pipeline_source, options.show_progress)
         obs, att0 = build_observations(stars, att, scenario, catalog)
-        d = algorithm.diagnose(obs, att0, scenario, read_gyro(recording, scenario), options, exclude_effects)
+        reference = read_reference(recording, obs) if options.reference_sigma_arcsec is not None else None
+        d = algorithm.diagnose(obs, att0, scenario, read_gyro(recording, scenario), options, exclude_effects, reference)
     return algorithm.as_json(d, recording=str(recording), sim=sim_source or scenario.name, pipeline=pipeline.name), d
 
 

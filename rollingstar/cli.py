@@ -382,6 +382,9 @@ def diagnose(recording: Path = typer.Option(..., "--recording", help="MCAP recor
              out_dir: Path = typer.Option(None, "-o", "--output", help="report directory (index.html, PNGs, scenario_updated.yaml)"),
              as_json: bool = typer.Option(False, "--json", help="print one JSON object"),
              seed: int = typer.Option(0, "--seed", min=0, max=2**63 - 1, help="held-out split and bootstrap seed"),
+             reference_arcsec: float = typer.Option(None, "--reference-attitude-arcsec", min=0.0,
+                                                    help="use the recording's /truth/attitude as a reference of this "
+                                                         "accuracy per axis (arcsec): effects the attitude absorbs become testable"),
              quiet: bool = typer.Option(False, "--quiet", "-q")):
     """Locate a simulation/recording mismatch, name the physics left out, model it, show the fit improve."""
     from rollingstar.pipelines.diagnose import (
@@ -392,7 +395,8 @@ def diagnose(recording: Path = typer.Option(..., "--recording", help="MCAP recor
 
     sim = None if sim is None else find_config(sim, "scenario")
     pipeline = None if pipeline is None else find_config(pipeline, "pipeline")
-    result = run_diagnose(recording, sim, pipeline, out_dir, DiagnoseOptions(seed=seed, show_progress=not quiet and not as_json))
+    options = DiagnoseOptions(seed=seed, show_progress=not quiet and not as_json, reference_sigma_arcsec=reference_arcsec)
+    result = run_diagnose(recording, sim, pipeline, out_dir, options)
     if as_json:
         print(json.dumps(result, indent=2))
     else:

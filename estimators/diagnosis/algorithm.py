@@ -41,6 +41,7 @@ from rollingstar.estimators.diagnosis.noise import NoiseCheck, combined, scaled
 from rollingstar.estimators.diagnosis.noise import measure as measure_noise
 from rollingstar.estimators.diagnosis.observations import Observations, fit_nuisance
 from rollingstar.estimators.diagnosis.projection import ProjectionChoice, choose_projection, with_projection
+from rollingstar.estimators.diagnosis.reference import ReferenceCheck, reference_check
 from rollingstar.estimators.diagnosis.signatures import candidate_signatures
 from rollingstar.estimators.diagnosis.verifying import Verification, chi2_dof, rms_px, verify
 from rollingstar.sensors.scenario import ScenarioConfig
@@ -68,6 +69,7 @@ class Diagnosis:
     description: Description | None = None  # the shape of an unexplained systematic (None: none left, or none found)
     uncorrected_evidence: tuple = ()  # the systematic's evidence before its empirical correction joined the model
     as_given: dict | None = None  # with a correction: the model as given without it, on the final stars (:func:`_as_given`)
+    reference: ReferenceCheck | None = None  # the absorbed effects tested against a reference attitude
 
     @property
     def obs(self) -> Observations:
@@ -91,11 +93,13 @@ class Diagnosis:
 
 
 def diagnose(observations: Observations, attitudes: Rotation, scenario: ScenarioConfig, gyro: GyroData | None = None,
-             options: DiagnoseOptions = DiagnoseOptions(), exclude_effects=()) -> Diagnosis:
+             options: DiagnoseOptions = DiagnoseOptions(), exclude_effects=(),
+             reference: tuple[Rotation, np.ndarray] | None = None) -> Diagnosis:
     """Diagnose a recording's identified stars (with a first attitude per frame) against ``scenario``.
 
     ``gyro``: the recording's gyro samples (a second residual channel); ``exclude_effects``:
-    library effects not to test. BLAS runs single-threaded here: the matrices are small (thousands
+    library effects not to test; ``reference``: a reference attitude per frame (at its reference
+    time) and the frames it covers, of accuracy ``options.reference_sigma_arcsec``. BLAS runs single-threaded here: the matrices are small (thousands
     x tens) and a threaded BLAS on a busy machine was measured 16x slower on them (80 ms vs 5 ms for
     a 1078 x 32 SVD on 2 loaded cores).
     """
@@ -118,7 +122,11 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
             sensor, steps, shape = _corrected(shape, given.scenario, obs_used, attitudes, cands, gyro, options)
             steps, noise = _noise_again(noise, steps, observations, attitudes, sensor, cands, gyro, options)
             before = _as_given(steps[0], given)
-    return Diagnosis(sensor, *steps[:4], choice, steps[4], noise, shape, evidence, before)
+        check = None
+        if reference is not None and options.reference_sigma_arcsec is not None:
+            check = reference_check(steps[0].data, steps[2], cands, list(steps[1].problem.absorbed), *reference,
+                                    options.reference_sigma_arcsec, options.min_delta_bic)
+    return Diagnosis(sensor, *steps[:4], choice, steps[4], noise, shape, evidence, before, check)
 
 
 def _corrected(shape: Description, given: ScenarioConfig, obs: Observations, attitudes: Rotation,
@@ -230,12 +238,13 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
     data, v, q = d.location.data, d.verification, d.verification.quality
     renamed = d.projection is not None and d.projection.renamed
     noise_off = d.noise is not None and d.noise.applied
+    referenced = d.reference.tested if d.reference is not None else []
     out = {
         "recording": recording,
         "sim": sim,
         "pipeline": pipeline,
-        "mismatch": v.mismatch or renamed or noise_off or d.description is not None,
-        "verdict": _verdict(d.projection, d.noise, d.description, v.verdict),
+        "mismatch": v.mismatch or renamed or noise_off or d.description is not None or bool(referenced),
+        "verdict": _verdict(d.projection, d.noise, d.description, v.verdict, d.reference),
         "projection": d.projection.as_json() if d.projection is not None else None,
         "noise": {"sigma_px_median": float(np.median(data.obs.sigma)), "source": data.obs.sigma_source},
         "noise_check": d.noise.as_json() if d.noise is not None else None,
@@ -252,6 +261,7 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
         "effects": v.effects,
         "ambiguous": v.ambiguous,
         "absorbed_by_attitude": v.absorbed,
+        "attitude_reference": d.reference.as_json() if d.reference is not None else None,
         "not_testable": d.location.untestable,
         "unexplained_systematic": {"present": v.unexplained or d.description is not None,
                                    "evidence": list(d.uncorrected_evidence) if d.corrected else v.evidence,
@@ -279,7 +289,7 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
 
 
 def _verdict(projection: ProjectionChoice | None, noise: NoiseCheck | None, description: Description | None,
-             verdict: str) -> str:
+             verdict: str, reference: ReferenceCheck | None = None) -> str:
     """The verdict, led by the lens projection when one replaced the declared one, by the noise
     factor when the recording's noise is not the stated one, and by a shape outside the library
     when one was described."""
@@ -291,6 +301,8 @@ def _verdict(projection: ProjectionChoice | None, noise: NoiseCheck | None, desc
     if description is not None:
         lead.append(f"outside the library: {description.text}" +
                     (" (written as an empirical correction)" if description.correction is not None else ""))
+    if reference is not None and reference.tested:
+        lead.append("against the reference attitude: " + ", ".join(reference.tested))
     if not lead:
         return verdict
     rest = verdict.replace("no mismatch: the simulation explains", "with it the simulation explains", 1)

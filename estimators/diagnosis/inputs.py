@@ -25,7 +25,9 @@ class DiagnoseOptions:
     ``n_boot``: bootstrap resamples of the selection (0: none); ``min_delta_bic``: the BIC margin
     an effect must earn; ``stability``: refit on subsets; ``resimulate``: compare residual
     distributions with a re-simulation; ``show_progress``: show the progress of the pipeline run
-    that produces the observations (used by the command layer, not by the algorithm).
+    that produces the observations (used by the command layer, not by the algorithm);
+    ``reference_sigma_arcsec``: the accuracy per axis of the recording's reference attitude, to
+    test the effects the attitude absorbs against it (None: no reference used, :mod:`.reference`).
     """
 
     heldout_fraction: float = HELDOUT_FRACTION
@@ -35,6 +37,7 @@ class DiagnoseOptions:
     stability: bool = True
     resimulate: bool = True
     show_progress: bool = False
+    reference_sigma_arcsec: float | None = None
 
 
 @dataclass(frozen=True, eq=False)

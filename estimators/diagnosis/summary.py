@@ -9,7 +9,8 @@ from __future__ import annotations
 
 def paragraph(result: dict) -> str:
     """One paragraph summarising ``result`` (a :func:`.algorithm.as_json` object)."""
-    parts = [_what_differs(result), _heldout(result), *_ambiguous(result), _unexplained(result), _untestable(result)]
+    parts = [_what_differs(result), _heldout(result), *_ambiguous(result), _unexplained(result), _reference(result),
+             _untestable(result)]
     return " ".join(p for p in parts if p)
 
 
@@ -28,6 +29,9 @@ def _what_differs(r: dict) -> str:
     desc = r["unexplained_systematic"].get("description")
     if desc and desc.get("correction"):
         found.append(f"outside the library, {desc['text']} (written to the updated scenario as an empirical correction)")
+    ref = r.get("attitude_reference") or {}
+    found += [f"{c['name']}, which the attitude absorbs, seen against the reference attitude (below)"
+              for c in ref.get("candidates", []) if c["tested"]]
     if not found:
         return "The simulation misses this recording, and no library effect explains it."
     return "What differs: " + "; ".join(found) + "."
@@ -96,8 +100,24 @@ def _unexplained(r: dict) -> str:
     return "Left unexplained (outside the library): " + ", ".join(f"{e['basis']} (z = {e['z']:.1f})" for e in u["evidence"]) + "."
 
 
+def _reference(r: dict) -> str:
+    ref = r.get("attitude_reference")
+    if not ref:
+        return ""
+    tested = [c for c in ref["candidates"] if c["tested"]]
+    head = (f"Against the recording's reference attitude ({ref['sigma_arcsec']:g} arcsec per axis, {ref['frames']} frames, "
+            f"chi2 {ref['chi2']:.3g} over {ref['dof']} dof without an effect)")
+    if not tested:
+        return head + ", no effect the attitude absorbs is seen."
+    found = "; ".join(c["name"] + " (" + ", ".join(f"{k} = {p['value']:.4g} +- {p['sigma']:.2g}" for k, p in c["params"].items())
+                      + f", delta BIC {c['delta_bic']:.3g})" for c in tested)
+    return f"{head}: {found}."
+
+
 def _untestable(r: dict) -> str:
-    rows = [f"{a['name']} ({a['separating_experiment']})" for a in r.get("absorbed_by_attitude", [])]
+    ref = r.get("attitude_reference") or {}
+    tested = {c["name"] for c in ref.get("candidates", []) if c["tested"]}
+    rows = [f"{a['name']} ({a['separating_experiment']})" for a in r.get("absorbed_by_attitude", []) if a["name"] not in tested]
     rows += [f"{a['name']} ({a['reason']})" for a in r.get("not_testable", [])]
     if not rows:
         return ""
