@@ -64,8 +64,9 @@ def rotate_at_rate(omega, w: np.ndarray, dt_s: np.ndarray) -> np.ndarray:
 
 def quat_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product ``p q`` of scalar-last quaternions (..., 4): the rotation ``R(p) R(q)``.
-    Written out because ``scipy.spatial.transform.Rotation`` composition costs about 0.5 us per
-    rotation (2 ms for 4000 stars), which dominated the diagnosis's predictions."""
+    Written out because ``scipy.spatial.transform.Rotation`` composition of per-star arrays
+    dominated the diagnosis's predictions in a profile (``rollingstar bench perf --only diagnose``
+    measures the diagnosis that uses this)."""
     px, py, pz, pw = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
     qx, qy, qz, qw = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     out = np.empty(np.broadcast_shapes(p.shape, q.shape))

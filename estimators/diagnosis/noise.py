@@ -87,7 +87,7 @@ def measure(obs: Observations, pred: Prediction, use: np.ndarray, att_mask: np.n
         return None
     factor = float(np.sqrt(np.mean(diff**2)))
     # the attitude fit correlates the residuals of a frame's stars: the spread of the estimate grows
-    # by about 1 + mean leverage (measured: 20 % at 8 stars per frame, nothing at 30)
+    # by about 1 + mean leverage (the share of each star's noise the attitude fit takes)
     sigma_ln = float(np.sqrt(CHAIN_VARIANCE / diff.size)) * (1.0 + float(np.mean(1.0 - spread[first])))
     big = abs(np.log(factor)) > max(NOISE_Z * sigma_ln, MIN_CHANGE)
     return NoiseCheck(factor, sigma_ln, int(first.size), obs.sigma_source, float(np.median(obs.sigma)), bool(big))

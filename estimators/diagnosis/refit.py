@@ -80,7 +80,7 @@ def refit(obs: Observations, nuis: Nuisance, camera, timing, base_effects, candi
         # always from the effect-free nuisance: the residual is then a function of z alone (no
         # hysteresis between evaluations, which finite differences and the trust region need)
         n2, pred = fit_attitudes(obs, nuis, camera, timing, effects, mask, iterations=4)
-        state["nuis"], state["z"] = n2, np.array(z, copy=True)
+        state["nuis"], state["z"], state["pred"] = n2, np.array(z, copy=True), pred
         w = whitened_residuals(obs, pred, mask)
         r = np.concatenate([w[:, 0], w[:, 1], channel_rows(obs, pred)])  # + the gyro increment channel, when present
         return np.nan_to_num(r, nan=1e6)
@@ -88,7 +88,7 @@ def refit(obs: Observations, nuis: Nuisance, camera, timing, base_effects, candi
     def jac(z):
         if state.get("z") is None or not np.array_equal(state["z"], z):
             resid(z)
-        return projected_jacobian(obs, state["nuis"], camera, timing, base_effects, candidates, mask, z, hi)
+        return projected_jacobian(obs, state["nuis"], camera, timing, base_effects, candidates, mask, z, hi, state["pred"])
 
     try:
         res = least_squares(resid, z0, jac=jac, bounds=(lo, hi), method="trf", x_scale=1.0, max_nfev=60)
@@ -103,9 +103,10 @@ def refit(obs: Observations, nuis: Nuisance, camera, timing, base_effects, candi
 
 
 def projected_jacobian(obs: Observations, nuis: Nuisance, camera, timing, base_effects, candidates: list[Candidate],
-                       mask: np.ndarray, z: np.ndarray, hi: np.ndarray) -> np.ndarray:
+                       mask: np.ndarray, z: np.ndarray, hi: np.ndarray, base: Prediction | None = None) -> np.ndarray:
     """Kaufman's Jacobian of :func:`refit`'s residual at ``z`` (module doc), ``nuis`` the attitudes
-    refitted at ``z``: rows as the residual (training x, training y, gyro increments).
+    refitted at ``z`` and ``base`` their prediction (made here when not given): rows as the
+    residual (training x, training y, gyro increments).
 
     Image rows: ``-M d pred / d z``, the prediction differenced with the attitudes held and every
     frame's attitude projected out. Gyro increment rows (when the recording has them): the
@@ -113,7 +114,7 @@ def projected_jacobian(obs: Observations, nuis: Nuisance, camera, timing, base_e
     would absorb of that column (first order of the attitude refit), as the refit does.
     """
     effects = chain_with(base_effects, candidates, split_theta(candidates, z))
-    base = predict(obs, nuis, camera, timing, effects)
+    base = predict(obs, nuis, camera, timing, effects) if base is None else base  # the residual's own prediction
     cols = np.empty((obs.n, 2, z.size))
     steps, chains = np.empty(z.size), []
     for j in range(z.size):

@@ -20,6 +20,11 @@ from rollingstar.sensors.effects.base import STAGE_DETECTOR, Alias, Effect, Effe
 AXIS_BOUNDS = (0.0, 1.0)
 
 
+def _moved(x, y, axis: int, shift):
+    """``(x, y)`` with ``shift`` added to the chosen axis (0: x, 1: y)."""
+    return (x, y + shift) if axis else (x + shift, y)
+
+
 def _choice(value: float, name: str) -> int:
     if value not in (0.0, 1.0):
         raise ValueError(f"{name} must be 0 (x / column) or 1 (y / row), got {value}")
@@ -61,8 +66,7 @@ class EmpiricalStep(Effect):
     def apply(self, x, y, ctx):
         x, y = as_positions(x, y)
         axis, beyond = self._step(x, y)
-        shift = self._values["size_px"] * beyond
-        return (x, y + shift) if axis else (x + shift, y)
+        return _moved(x, y, axis, self._values["size_px"] * beyond)
 
     def jacobian(self, x, y, ctx):
         x, y = as_positions(x, y)
@@ -107,8 +111,7 @@ class EmpiricalRipple(Effect):
     def apply(self, x, y, ctx):
         x, y = as_positions(x, y)
         axis, arg = self._wave(x, y)
-        shift = self._values["amplitude_px"] * np.sin(arg)
-        return (x, y + shift) if axis else (x + shift, y)
+        return _moved(x, y, axis, self._values["amplitude_px"] * np.sin(arg))
 
     def jacobian(self, x, y, ctx):
         x, y = as_positions(x, y)

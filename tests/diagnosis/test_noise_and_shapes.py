@@ -82,6 +82,7 @@ def test_a_stitched_detector_is_described_as_a_step_and_corrected(tmp_path):
     cfg, rec, (result, d) = _with_effect(tmp_path, "single_axis", "bench_stitch_step", {"dy": 0.3})
     desc = result["unexplained_systematic"]["description"]
     assert desc is not None, result["summary"]
+    print("described:", desc["text"])  # pytest -s: the example in docs/diagnosis.md
     assert (desc["shape"], desc["axis"], desc["coordinate"]) == ("step", "y", "column"), desc["text"]
     lo, hi = desc["between_px"]
     assert lo <= 511.5 <= hi  # the dies meet at the principal point's column
@@ -114,6 +115,7 @@ def test_a_column_ripple_is_described_with_its_period_and_axis(tmp_path):
     _, _, (result, d) = _with_effect(tmp_path, "multi_axis", "bench_column_ripple", {"amplitude": 0.1})
     desc = result["unexplained_systematic"]["description"]
     assert desc is not None, result["summary"]
+    print("described:", desc["text"])  # pytest -s: the example in docs/diagnosis.md
     assert (desc["shape"], desc["axis"], desc["coordinate"]) == ("ripple", "x", "row"), desc["text"]
     assert desc["period_px"] == pytest.approx(150.0, rel=0.1)
     amplitude = float(np.hypot(*desc["coefficients_px"]))
