@@ -110,7 +110,7 @@ class RunState:
     n_frames: int  # frames processed
     stages: list
     checker: object
-    counts: dict
+    counts: object  # the sink's Outcomes
     stage_seconds: dict
     messages: int = 0  # messages given to the output log so far (in write order)
     digest: str = ""  # their MessageDigest

@@ -50,15 +50,17 @@ from rollingstar.logs.topics import (
     TOPIC_EST_STARS,
     TOPIC_TRUTH_STARS,
 )
+from rollingstar.pipelines.outcomes import Outcomes
 from rollingstar.pipelines.truth import (
     TruthTrajectory,
     attitude_crb_rad2,
+    joint_crb_rad2,
     pixel_frame_crb_rad2,
     rate_crb_rad2,
     true_positions,
 )
 from rollingstar.sensors import build
-from rollingstar.sensors.conventions import RAD_TO_ARCSEC, S_PER_NS, attitude_error_body_arcsec
+from rollingstar.sensors.conventions import CAMERA_AXES, RAD_TO_ARCSEC, S_PER_NS, attitude_error_body_arcsec
 from rollingstar.sensors.image_sim import ImageModel
 from rollingstar.sensors.pixel_crb import FrameDetector
 
@@ -75,8 +77,14 @@ def _stats(values: np.ndarray) -> dict[str, float | None]:
     return {"rmse": float(np.sqrt(np.mean(v**2))), "max": float(np.max(np.abs(v)))}
 
 
-def evaluate_log(path: str | Path) -> dict:
-    """Compute the metrics dictionary (``rollingstar evaluate --json``) for an output log."""
+def evaluate_log(path: str | Path, skip_first: int = 0, skip_first_s: float = 0.0, series: bool = False) -> dict:
+    """Compute the metrics dictionary (``rollingstar evaluate --json``) for an output log.
+
+    ``skip_first`` frames, and the frames that start within ``skip_first_s`` seconds of the first
+    frame, are left out of every metric (a filter's start-up transient); ``outcomes`` counts the
+    frames that remain (:mod:`rollingstar.pipelines.outcomes`). ``notes`` gives, for every metric
+    that is ``None``, the reason. ``series``: also return the per-estimate errors the plots draw
+    (``result["series"]``, numpy arrays; not JSON)."""
     reader = LogReader(path)
     scenario = reader.scenario("cannot evaluate without it")
     camera = build.build_camera(scenario)
@@ -91,18 +99,25 @@ def evaluate_log(path: str | Path) -> dict:
     records: dict[str, list[dict]] = {TOPIC_EST_ATTITUDE: [], TOPIC_EST_RATE: [], TOPIC_EST_FRAME: []}
     for m in reader.messages(list(records)):
         records[m.topic].append(m.data)
-    attitudes, rates, frames = records[TOPIC_EST_ATTITUDE], records[TOPIC_EST_RATE], records[TOPIC_EST_FRAME]
+    kept = _kept_frames(records[TOPIC_EST_FRAME], skip_first, skip_first_s)
+    attitudes, rates, frames = ([r for r in records[topic] if int(r.get("frame", -1)) in kept]
+                                for topic in (TOPIC_EST_ATTITUDE, TOPIC_EST_RATE, TOPIC_EST_FRAME))
+    est_stars = {k: v for k, v in est_stars.items() if k in kept}
 
     valid = [a for a in attitudes if a.get("valid") and a.get("q") is not None]
     n_frames = len(frames)
     duration_s = n_frames * timing.frame_period_ns * S_PER_NS
+    outcomes = Outcomes.from_records(frames, attitudes)
     result: dict = {
         "frames": n_frames,
+        "skipped_frames": len(records[TOPIC_EST_FRAME]) - n_frames,
+        "outcomes": outcomes.as_dict(),
         "attitude_updates": len(valid),
         "invalid_attitude_estimates": len(attitudes) - len(valid),
         "update_rate_hz": (len(valid) / duration_s) if duration_s > 0 else None,
-        "flagged_frames": sum(1 for f in frames if f.get("flags")),
+        "flagged_frames": outcomes.flagged,
         "identified_stars_per_frame": float(np.mean([f["n_identified"] for f in frames])) if frames else None,
+        "axes": dict(CAMERA_AXES),
     }
     result["attitude_error_arcsec"] = _attitude_errors(valid, truth)
     env = _EffectEnvironment(scenario, timing, effects) if effects else None
@@ -112,11 +127,58 @@ def evaluate_log(path: str | Path) -> dict:
     result["attitude_crb_arcsec"] = _crb(est_stars, truth_stars, truth, camera, scenario)
     has_rate = result["rate_error_deg_s"]["rmse"] is not None
     result["rate_crb_deg_s"] = _rate_crb(est_stars, truth_stars, truth, camera, scenario, has_rate)
+    result["attitude_crb_rate_unknown_arcsec"] = _joint_attitude_crb(est_stars, truth_stars, truth, camera, scenario,
+                                                                     valid)
     result["pixel_crb_arcsec"], result["pixel_rate_crb_deg_s"] = _pixel_crb(
         truth_stars, valid, truth, camera, timing, scenario)
     result["efficiency"] = _efficiency(result, "attitude_crb_arcsec", "rate_crb_deg_s")
     result["efficiency_pixel"] = _efficiency(result, "pixel_crb_arcsec", "pixel_rate_crb_deg_s")
+    result["notes"] = _notes(result, truth, truth_stars, scenario, valid, rates)
+    if series:
+        result["series"] = _series(valid, rates, est_stars, truth_stars, truth, camera, effects, env)
     return result
+
+
+def _kept_frames(frames: list[dict], skip_first: int, skip_first_s: float) -> set[int]:
+    """Indices of the frames evaluated: all but the first ``skip_first`` and those that start within
+    ``skip_first_s`` of the first frame."""
+    order = sorted(frames, key=lambda f: (int(f.get("t0_ns", 0)), int(f.get("frame", -1))))
+    if not order:
+        return set()
+    start = int(order[0].get("t0_ns", 0)) + round(skip_first_s * 1e9)
+    return {int(f.get("frame", -1)) for f in order[skip_first:] if int(f.get("t0_ns", 0)) >= start}
+
+
+def _notes(m: dict, truth, truth_stars: dict, scenario, valid: list, rates: list) -> dict[str, str]:
+    """Why each metric that is ``None`` is missing, in words."""
+    notes = {}
+    no_truth = "the log carries no /truth/attitude (a real recording): errors and bounds need the truth"
+    if truth is None:
+        for key in ("attitude_error_arcsec", "rate_error_deg_s", "centroid_error_px", "star_pair_distance_error_px",
+                    "attitude_crb_arcsec", "rate_crb_deg_s", "pixel_crb_arcsec", "efficiency", "efficiency_pixel"):
+            notes[key] = no_truth
+        return notes
+    if not valid:
+        notes["attitude_error_arcsec"] = "no valid attitude estimate to compare with the truth"
+    if not rates or not any(r.get("valid") for r in rates):
+        notes["rate_error_deg_s"] = "the pipeline wrote no valid rate estimate (no rate stage)"
+        notes["rate_crb_deg_s"] = "reported only beside rate estimates"
+    if not truth_stars:
+        for key in ("centroid_error_px", "star_pair_distance_error_px", "attitude_crb_arcsec"):
+            notes[key] = "the log carries no /truth/stars"
+    elif m["centroid_error_px"]["rmse"] is None:
+        notes["centroid_error_px"] = "no estimated star matched a true one"
+    if m["attitude_crb_arcsec"].get("x") is None and "attitude_crb_arcsec" not in notes:
+        notes["attitude_crb_arcsec"] = ("the scenario states no centroid sigma" if not scenario.noise.centroid_sigma_px
+                                        else "no frame with two identified stars matched to the truth")
+    if m["pixel_crb_arcsec"].get("x") is None:
+        notes["pixel_crb_arcsec"] = ("a centroid-level recording: the pixel-level bound needs the pixels "
+                                     "(an image-level recording)" if scenario.level != "image"
+                                     else "no frame with three true stars and truth at its reference time")
+    for key, bound in (("efficiency", "attitude_crb_arcsec"), ("efficiency_pixel", "pixel_crb_arcsec")):
+        if all(v is None for v in m[key].values()):
+            notes[key] = notes.get(bound) or notes.get("attitude_error_arcsec") or "error or bound missing"
+    return notes
 
 
 def _efficiency(m: dict, attitude_bound: str, rate_bound: str) -> dict:
@@ -215,10 +277,9 @@ def _effect_context(est, tru, tj, t, truth, env, row=None) -> dict:
             "pm_rad_yr": None if ids is None else env.pm(np.asarray(ids)[tj]), "row": row}
 
 
-def _centroid_errors(est_stars, truth_stars, truth, camera, effects, env=None) -> dict:
-    if truth is None:
-        return {"rmse": None, "max": None}
-    errs = []
+def _centroid_residuals(est_stars, truth_stars, truth, camera, effects, env=None):
+    """Every matched star's measured position ``(x, y)`` and its error ``(dx, dy)`` (px), four arrays."""
+    parts = []
     for est, tru, ei, tj in _matched_frames(est_stars, truth_stars, 1):
         t = np.asarray(est["t_ns"], dtype=np.int64)[ei]
         ok = truth.covers(t)
@@ -227,8 +288,40 @@ def _centroid_errors(est_stars, truth_stars, truth, camera, effects, env=None) -
         ei, tj, t = ei[ok], tj[ok], t[ok]
         x, y = true_positions(camera, effects, truth.attitude(t), tru["ref_icrs"][tj], t,
                               **_effect_context(est, tru, tj, t, truth, env, row=est["y"][ei]))
-        errs.append(np.hypot(est["x"][ei] - x, est["y"][ei] - y))
-    return _stats(np.concatenate(errs)) if errs else {"rmse": None, "max": None}
+        parts.append(np.stack([est["x"][ei], est["y"][ei], est["x"][ei] - x, est["y"][ei] - y]))
+    return tuple(np.concatenate(parts, axis=1)) if parts else tuple(np.zeros(0) for _ in range(4))
+
+
+def _centroid_errors(est_stars, truth_stars, truth, camera, effects, env=None) -> dict:
+    if truth is None:
+        return {"rmse": None, "max": None}
+    _, _, dx, dy = _centroid_residuals(est_stars, truth_stars, truth, camera, effects, env)
+    return _stats(np.hypot(dx, dy)) if dx.size else {"rmse": None, "max": None}
+
+
+def _series(valid, rates, est_stars, truth_stars, truth, camera, effects, env) -> dict:
+    """Per-estimate errors for the plots: attitude (t s, error (n, 3) arcsec), rate (t s, error (n, 3)
+    deg/s) and the centroid residuals over the detector; empty arrays where there is nothing."""
+    out = {"attitude_t_s": np.zeros(0), "attitude_error_arcsec": np.zeros((0, 3)), "rate_t_s": np.zeros(0),
+           "rate_error_deg_s": np.zeros((0, 3)), "centroid": tuple(np.zeros(0) for _ in range(4))}
+    if truth is None:
+        return out
+    t = np.array([a["t_ns"] for a in valid], dtype=np.int64)
+    t_first = int(truth.t_ns[0]) if len(truth.t_ns) else 0
+    if t.size and truth.covers(t).any():
+        ok = truth.covers(t)
+        q = np.array([[a["q"]["x"], a["q"]["y"], a["q"]["z"], a["q"]["w"]] for a in valid])[ok]
+        out["attitude_t_s"] = (t[ok] - t_first) * S_PER_NS
+        out["attitude_error_arcsec"] = attitude_error_body_arcsec(truth.attitude(t[ok]), Rotation.from_quat(q))
+    good = [r for r in rates if r.get("valid") and r.get("omega") is not None]
+    tr = np.array([r["t_ns"] for r in good], dtype=np.int64)
+    if tr.size and truth.covers(tr).any():
+        ok = truth.covers(tr)
+        w = np.array([[r["omega"]["x"], r["omega"]["y"], r["omega"]["z"]] for r in good])[ok]
+        out["rate_t_s"] = (tr[ok] - t_first) * S_PER_NS
+        out["rate_error_deg_s"] = np.degrees(w - truth.angular_velocity(tr[ok]))
+    out["centroid"] = _centroid_residuals(est_stars, truth_stars, truth, camera, effects, env)
+    return out
 
 
 def _pair_errors(est_stars, truth_stars, truth, camera, effects, env=None) -> dict:
@@ -287,6 +380,33 @@ def _rate_crb(est_stars, truth_stars, truth, camera, scenario, has_rate: bool) -
     if not variances:
         return dict.fromkeys(keys)
     rms = np.sqrt(np.mean(variances, axis=0)) * 180.0 / np.pi
+    return dict(zip(keys, map(float, rms)))
+
+
+def _joint_attitude_crb(est_stars, truth_stars, truth, camera, scenario, valid: list[dict]) -> dict:
+    """RMS over frames of the single-frame attitude bound with the body rate unknown too (arcsec per
+    axis): the attitude block of :func:`rollingstar.pipelines.truth.rate_crb_rad2`'s joint
+    information, at the time of the frame's valid attitude estimate (at its stars' mean time when
+    it has none). This is the bound of an estimator that knows neither, as one frame alone leaves
+    every single-frame estimator; ``attitude_crb_arcsec`` holds the rate known."""
+    keys = ("x", "y", "z")
+    sigma = scenario.noise.centroid_sigma_px
+    if truth is None or not sigma:
+        return dict.fromkeys(keys)
+    t_ref = {int(a["frame"]): int(a["t_ns"]) for a in valid if "frame" in a}
+    variances = []
+    for frame, est in est_stars.items():
+        tru = truth_stars.get(frame)
+        ei, tj = _match_to_truth(est, tru) if tru is not None and len(est["x"]) else (np.zeros(0), np.zeros(0, int))
+        t = np.asarray(tru["t_ns"], dtype=np.int64)[tj] if tru is not None else np.zeros(0, np.int64)
+        if ei.size < 3 or not truth.covers(t).all() or np.ptp(t) == 0:
+            continue
+        w = truth.attitude(t).inv().apply(tru["ref_icrs"][tj])
+        dt = (t - t_ref.get(frame, int(np.mean(t)))) * S_PER_NS
+        variances.append(np.diag(joint_crb_rad2(camera, w, dt, sigma)[:3, :3]))
+    if not variances:
+        return dict.fromkeys(keys)
+    rms = np.sqrt(np.mean(variances, axis=0)) * RAD_TO_ARCSEC
     return dict(zip(keys, map(float, rms)))
 
 

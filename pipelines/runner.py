@@ -38,6 +38,7 @@ from rollingstar.pipelines.checkpoint import (
 from rollingstar.pipelines.config import PipelineConfig
 from rollingstar.pipelines.frame_checks import FrameChecker
 from rollingstar.pipelines.interrupt import Interrupted, StopFlag, stop_on_sigint
+from rollingstar.pipelines.outcomes import Outcomes
 from rollingstar.pipelines.registry import (
     UnknownPluginError,
     check_stage_order,
@@ -61,6 +62,7 @@ class RunSummary:
     flagged_frames: int
     stage_seconds: dict[str, float]
     resumed_after_frames: int = 0  # --resume: frames restored from a checkpoint instead of re-run
+    outcomes: Outcomes | None = None  # valid / invalid / flagged frames with their reasons
 
 
 def build_stages(config: PipelineConfig, source: str = "<pipeline>") -> list[Plugin]:
@@ -140,8 +142,8 @@ def _run(rec: Recording, name: str, start: _Start, target: Path, metadata: dict,
                           f"{_partial(output)} holds the {source.delivered} frame(s) processed before SIGINT; "
                           f"continue with `rollingstar run ... -o {output} --resume`")
     counts = sink.counts
-    return RunSummary(str(output), source.delivered, counts["att"], counts["valid"], counts["flagged"],
-                      run.stage_seconds, source.skip)
+    return RunSummary(str(output), source.delivered, counts.estimates, counts.valid_estimates, counts.flagged,
+                      run.stage_seconds, source.skip, counts)
 
 
 def _remove_leftovers(output: Path, tmp: Path, start: _Start) -> None:

@@ -25,12 +25,13 @@ from rollingstar.logs.topics import (
     TOPIC_EST_STARS,
 )
 from rollingstar.logs.writer import LogWriter
+from rollingstar.pipelines.outcomes import Outcomes
 from rollingstar.sensors.conventions import quat_to_fields
 
 
-def new_counts() -> dict[str, int]:
-    """The sink's counters before the first frame: attitude estimates, valid ones, flagged frames."""
-    return {"att": 0, "valid": 0, "flagged": 0}
+def new_counts() -> Outcomes:
+    """The sink's counters before the first frame (:class:`~rollingstar.pipelines.outcomes.Outcomes`)."""
+    return Outcomes()
 
 
 class EstimateSink:
@@ -39,7 +40,7 @@ class EstimateSink:
     ``counts`` (see :func:`new_counts`) go on from a checkpoint's when given.
     """
 
-    def __init__(self, writer: LogWriter, counts: dict[str, int] | None = None) -> None:
+    def __init__(self, writer: LogWriter, counts: Outcomes | None = None) -> None:
         self.writer = writer
         self.counts = counts if counts is not None else new_counts()
 
@@ -52,9 +53,7 @@ class EstimateSink:
         """Write and count finished frames."""
         for frame in frames:
             write_frame(self.writer, frame)
-            self.counts["att"] += len(frame.attitudes)
-            self.counts["valid"] += sum(a.valid for a in frame.attitudes)
-            self.counts["flagged"] += bool(frame.flags)
+            self.counts.add(frame.flags, [(a.valid, a.reason) for a in frame.attitudes])
 
 
 def _fitted_camera(frame: FrameData) -> dict | None:

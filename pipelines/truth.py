@@ -91,6 +91,14 @@ def rate_crb_rad2(camera, w_cam: np.ndarray, dt_s: np.ndarray, sigma_px, timing_
     spread is what makes the rate observable at all; shifting every ``dt_i`` by a constant
     re-labels ``delta`` and leaves the rate block unchanged.
     """
+    return joint_crb_rad2(camera, w_cam, dt_s, sigma_px, timing_sigma_s, omega_rad_s)[3:, 3:]
+
+
+def joint_crb_rad2(camera, w_cam: np.ndarray, dt_s: np.ndarray, sigma_px, timing_sigma_s: float = 0.0,
+                   omega_rad_s: np.ndarray | None = None) -> np.ndarray:
+    """The joint single-frame bound of :func:`rate_crb_rad2` (6x6: attitude at ``dt = 0``, then the
+    rate; rad^2, (rad/s)^2). Its attitude block is the bound on the attitude at the time ``dt = 0``
+    when the rate is unknown too."""
     w = np.asarray(w_cam, dtype=float)
     dt = np.asarray(dt_s, dtype=float)
     n = w.shape[0]
@@ -103,7 +111,7 @@ def rate_crb_rad2(camera, w_cam: np.ndarray, dt_s: np.ndarray, sigma_px, timing_
         v = np.einsum("nij,nj->ni", P, np.cross(w, np.asarray(omega_rad_s, dtype=float)))
         S = S + timing_sigma_s**2 * v[:, :, None] * v[:, None, :]
     fisher = np.einsum("nki,nkl,nlj->ij", jac, np.linalg.inv(S), jac)
-    return np.linalg.pinv(fisher)[3:, 3:]
+    return np.linalg.pinv(fisher)
 
 
 def pixel_frame_crb_rad2(camera, det: FrameDetector, truth: TruthTrajectory, t_ref_ns: int, t0_ns: int,

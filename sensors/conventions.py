@@ -28,6 +28,11 @@ S_PER_HOUR = 3600.0
 DEG_TO_RAD = np.pi / 180.0
 RAD_TO_ARCSEC = 180.0 / np.pi * 3600.0
 ARCSEC_TO_RAD = 1.0 / RAD_TO_ARCSEC  # equal to DEG_TO_RAD / 3600 in every bit
+#: The camera frame's axes in words (docs/conventions.md, "camera frame"): what x, y and z mean in
+#: every table of attitude and rate errors.
+CAMERA_AXES = {"x": "camera x: cross-boresight, towards decreasing column",
+               "y": "camera y: cross-boresight, towards decreasing row",
+               "z": "camera z: the boresight (errors about it are roll)"}
 
 
 def seconds_to_ns(seconds) -> np.ndarray | int:

@@ -88,7 +88,7 @@ def _in_process(monkeypatch, *args):
 def test_every_exception_becomes_exit_2_with_a_message(monkeypatch, tmp_path, exc, needle):
     import rollingstar.pipelines.evaluate as evaluate
 
-    def fail(path):
+    def fail(path, **options):
         raise exc
 
     monkeypatch.setattr(evaluate, "evaluate_log", fail)
