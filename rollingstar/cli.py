@@ -100,6 +100,33 @@ def _guarded(fn):
     return wrapper
 
 
+def _quiet():
+    return typer.Option(False, "--quiet", "-q", help="no progress bars (none are drawn when the output is not a "
+                        "terminal either)")
+
+
+def _seed_in_range(value: int | None) -> int | None:
+    if value is not None and not 0 <= value < 2**63:
+        raise typer.BadParameter("a seed is an integer from 0 to 2^63 - 1")
+    return value
+
+
+def _seed(default: int | None = 1, help: str = "random seed: the same seed gives the same numbers"):
+    return typer.Option(default, "--seed", callback=_seed_in_range, help=help)
+
+
+_typer_display_type = typer.core.TyperOption.display_type_rich
+
+
+def _display_type_without_flags(self, ctx):
+    """typer (0.29) labels every flag ``<bool>`` in ``--help`` although a flag takes no value; a flag
+    shows no type, every other option its own."""
+    return None if self.is_flag else _typer_display_type(self, ctx)
+
+
+typer.core.TyperOption.display_type_rich = _display_type_without_flags
+
+
 def command(group: typer.Typer | None = None, name: str | None = None):
     """Register a command on ``group`` (default: the top-level app) inside the error boundary."""
     return lambda fn: (group or app).command(name)(_guarded(fn))
@@ -109,8 +136,8 @@ def command(group: typer.Typer | None = None, name: str | None = None):
 def simulate(scenario: str = typer.Argument(..., help="scenario YAML, or a shipped scenario's name (he2021b)"),
              output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write"),
              frames: int = typer.Option(None, "--frames", min=1, help="override the scenario's frame count"),
-             seed: int = typer.Option(None, "--seed", min=0, max=2**63 - 1, help="override the scenario's seed"),
-             quiet: bool = typer.Option(False, "--quiet", "-q")):
+             seed: int = _seed(None, "override the scenario's seed"),
+             quiet: bool = _quiet()):
     """Simulate a recording from a scenario."""
     from rollingstar.pipelines.simulate import simulate_to_log
     from rollingstar.sensors.scenario import load_scenario
@@ -129,7 +156,7 @@ def run(pipeline: str = typer.Argument(..., help="pipeline YAML, or a shipped pi
         resume: bool = typer.Option(False, "--resume", help="continue from a partial output (killed or interrupted run)"),
         checkpoint_every: int = typer.Option(500, "--checkpoint-every", min=0,
                                              help="save the stages' state every N frames for --resume (0: never)"),
-        quiet: bool = typer.Option(False, "--quiet", "-q")):
+        quiet: bool = _quiet()):
     """Run a pipeline over a recording."""
     from rollingstar.pipelines.config import load_pipeline
     from rollingstar.pipelines.runner import run_pipeline
@@ -256,28 +283,40 @@ def info(log: Path = typer.Argument(..., help="MCAP file")):
         out.print(f"[bold]metadata {name}[/]")
         for k, v in record.items():
             text = v if len(v) < 2000 else v[:2000] + " ..."
-            out.print(f"  {k}: {text}", highlight=False)
+            if "\n" in text.strip():  # a YAML document: indented under its key, as YAML nests it
+                body = "\n".join(f"    {line}" for line in text.strip("\n").splitlines())
+                out.print(f"  {k}: |\n{body}", highlight=False)
+            else:
+                out.print(f"  {k}: {text}", highlight=False)
 
 
 @command()
-def plugins():
-    """Every registered plugin by role, with its parameters and defaults."""
+def plugins(name: str = typer.Argument(None, metavar="[KIND|ROLE]",
+                                        help="show only this plugin kind (cog) or role (centroider)")):
+    """Every registered plugin by role: each parameter's type, default, unit and meaning."""
+    from rollingstar.pipelines.plugin_docs import parameters, summary
     from rollingstar.pipelines.registry import available_kinds, plugins_by_role
 
     kinds = {target: kind for kind, target in available_kinds().items()}
+    shown = 0
     for role, classes in plugins_by_role().items():
-        table = Table(title=f"role: {role}", show_lines=False)
-        for col in ("kind", "class", "parameters (default)", "summary"):
-            table.add_column(col)
-        for cls in classes:
-            target = f"{cls.__module__}:{cls.__name__}"
-            params = ", ".join(
-                f"{name}={'required' if field.is_required() else repr(field.default)}"
-                for name, field in cls.Params.model_fields.items()
-            )
-            doc = (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ else ""
-            table.add_row(kinds.get(target, cls.name), target, params or "-", doc)
+        chosen = [c for c in classes if name in (None, role, kinds.get(f"{c.__module__}:{c.__name__}", c.name))]
+        if not chosen:
+            continue
+        table = Table(title=f"role: {role}", title_justify="left", show_lines=False)
+        for col, justify in (("kind", "left"), ("parameter", "left"), ("type", "left"), ("default", "right"),
+                             ("unit", "left"), ("meaning", "left")):
+            table.add_column(col, justify=justify, overflow="fold")
+        for cls in chosen:
+            kind = kinds.get(f"{cls.__module__}:{cls.__name__}", cls.name)
+            table.add_row(f"[bold]{escape(kind)}[/]", "", "", "", "", f"[italic]{escape(summary(cls))}[/]")
+            for p in parameters(cls):
+                table.add_row("", p.name, escape(p.type), escape(p.default), p.unit, escape(p.description))
+            table.add_section()
+            shown += 1
         out.print(table)
+    if not shown:
+        raise UserError(f"plugins {name}: no plugin kind or role of that name; `rollingstar plugins` lists them all")
 
 
 @command()
@@ -342,7 +381,7 @@ def reproduce(paper: str = typer.Argument(..., help="he2021a | he2021b | fu2022 
               quick: bool = typer.Option(False, "--quick", help="the reduced version the test suite runs"),
               as_json: bool = typer.Option(False, "--json", help="print one JSON object {rows: [...]}"),
               plots: Path = typer.Option(None, "--plots", help="write the paper's figures redrawn from our runs here"),
-              seed: int = typer.Option(1, "--seed", min=0, max=2**63 - 1)):
+              seed: int = _seed()):
     """Reproduce a seed paper's experiment: paper value, ours (measured now), ratio."""
     from rollingstar.studies.reproduce import run_reproduction
 
@@ -366,10 +405,10 @@ def reproduce(paper: str = typer.Argument(..., help="he2021a | he2021b | fu2022 
 @command()
 def figures(name: str = typer.Argument("foundation", help="foundation | real-data | real-cameras | adversarial | "
                                         "centroid-covariance | covariance-weighting | wide-angle"),
-            quick: bool = typer.Option(False, "--quick"),
-            as_json: bool = typer.Option(False, "--json"),
+            quick: bool = typer.Option(False, "--quick", help="the reduced sizes the test suite runs (minutes less, noisier figures)"),
+            as_json: bool = typer.Option(False, "--json", help="print one JSON object instead of the tables"),
             out_dir: Path = typer.Option(None, "--out", help="write <out>/<figure>.md, .json and img/*.png (where the set writes pages)"),
-            seed: int = typer.Option(1, "--seed", min=0, max=2**63 - 1),
+            seed: int = _seed(),
             repeats: int = typer.Option(3, "--repeats", min=1, help="real-data: timings are the minimum of this many calls")):
     """Measure a figure set: foundation (static vs Cramér–Rao bound, rolling shutter, image level);
     real-data (identification, per-lens calibration, vs astrometry.net); real-cameras (import + run
@@ -446,11 +485,11 @@ def diagnose(recording: Path = typer.Option(..., "--recording", help="MCAP recor
              pipeline: str = typer.Option(None, "--pipeline", help="pipeline YAML or shipped name (default: cog, lost-in-space starting from the declared attitude when there is one, quest)"),
              out_dir: Path = typer.Option(None, "-o", "--output", help="report directory (index.html, PNGs, scenario_updated.yaml)"),
              as_json: bool = typer.Option(False, "--json", help="print one JSON object"),
-             seed: int = typer.Option(0, "--seed", min=0, max=2**63 - 1, help="held-out split and bootstrap seed"),
+             seed: int = _seed(0, "held-out split and bootstrap seed"),
              reference_arcsec: float = typer.Option(None, "--reference-attitude-arcsec", min=0.0,
                                                     help="use the recording's /truth/attitude as a reference of this "
                                                          "accuracy per axis (arcsec): effects the attitude absorbs become testable"),
-             quiet: bool = typer.Option(False, "--quiet", "-q")):
+             quiet: bool = _quiet()):
     """Locate a simulation/recording mismatch, name the physics left out, model it, show the fit improve."""
     from rollingstar.pipelines.diagnose import (
         DiagnoseOptions,
@@ -486,7 +525,7 @@ def images(folder: Path = typer.Argument(..., help="folder of TIFF/PNG/JPEG fram
                                                              "when the folder has no recording.yaml with a camera)"),
            sidecar: Path = typer.Option(None, "--sidecar", help="recording.yaml kept outside the folder "
                                                                 "(default: FOLDER/recording.yaml if present)"),
-           quiet: bool = typer.Option(False, "--quiet", "-q")):
+           quiet: bool = _quiet()):
     """A folder of 8/16-bit images -> an image-level recording (foxglove.RawImage frames)."""
     from rollingstar.logs.importers.images import import_images
 
@@ -523,7 +562,7 @@ app.add_typer(bench_app, name="bench")
 @command(bench_app, "discrepancy")
 def bench_discrepancy(quick: bool = typer.Option(False, "--quick", help="the reduced set the test suite runs"),
                       as_json: bool = typer.Option(False, "--json", help="print one JSON object"),
-                      seed: int = typer.Option(1, "--seed", min=0, max=2**63 - 1),
+                      seed: int = _seed(),
                       cases: int = typer.Option(None, "--cases", min=1, help="number of recordings (default 12 quick, 120 full)"),
                       out_md: Path = typer.Option(None, "--markdown", help="also write the results table here")):
     """Diagnose simulated recordings with concealed effects; score naming, nulls, parameters, held-out gain."""
@@ -568,7 +607,7 @@ def compare(config: str = typer.Argument(..., help="comparison YAML, or a shippe
                                                     help="exit 1 naming every gated metric worse than --baseline"),
             resume: bool = typer.Option(False, "--resume", help="reuse the tasks an interrupted or failed run into "
                                                                 "the same output finished (OUTPUT.partial/tasks/)"),
-            quiet: bool = typer.Option(False, "--quiet", "-q")):
+            quiet: bool = _quiet()):
     """Scenarios x pipelines x seeds: metrics, spread, CPU time, efficiency vs the bound; optional regression gate."""
     from rollingstar.pipelines.compare import run_compare
 
