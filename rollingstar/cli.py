@@ -618,6 +618,15 @@ def compare(config: str = typer.Argument(..., help="comparison YAML, or a shippe
                       show_progress=not quiet, command=command, resume=resume)
     if resume:
         out.print(f"resumed: {res.resumed_tasks} of {res.results['run']['tasks']} task(s) reused from the earlier run")
+    from rollingstar.pipelines.compare.report import terminal_tables
+
+    for title, header, body in terminal_tables(res.results):
+        table = Table(title=f"{title} (mean ± std over seeds)", title_justify="left")
+        for k, col in enumerate(header):
+            table.add_column(col, justify="left" if k < 2 else "right")
+        for row in body:
+            table.add_row(*map(escape, row))  # variant labels hold brackets: text, not markup
+        out.print(table)
     run = res.results["run"]
     out.print(f"wrote {res.output}/results.json, results.md, report.html: {run['tasks']} simulations, "
               f"{run['pipeline_runs']} pipeline runs, {run['executor']}, {run['wall_time_s']:.1f} s wall", highlight=False)

@@ -35,9 +35,27 @@ def _fmt(mean, std=None, digits=3) -> str:
 
 
 def _valid_percent(row: dict) -> str:
-    """Valid attitude estimates per frame (%, mean over seeds)."""
-    valid, frames = _m(row, "attitude_updates")[0], _m(row, "frames")[0]
+    """Frames with a valid attitude estimate (%, mean over seeds; :mod:`rollingstar.pipelines.outcomes`)."""
+    valid, frames = _m(row, "outcomes.valid_frames")[0], _m(row, "outcomes.frames")[0]
+    if valid is None:  # results written before the outcome counts: estimates per frame, at most every frame
+        valid, frames = _m(row, "attitude_updates")[0], _m(row, "frames")[0]
+        valid = None if valid is None or frames is None else min(valid, frames)
     return "n/a" if valid is None or not frames else f"{100.0 * valid / frames:.3g}"
+
+
+TERMINAL_COLUMNS = ("variant", "pipeline", "valid (%)", "att. RMSE x / y / z (arcsec)", "efficiency x / y / z",
+                    "pixel efficiency x / y / z", "rate RMSE x / y / z (deg/s)", "CPU ms/frame")
+
+
+def terminal_tables(results: dict) -> list[tuple[str, list[str], list[list[str]]]]:
+    """The main columns of :func:`tables` (``TERMINAL_COLUMNS``) for the terminal, without the columns
+    that are n/a in every row."""
+    out = []
+    for title, header, body in tables(results):
+        keep = [header.index(c) for c in TERMINAL_COLUMNS if c in header]
+        keep = [k for k in keep if any(set(row[k].split(" / ")) != {"n/a"} for row in body)]
+        out.append((title, [header[k] for k in keep], [[row[k] for k in keep] for row in body]))
+    return out
 
 
 def _slug(text: str) -> str:
@@ -136,8 +154,7 @@ def _error_vs_rate_figure(sc: str, sub: list[dict], pipelines: list[str], colour
             pr = sorted((r for r in sub if r["pipeline"] == p), key=_x_of)
             pts = [(_x_of(r), *_m(r, key)) for r in pr if _m(r, key)[0] is not None]
             if pts:
-                x, m, s = map(np.array, zip(*pts))
-                ax.errorbar(x, m, yerr=s, marker="o", ms=3, capsize=2, color=colours[p], label=p)
+                _log_errorbar(ax, *map(np.array, zip(*pts)), colours[p], p)
             for bkey, style in ((bound, "--"), (_PIXEL_BOUND.get(bound), ":")):
                 bpts = [(_x_of(r), _m(r, bkey)[0]) for r in pr
                         if bkey and _m(r, bkey)[0] is not None and _m(r, key)[0] is not None]
@@ -158,6 +175,22 @@ def _error_vs_rate_figure(sc: str, sub: list[dict], pipelines: list[str], colour
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _log_errorbar(ax, x, m, s, colour: str, label: str) -> None:
+    """Means with std bars on a logarithmic axis, drawn honestly: a bar never reaches below zero (its
+    lower arm stops at a tenth of the mean, marked by no cap), and a mean of zero, which a log axis
+    cannot place, is a hollow triangle on the axis' floor with the label "0"."""
+    pos = m > 0
+    lower = np.where(s < m, s, 0.9 * m)
+    ax.errorbar(x[pos], m[pos], yerr=[lower[pos], s[pos]], marker="o", ms=3, capsize=2, color=colour, label=label)
+    if (~pos).any():
+        floor = ax.get_xaxis_transform()  # x in data, y in axes fraction
+        ax.scatter(x[~pos], np.zeros((~pos).sum()) + 0.02, marker="v", facecolors="none", edgecolors=colour,
+                   transform=floor, clip_on=False, zorder=3)
+        for xi in x[~pos]:
+            ax.annotate("0", (xi, 0.02), xycoords=floor, xytext=(4, 0), textcoords="offset points", fontsize=7,
+                        color=colour)
 
 
 def _update_rate_figure(rows: list[dict], pipelines: list[str], colours: dict, path: Path) -> None:
@@ -239,12 +272,20 @@ def html_report(results: dict, images: list[tuple[str, str]], command: str) -> s
              f"<h1>Comparison {html.escape(c['name'])}</h1><p>{html.escape(c['description'])}</p>",
              f"<p>Command: <code>{html.escape(command)}</code>; seeds {c['seeds']}; mean ± std over seeds; "
              f"{html.escape(_LEGEND)}</p>"]
+    def figure(name: str, cap: str) -> str:
+        return (f"<figure><img src='{html.escape(name)}' alt='{html.escape(cap)}'>"
+                f"<figcaption>{html.escape(cap)}</figcaption></figure>")
+
+    # the main figure first (errors against rate when the comparison sweeps the rate), then the tables
+    lead = [im for im in images if im[0].startswith("img/error_vs_rate_")] or images[:1]
+    parts += [figure(*im) for im in lead]
     for title, header, body in tables(results):
         parts.append(f"<h2>{html.escape(title)}</h2><table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>")
         parts += ["<tr>" + "".join(f"<td>{html.escape(v)}</td>" for v in row) + "</tr>" for row in body]
         parts.append("</table>")
-    parts.append("<h2>Figures</h2>")
-    parts += [f"<figure><img src='{html.escape(name)}' alt='{html.escape(cap)}'><figcaption>{html.escape(cap)}</figcaption></figure>"
-              for name, cap in images]
+    rest = [im for im in images if im not in lead]
+    if rest:
+        parts.append("<h2>More figures</h2>")
+        parts += [figure(*im) for im in rest]
     parts.append("</body></html>")
     return "\n".join(parts)

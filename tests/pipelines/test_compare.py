@@ -216,3 +216,51 @@ def test_task_simulates_once_and_keeps_each_pipelines_failure_to_its_row():
     unsimulatable = scenario.replace("width_px: ", "width_px: -")
     rows = run_task(Task(0, "bad", 3, 3, unsimulatable, (("baseline", good), ("again", good))))["rows"]
     assert all(r["error"].startswith("simulate: ") and "width_px" in r["error"] for r in rows)
+
+
+def test_terminal_table_shows_the_main_columns_with_variant_labels_intact(serial):
+    from rollingstar.pipelines.compare.report import TERMINAL_COLUMNS, terminal_tables
+
+    tables = terminal_tables(serial.results)
+    assert [t for t, _, _ in tables] == ["fu2022", "he2021b"]
+    for _, header, body in tables:
+        assert set(header) <= set(TERMINAL_COLUMNS) and header[:3] == ["variant", "pipeline", "valid (%)"]
+        assert all(len(row) == len(header) for row in body)
+    variants = [row[0] for row in tables[0][2]]
+    assert "fu2022[motion.rate_deg_s=(0.5, 0.5, 0)]" in variants
+    # baseline estimates no rate, but ls does: the rate column stays; every frame of these runs is valid
+    assert all(row[2] == "100" for _, _, body in tables for row in body)
+
+
+def test_valid_percent_counts_frames_not_estimates():
+    from rollingstar.pipelines.compare.report import _valid_percent
+
+    def row(**metrics):
+        return {"metrics": {k.replace("__", "."): {"mean": v, "std": 0.0} for k, v in metrics.items()}}
+
+    assert _valid_percent(row(outcomes__valid_frames=18, outcomes__frames=20, attitude_updates=700, frames=20)) == "90"
+    assert _valid_percent(row(attitude_updates=700, frames=20)) == "100"  # per-star estimates: capped at every frame
+    assert _valid_percent(row()) == "n/a"
+
+
+def test_log_axis_draws_zero_and_near_zero_means_honestly():
+    from rollingstar.pipelines.compare.report import _log_errorbar, _pyplot
+
+    plt = _pyplot()
+    fig, ax = plt.subplots()
+    _log_errorbar(ax, np.array([1.0, 2.0, 3.0]), np.array([0.0, 1e-3, 2.0]), np.array([0.0, 5e-3, 0.5]), "C0", "p")
+    ax.set_yscale("log")
+    bars = [c for c in ax.containers]
+    lines = bars[0].lines[2][0].get_segments()  # the error bars of the positive means
+    lows = [seg[0][1] for seg in lines]
+    assert all(low > 0 for low in lows)  # no bar reaches zero or below on the log axis
+    assert any(t.get_text() == "0" for t in ax.texts)  # the zero mean is marked, not dropped
+    plt.close(fig)
+
+
+def test_html_report_leads_with_its_main_figure(serial):
+    from rollingstar.pipelines.compare.report import html_report
+
+    images = [("img/error_vs_rate_fu2022.png", "fu2022: error vs rate per axis"), ("img/cpu_time.png", "CPU")]
+    page = html_report(serial.results, images, "rollingstar compare tiny")
+    assert page.index("error_vs_rate_fu2022.png") < page.index("<table>") < page.index("cpu_time.png")
