@@ -19,6 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from .topics import (
     TOPIC_CENTROIDS,
     TOPIC_EST_ATTITUDE,
+    TOPIC_EST_ATTITUDE_ERROR,
     TOPIC_EST_FRAME,
     TOPIC_EST_RATE,
     TOPIC_EST_STARS,
@@ -27,7 +28,7 @@ from .topics import (
     TOPIC_TRUTH_STARS,
 )
 
-FORMAT_VERSION = "1.0"
+FORMAT_VERSION = "1.1"
 """The version of the whole format (all topics and records); written in the ``rollingstar``
 metadata record. A reader rejects a major version it does not know."""
 
@@ -237,6 +238,22 @@ class AttitudeEstimateRecord(_Record):
         return self.t_ns
 
 
+class AttitudeErrorRecord(_Record):
+    """``rollingstar.AttitudeError``: a valid attitude estimate against the recording's truth at its time."""
+
+    SCHEMA_NAME: ClassVar[str] = "rollingstar.AttitudeError"
+    model_config = _config(SCHEMA_NAME)
+
+    frame: int = Field(description="frame index of the estimate")
+    t_ns: int = Field(description="time the estimate refers to, ns")
+    x_arcsec: float = Field(description="rotation from truth to estimate about camera x (cross-boresight), arcsec")
+    y_arcsec: float = Field(description="rotation from truth to estimate about camera y (cross-boresight), arcsec")
+    z_arcsec: float = Field(description="rotation from truth to estimate about camera z (roll), arcsec")
+
+    def default_log_time_ns(self) -> int:
+        return self.t_ns
+
+
 class RateEstimateRecord(_Record):
     """``rollingstar.RateEstimate``: camera angular velocity in the camera frame, rad/s."""
 
@@ -308,7 +325,7 @@ class FrameStatusRecord(_Record):
 RECORD_TYPES: dict[str, type[_Record]] = {
     cls.SCHEMA_NAME: cls
     for cls in (StarsRecord, GyroSamplesRecord, AttitudeSamplesRecord, AttitudeEstimateRecord,
-                RateEstimateRecord, FrameStatusRecord)
+                AttitudeErrorRecord, RateEstimateRecord, FrameStatusRecord)
 }
 """Schema name -> record model, for every JSON schema of the format."""
 
@@ -321,6 +338,7 @@ TOPIC_RECORDS: dict[str, type[_Record]] = {
     TOPIC_EST_ATTITUDE: AttitudeEstimateRecord,
     TOPIC_EST_RATE: RateEstimateRecord,
     TOPIC_EST_FRAME: FrameStatusRecord,
+    TOPIC_EST_ATTITUDE_ERROR: AttitudeErrorRecord,
 }
 """The record model of every standard JSON topic."""
 
@@ -329,6 +347,7 @@ GyroSamples = GyroSamplesRecord
 AttitudeSamples = AttitudeSamplesRecord
 AttitudeEstimate = AttitudeEstimateRecord
 RateEstimate = RateEstimateRecord
+AttitudeError = AttitudeErrorRecord
 FrameStatus = FrameStatusRecord
 
 

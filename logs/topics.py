@@ -19,3 +19,5 @@ TOPIC_EST_ATTITUDE = "/estimate/attitude"
 TOPIC_EST_POSE = "/estimate/pose"
 TOPIC_EST_RATE = "/estimate/rate"
 TOPIC_EST_FRAME = "/estimate/frame"
+# Written beside the estimates when the recording carries /truth/attitude (for plotting while replaying).
+TOPIC_EST_ATTITUDE_ERROR = "/estimate/attitude_error"

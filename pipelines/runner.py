@@ -84,7 +84,8 @@ def build_stages(config: PipelineConfig, source: str = "<pipeline>") -> list[Plu
 
 def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | Path, pipeline_source: str = "<pipeline>",
                  show_progress: bool = True, max_frames: int | None = None, resume: bool = False,
-                 checkpoint_every: int = DEFAULT_EVERY, inputs: Iterable[str | Path] = ()) -> RunSummary:
+                 checkpoint_every: int = DEFAULT_EVERY, inputs: Iterable[str | Path] = (),
+                 with_images: bool = False) -> RunSummary:
     """Run ``pipeline`` over ``recording`` and write estimates (plus truth and metadata) to ``output``.
 
     ``output`` is refused when it is, or links to, the recording or one of ``inputs`` (the pipeline
@@ -92,7 +93,9 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
     scenario and pipeline left (:mod:`rollingstar.pipelines.resume`), from the newest usable
     checkpoint (saved every ``checkpoint_every`` frames and on SIGINT; 0: none). On SIGINT the frame
     in hand is finished, the log finalised as ``<output>.partial`` and
-    :class:`rollingstar.pipelines.interrupt.Interrupted` raised.
+    :class:`rollingstar.pipelines.interrupt.Interrupted` raised. ``with_images``: copy the recording's
+    frames to the output's ``/camera/image`` too (an image-level recording), so that the output
+    opens complete in Foxglove; a resume continues only an output written with the same choice.
     """
     output = Path(output)
     inputs = [recording, *inputs]
@@ -103,7 +106,9 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
     check_stages_on_recording(stages, rec.provides, str(recording), pipeline_source, [s.kind for s in pipeline.stages])
     setup_stages(stages, rec.context, pipeline_source, recording)
     pipeline_yaml = to_yaml(pipeline)
-    identity = RunIdentity.of(recording, rec.scenario.get("yaml", ""), pipeline_yaml)
+    # the output's content depends on --with-images too: a resume must not mix outputs with and without
+    identity = RunIdentity.of(recording, rec.scenario.get("yaml", ""),
+                              pipeline_yaml + ("\n# run --with-images\n" if with_images else ""))
     metadata = {"scenario": rec.scenario, "pipeline": {"yaml": pipeline_yaml, "source": str(pipeline_source)},
                 IDENTITY_RECORD: identity.as_metadata()}
     tmp = None
@@ -111,7 +116,7 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
         with safe_output(output, inputs) as tmp:
             start = _Start.find(rec, stages, identity, output, resume, checkpoint_every if tmp != output else 0)
             summary = _run(rec, pipeline.name, start, tmp, metadata, output, max_frames, show_progress,
-                           pipeline.max_false_match_prob)
+                           pipeline.max_false_match_prob, with_images)
             _remove_leftovers(output, tmp, start)
     except LogWriteError as exc:  # it names the temporary file, kept as <output>.partial
         if tmp is None or tmp == output:
@@ -125,7 +130,7 @@ def _partial(output: Path) -> Path:
 
 
 def _run(rec: Recording, name: str, start: _Start, target: Path, metadata: dict, output: Path,
-         max_frames: int | None, show_progress: bool, max_false_match_prob: float) -> RunSummary:
+         max_frames: int | None, show_progress: bool, max_false_match_prob: float, with_images: bool) -> RunSummary:
     """The run itself, into ``target``: copy what the resume point holds, then stream the frames."""
     state = start.state
     run = StagePipeline(state.stages, rec.holds_centroids, state.stage_seconds, rec.context, max_false_match_prob)
@@ -133,7 +138,7 @@ def _run(rec: Recording, name: str, start: _Start, target: Path, metadata: dict,
     with stop_on_sigint() as stop, LogWriter(target, kind="run", metadata=metadata, digest=True) as writer, \
             progress_bar(f"run {name}", rec.n_frame_messages, show_progress) as advance:
         start.point.copy_into(writer)
-        sink = EstimateSink(writer, state.counts)
+        sink = EstimateSink(writer, state.counts, with_images)
         checkpoints = _Checkpoints(start.saver, state.identity, source, run, sink)
         _stream(source, run, sink, checkpoints, max_frames, stop, advance)
     if stop.requested:
@@ -165,6 +170,7 @@ def _stream(source: FrameSource, run: StagePipeline, sink: EstimateSink, checkpo
     for item in source.frames(max_frames, stop):
         sink.write_truth(item.truth)
         if item.frame is not None:
+            sink.write_source(item.frame)
             sink.write(run.process(item.frame))
             checkpoints.frame_done()
         if not item.duplicate:

@@ -2,7 +2,12 @@
 
 :class:`EstimateSink` writes each finished frame (:func:`write_frame`: its stars, spot labels,
 attitude estimates and poses, rate, and last its ``/estimate/frame`` status) and counts what it
-wrote. The writer's own :class:`~rollingstar.logs.digest.MessageDigest` (``LogWriter(digest=True)``)
+wrote. When the recording carries ``/truth/attitude``, each valid attitude estimate also gets its
+error against the truth at its own time on ``/estimate/attitude_error`` (the definition
+``evaluate`` uses, :func:`~rollingstar.sensors.conventions.attitude_error_body_arcsec`), so a
+replay in Foxglove can plot it; an estimate outside the truth samples seen so far gets none. With
+``with_images`` the recording's frames are copied to ``/camera/image`` as they are read, so the
+output opens complete. The writer's own :class:`~rollingstar.logs.digest.MessageDigest` (``LogWriter(digest=True)``)
 counts and hashes every message, for the checkpoints of ``run --resume``.
 """
 from __future__ import annotations
@@ -13,20 +18,26 @@ import numpy as np
 
 from rollingstar.estimators.data import FrameData, StarTable
 from rollingstar.logs.reader import Message
+from rollingstar.logs.records import AttitudeError as AttitudeErrorRecord
 from rollingstar.logs.records import AttitudeEstimate as AttitudeRecord
 from rollingstar.logs.records import FrameStatus, arrays_to_stars
 from rollingstar.logs.records import RateEstimate as RateRecord
 from rollingstar.logs.topics import (
     TOPIC_EST_ATTITUDE,
+    TOPIC_EST_ATTITUDE_ERROR,
     TOPIC_EST_FRAME,
     TOPIC_EST_POSE,
     TOPIC_EST_RATE,
     TOPIC_EST_SPOTS,
     TOPIC_EST_STARS,
+    TOPIC_IMAGE,
+    TOPIC_TRUTH_ATTITUDE,
 )
 from rollingstar.logs.writer import LogWriter
 from rollingstar.pipelines.outcomes import Outcomes
-from rollingstar.sensors.conventions import quat_to_fields
+from rollingstar.sensors.conventions import attitude_error_body_arcsec, quat_to_fields
+
+TRUTH_KEPT_NS = 60_000_000_000  # truth samples kept behind the newest: a smoother's output lags by less
 
 
 def new_counts() -> Outcomes:
@@ -34,26 +45,85 @@ def new_counts() -> Outcomes:
     return Outcomes()
 
 
+class _TruthAttitude:
+    """The ``/truth/attitude`` samples passed through so far (the last ``TRUTH_KEPT_NS``), and the
+    truth at a time between two of them (spherical linear interpolation)."""
+
+    def __init__(self) -> None:
+        self.t = np.zeros(0, dtype=np.int64)
+        self.q = np.zeros((0, 4))
+
+    def add(self, record: dict) -> None:
+        t = np.asarray(record["t_ns"], dtype=np.int64)
+        q = np.column_stack([record["qx"], record["qy"], record["qz"], record["qw"]])
+        keep = self.t >= (t.max() - TRUTH_KEPT_NS) if t.size else slice(None)
+        order = np.argsort(np.concatenate([self.t[keep], t]), kind="stable")
+        self.t = np.concatenate([self.t[keep], t])[order]
+        self.q = np.concatenate([self.q[keep], q])[order]
+
+    def at(self, t_ns: np.ndarray):
+        """The true attitudes at the times ``t_ns`` (a scipy ``Rotation`` of them, interpolated along
+        the rotation between the two samples around each) and which times the samples cover."""
+        from scipy.spatial.transform import Rotation
+
+        t_ns = np.asarray(t_ns, dtype=np.int64)
+        covered = (self.t.size >= 2) & (t_ns >= (self.t[0] if self.t.size else 0)) & \
+            (t_ns <= (self.t[-1] if self.t.size else -1))
+        if not covered.any():
+            return None, covered
+        t = t_ns[covered]
+        i = np.clip(np.searchsorted(self.t, t, side="right") - 1, 0, self.t.size - 2)
+        span = (self.t[i + 1] - self.t[i]).astype(float)
+        frac = np.divide((t - self.t[i]).astype(float), span, out=np.zeros(t.size), where=span > 0)
+        r0, r1 = Rotation.from_quat(self.q[i]), Rotation.from_quat(self.q[i + 1])
+        return r0 * Rotation.from_rotvec((r0.inv() * r1).as_rotvec() * frac[:, None]), covered
+
+
 class EstimateSink:
-    """Writes finished frames and truth messages to ``writer``.
+    """Writes finished frames and truth messages to ``writer`` (module docstring).
 
     ``counts`` (see :func:`new_counts`) go on from a checkpoint's when given.
     """
 
-    def __init__(self, writer: LogWriter, counts: Outcomes | None = None) -> None:
+    def __init__(self, writer: LogWriter, counts: Outcomes | None = None, with_images: bool = False) -> None:
         self.writer = writer
         self.counts = counts if counts is not None else new_counts()
+        self.with_images = with_images
+        self._truth = _TruthAttitude()
 
     def write_truth(self, messages: Iterable[Message]) -> None:
         """Pass the recording's truth messages through."""
         for m in messages:
             self.writer.write_json(m.topic, m.data, m.log_time_ns)
+            if m.topic == TOPIC_TRUTH_ATTITUDE:
+                self._truth.add(m.data)
+
+    def write_source(self, frame: FrameData) -> None:
+        """The frame as read from the recording: its image, when ``with_images``."""
+        if self.with_images and frame.image is not None:
+            self.writer.write_image(TOPIC_IMAGE, frame.image, int(frame.t0_ns))
 
     def write(self, frames: Iterable[FrameData]) -> None:
         """Write and count finished frames."""
         for frame in frames:
             write_frame(self.writer, frame)
+            self._write_errors(frame)
             self.counts.add(frame.flags, [(a.valid, a.reason) for a in frame.attitudes])
+
+    def _write_errors(self, frame: FrameData) -> None:
+        from scipy.spatial.transform import Rotation
+
+        valid = [a for a in frame.attitudes if a.valid]
+        if not valid or not self._truth.t.size:
+            return
+        truth, covered = self._truth.at(np.array([a.t_ns for a in valid], dtype=np.int64))
+        if truth is None:
+            return
+        est = [a for a, c in zip(valid, covered) if c]
+        err = attitude_error_body_arcsec(truth, Rotation.from_quat(np.array([a.q_xyzw for a in est])))
+        for a, e in zip(est, np.atleast_2d(err)):
+            self.writer.write_json(TOPIC_EST_ATTITUDE_ERROR, AttitudeErrorRecord(
+                frame=frame.index, t_ns=int(a.t_ns), x_arcsec=float(e[0]), y_arcsec=float(e[1]), z_arcsec=float(e[2])))
 
 
 def _fitted_camera(frame: FrameData) -> dict | None:

@@ -156,15 +156,17 @@ def run(pipeline: str = typer.Argument(..., help="pipeline YAML, or a shipped pi
         resume: bool = typer.Option(False, "--resume", help="continue from a partial output (killed or interrupted run)"),
         checkpoint_every: int = typer.Option(500, "--checkpoint-every", min=0,
                                              help="save the stages' state every N frames for --resume (0: never)"),
+        with_images: bool = typer.Option(False, "--with-images", help="copy the recording's images into the output "
+                                         "(/camera/image), so that it opens complete in Foxglove (docs/foxglove.md)"),
         quiet: bool = _quiet()):
-    """Run a pipeline over a recording."""
+    """Run a pipeline over a recording: estimates, their outcomes and (with truth) their errors, in one MCAP."""
     from rollingstar.pipelines.config import load_pipeline
     from rollingstar.pipelines.runner import run_pipeline
 
     pipeline = find_config(pipeline, "pipeline")
     cfg = load_pipeline(pipeline)
     s = run_pipeline(recording, cfg, output, pipeline_source=str(pipeline), show_progress=not quiet, resume=resume,
-                     checkpoint_every=checkpoint_every, inputs=[pipeline])
+                     checkpoint_every=checkpoint_every, inputs=[pipeline], with_images=with_images)
     if resume:
         out.print(f"resumed from a checkpoint after {s.resumed_after_frames} frames" if s.resumed_after_frames else
                   "resumed: no usable checkpoint, every frame re-run from the first")

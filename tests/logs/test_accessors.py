@@ -23,7 +23,7 @@ DOC = Path(__file__).resolve().parents[2] / "docs" / "log-format.md"
 
 def test_topic_constants_are_the_documented_topics():
     table = DOC.read_text().split("## Topics", 1)[1].split("\n\n", 2)[1]
-    documented = set(re.findall(r"^\| `(/[a-z/]+)`", table, re.M))
+    documented = set(re.findall(r"^\| `(/[a-z_/]+)`", table, re.M))
     defined = {v for k, v in vars(topics).items() if k.startswith("TOPIC_")}
     assert defined == documented
     assert topics.TRUTH_TOPICS == (topics.TOPIC_TRUTH_ATTITUDE, topics.TOPIC_TRUTH_STARS)
