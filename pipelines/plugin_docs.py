@@ -49,7 +49,7 @@ def plain(text: str) -> str:
 
 
 def first_sentence(text: str) -> str:
-    """The first sentence of ``text`` (up to the first ``. `` outside brackets), markup removed."""
+    """The first sentence of ``text`` (up to the first full stop outside brackets), markup removed."""
     text = " ".join(plain(text).split())
     depth = 0
     for i, ch in enumerate(text):

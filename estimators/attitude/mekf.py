@@ -46,7 +46,7 @@ def propagation_matrices(theta: np.ndarray, dt: float, sigma_v: float, sigma_u: 
 
     Error state ``x = [dtheta, dbeta]`` with truth ``R_true = R Exp(dtheta)``, ``beta_true = beta +
     dbeta`` and kinematics ``R' = R Exp((u - beta) dt)``, i.e. ``dtheta' = -[w x] dtheta - dbeta - eta_v``,
-    ``dbeta' = eta_u`` (Markley & Crassidis eqs 6.81-6.93, 7.37-7.41):
+    ``dbeta' = eta_u`` (Markley & Crassidis eqs 6.81-6.93, 7.37-7.41)::
 
         Phi = [[Exp(theta)^T, -dt I], [0, I]]        (theta = (u - beta) dt, the step's rotation;
                                                       -J_r(theta) dt ~ -dt I as |theta| << 1)

@@ -1,6 +1,6 @@
 """Batched solutions of Wahba's problem: QUEST (Shuster & Oh 1981) and its measurement covariance.
 
-Wahba's problem: find the attitude matrix ``A`` (reference frame -> body frame) minimising
+Wahba's problem: find the attitude matrix ``A`` (reference frame -> body frame) minimising::
 
     L(A) = 1/2 sum_i a_i |b_i - A r_i|^2,
 
@@ -151,7 +151,7 @@ def quest(ref_icrs, obs_cam, weights=None, mask=None, *, newton_tol: float = 1e-
         lambda^4 - (a + b) lambda^2 - c lambda + (a b + c sigma - d) = 0   (characteristic eq.)
 
     solved for ``lambda_max`` by Newton-Raphson from ``lambda_0 = sum a_i = 1`` (iterated for all
-    frames until every frame has converged to ``newton_tol``); then
+    frames until every frame has converged to ``newton_tol``); then::
 
         alpha = lambda^2 - sigma^2 + kappa,  beta = lambda - sigma,
         gamma = (lambda + sigma) alpha - Delta,  X = (alpha I + beta S + S^2) Z,

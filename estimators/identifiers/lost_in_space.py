@@ -141,6 +141,7 @@ class LostInSpaceIdentifier(Identifier):
        misidentification.
     3. Verification, all three required, else the frame is flagged
        ``lost_in_space_rejected:<reason>`` and no star is identified (never a guess):
+
        - ``k >= min_matches`` identified stars;
        - RMS residual of the refitted attitude ``sqrt(mean |x_i - proj(R^T r_i)|^2) <= max_residual_px``;
        - false-match probability ``P = sum_{i>=k} C(n,i) p^i (1-p)^(n-i)`` (binomial tail,

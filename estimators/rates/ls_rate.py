@@ -25,7 +25,7 @@ only the row-time differences matter and ``t_ref`` is a labelling choice.
 
 Jacobian (derived here; checked against finite differences in tests/estimators/test_ls_rate.py).
 With the left Jacobian ``J_l`` of SO(3), ``d(Exp(phi) v) = -[Exp(phi) v]x J_l(phi) dphi``, and
-``d cos(theta) = b.da + a.db``, ``d theta = -d cos(theta) / sin(theta)``:
+``d cos(theta) = b.da + a.db``, ``d theta = -d cos(theta) / sin(theta)``::
 
     d r_ij / d omega = n_ij^T (J_l(omega dt_j) dt_j - J_l(omega dt_i) dt_i),   n_ij = a_i x a_j / |a_i x a_j|   (3)
 

@@ -82,7 +82,7 @@ def residual_jacobian_kernel(w, dt, i, j, cat, omega, out):  # pragma: no cover 
 def pair_setup_kernel(w, ref, inv_W, i, j, G, cat):  # pragma: no cover (compiled)
     """Fill ``G`` (m, 2n, zeroed) with ``pixel_sensitivity`` (``d theta_ij / d(x_i, y_i) = (t_ij,x,
     t_ij,y) / |W_i|``, ``t_ij`` the unit tangent at ``w_i`` towards ``w_j``; ``inv_W = 1 / |W|``) and
-    ``cat`` (m,) with the catalogue angles ``atan2(|r_i x r_j|, r_i . r_j)`` of unit ``ref`` (n, 3)."""
+    ``cat`` (m,) with the catalogue angles ``atan2(|r_i x r_j|, dot(r_i, r_j))`` of unit ``ref`` (n, 3)."""
     for k in range(i.shape[0]):
         p, q = i[k], j[k]
         ax, ay, az = ref[p, 0], ref[p, 1], ref[p, 2]

@@ -153,6 +153,7 @@ class TimestampsSpec(_Strict):
     - ``csv``: a file with columns ``file`` and ``t_ns`` (or ``time_s``), one row per image.
     - ``csv`` with ``t_unix_ns`` (or ``time_unix_s``) instead: the same, stated to be Unix time
       (UTC, since 1970-01-01T00:00:00Z), which also gives the observation time.
+
     Default: ``frame_rate_hz: 1.0`` from ``start_ns: 0``.
     """
 

@@ -1,22 +1,22 @@
 """The comparison config (strict pydantic, loaded from YAML) and its expansion into tasks.
 
-```yaml
-name: ci
-monte_carlo: 2            # seeds per (scenario variant, pipeline): seed, seed + 1, ...
-seed: 1                   # or `seeds: [1, 5, 9]`
-frames: 20                # default frame count (a scenario entry may override)
-pipelines:                # paths relative to this file; the name is the pipeline's own `name`
-  - ../pipelines/baseline.yaml
-  - {path: ../pipelines/ls_rate.yaml, name: ls}      # or rename
-scenarios:
-  - path: ../scenarios/fu2022.yaml
-    set: {noise.centroid_sigma_px: 0.02}              # dotted keys applied to every variant
-    sweep:                                            # product over keys: one variant per combination
-      motion.rate_deg_s: [[0.5, 0.5, 0], [1, 1, 0]]
-    pipelines: [baseline, ls]                         # default: every pipeline
-tolerances:               # regression gate, per metric (fnmatch patterns on dotted metric names)
-  "attitude_error_arcsec.*_rmse": {rel: 0.05}
-```
+.. code-block:: yaml
+
+    name: ci
+    monte_carlo: 2            # seeds per (scenario variant, pipeline): seed, seed + 1, ...
+    seed: 1                   # or `seeds: [1, 5, 9]`
+    frames: 20                # default frame count (a scenario entry may override)
+    pipelines:                # paths relative to this file, or a shipped config's bare name (baseline)
+      - ../pipelines/baseline.yaml
+      - {path: ../pipelines/ls_rate.yaml, name: ls}      # or rename
+    scenarios:
+      - path: ../scenarios/fu2022.yaml
+        set: {noise.centroid_sigma_px: 0.02}              # dotted keys applied to every variant
+        sweep:                                            # product over keys: one variant per combination
+          motion.rate_deg_s: [[0.5, 0.5, 0], [1, 1, 0]]
+        pipelines: [baseline, ls]                         # default: every pipeline
+    tolerances:               # regression gate, per metric (fnmatch patterns on dotted metric names)
+      "attitude_error_arcsec.*_rmse": {rel: 0.05}
 
 Every problem names the config file and the key path (``scenarios[0].sweep.motion.rate_deg_s[1]``);
 scenario and pipeline files are loaded and their stages built here, before any task runs.
@@ -37,9 +37,12 @@ from pydantic import (
 )
 
 from rollingstar.config import (
+    CONFIG_KINDS,
+    CONFIGS,
     Strict,
     format_validation_error,
     read_yaml,
+    shipped_configs,
     to_yaml,
     validate,
 )
@@ -179,18 +182,23 @@ def load_compare(path: str | Path) -> Comparison:
     cfg = validate(CompareConfig, read_yaml(path), source)
     root = path.parent
 
-    def resolve(p: str, where: str) -> Path:
+    def resolve(p: str, where: str, kind: str) -> Path:
+        """A file relative to the config, else a shipped config's bare name (``he2021b``, ``baseline``)."""
         full = (root / p) if not Path(p).is_absolute() else Path(p)
-        if not full.is_file():
-            raise ConfigError(f"{source}: {where}: file not found: {p} (paths are relative to the config file, here {full})")
-        return full
+        if full.is_file():
+            return full
+        shipped = CONFIGS / CONFIG_KINDS[kind] / f"{Path(p).stem}.yaml"
+        if len(Path(p).parts) == 1 and Path(p).suffix in ("", ".yaml", ".yml") and shipped.is_file():
+            return shipped
+        raise ConfigError(f"{source}: {where}: file not found: {p} (paths are relative to the config file, here "
+                          f"{full}; a bare name is a shipped {kind}: {', '.join(shipped_configs(kind))})")
 
     pipelines: dict[str, PipelineConfig] = {}
     paths: dict[str, str] = {}
     for k, entry in enumerate(cfg.pipelines):
         entry = PipelineEntry(path=entry) if isinstance(entry, str) else entry
         where = f"pipelines[{k}]"
-        file = resolve(entry.path, f"{where}.path" if not isinstance(cfg.pipelines[k], str) else where)
+        file = resolve(entry.path, f"{where}.path" if not isinstance(cfg.pipelines[k], str) else where, "pipeline")
         pipe = load_pipeline(file)
         build_stages(pipe, str(file))  # unknown kinds / bad params fail now, naming the file
         name = entry.name or pipe.name
@@ -202,7 +210,7 @@ def load_compare(path: str | Path) -> Comparison:
     labels: set[str] = set()
     for k, entry in enumerate(cfg.scenarios):
         where = f"scenarios[{k}]"
-        base = load_scenario(resolve(entry.path, f"{where}.path"))
+        base = load_scenario(resolve(entry.path, f"{where}.path", "scenario"))
         name = entry.name or base.name
         chosen = tuple(entry.pipelines) if entry.pipelines is not None else tuple(pipelines)
         for q, p in enumerate(chosen):

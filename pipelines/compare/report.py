@@ -1,10 +1,10 @@
-"""results.md (tables), report.html (the same tables and the figures) and img/*.png from results.json.
+"""``results.md`` (tables), ``report.html`` (the same tables and the figures) and ``img/*.png`` from ``results.json``.
 
 Figures (matplotlib, Agg):
 
 - ``img/error_vs_rate_<scenario>.png`` for every scenario with more than one variant: attitude error
   RMSE per axis, star-pair distance error RMSE and (when estimated) rate error RMSE per axis against
-  the variant's |rate| or |(w_x, w_y)| (config ``plot_x``), one line per pipeline (mean over seeds, bars = std), the single-frame
+  the variant's ``|rate|`` or ``|(w_x, w_y)|`` (config ``plot_x``), one line per pipeline (mean over seeds, bars = std), the single-frame
   Cramér-Rao bounds dashed (centroid-level: the scenario's centroid sigma taken as given) and
   dotted (pixel-level: the information in the rendered pixels, image-level recordings);
 - ``img/update_rate_vs_accuracy.png``: attitude updates per second against the attitude error
