@@ -40,4 +40,7 @@ def _generate(app) -> None:
 
 
 def setup(app):
+    from pygments.lexers.special import TextLexer
+
+    app.add_lexer("csv", TextLexer)  # the log format's CSV examples, shown as they are
     app.connect("builder-inited", _generate)
