@@ -37,6 +37,7 @@ from rollingstar.outputs import safe_output
 from rollingstar.pipelines.config import PipelineConfig, load_pipeline
 from rollingstar.pipelines.runner import run_pipeline
 from rollingstar.pipelines.truth import TruthTrajectory
+from rollingstar.progress import progress_bar
 from rollingstar.sensors import build
 from rollingstar.sensors.scenario import ScenarioConfig, load_scenario
 from rollingstar.sensors.timing import DetectorTiming
@@ -183,7 +184,7 @@ def _catalog_magnitudes(catalog, cat_ids: np.ndarray, u_all: np.ndarray) -> tupl
 
 def _sigma_and_source(sigma: np.ndarray, scenario: ScenarioConfig) -> tuple[np.ndarray, str]:
     """Per-star centroid sigma: the recording's, the scenario's where missing, else NaN ("estimated")."""
-    source = "recording (StarTable.sigma_px)"
+    source = "recording: each star's sigma_px"
     bad = ~(np.isfinite(sigma) & (sigma > 0))
     if bad.any():
         s = scenario.noise.centroid_sigma_px if scenario.level == "centroid" else 0.0
@@ -264,7 +265,9 @@ def diagnose_recording(recording: str | Path, scenario: ScenarioConfig | None = 
         pipeline, stars, att = identify_stars(recording, pipeline, pipeline_source, options.show_progress)
         obs, att0 = build_observations(stars, att, scenario, catalog)
         reference = read_reference(recording, obs) if options.reference_sigma_arcsec is not None else None
-        d = algorithm.diagnose(obs, att0, scenario, read_gyro(recording, scenario), options, exclude_effects, reference)
+        with progress_bar("diagnose", len(algorithm.PHASES), options.show_progress) as advance:
+            d = algorithm.diagnose(obs, att0, scenario, read_gyro(recording, scenario), options, exclude_effects,
+                                   reference, on_phase=lambda name: advance())
     return algorithm.as_json(d, recording=str(recording), sim=sim_source or scenario.name, pipeline=pipeline.name), d
 
 

@@ -92,40 +92,52 @@ class Diagnosis:
         return self.description is not None and self.description.correction is not None
 
 
+#: The phases :func:`diagnose` reports to its ``on_phase`` callback, in order.
+PHASES = ("projection", "effects named", "noise", "shape outside the library", "corrections", "reference attitude")
+
+
 def diagnose(observations: Observations, attitudes: Rotation, scenario: ScenarioConfig, gyro: GyroData | None = None,
              options: DiagnoseOptions = DiagnoseOptions(), exclude_effects=(),
-             reference: tuple[Rotation, np.ndarray] | None = None) -> Diagnosis:
+             reference: tuple[Rotation, np.ndarray] | None = None, on_phase=None) -> Diagnosis:
     """Diagnose a recording's identified stars (with a first attitude per frame) against ``scenario``.
 
     ``gyro``: the recording's gyro samples (a second residual channel); ``exclude_effects``:
     library effects not to test; ``reference``: a reference attitude per frame (at its reference
     time) and the frames it covers, of accuracy ``options.reference_sigma_arcsec``. BLAS runs single-threaded here: the matrices are small (thousands
     x tens) and a threaded BLAS on a busy machine was measured 16x slower on them (80 ms vs 5 ms for
-    a 1078 x 32 SVD on 2 loaded cores).
+    a 1078 x 32 SVD on 2 loaded cores). ``on_phase(name)`` is called after each of the ``PHASES``
+    (a progress display), whether or not the recording needed it.
     """
+    done = on_phase or (lambda name: None)
     with threadpool_limits(limits=1, user_api="blas"):
         sensor = sensor_model(scenario)
         choice = choose_projection(observations, attitudes, sensor, options)
         if choice is not None and choice.renamed:
             sensor = sensor_model(with_projection(scenario, choice))
+        done(PHASES[0])
         cands: dict[str, Candidate] = library(exclude=exclude_effects)
         steps = _outlier_rounds(observations, attitudes, sensor, cands, gyro, options)
+        done(PHASES[1])
         data, noise = steps[0].data, None
         if known_noise(data):  # a noise estimated from the residuals has nothing to be measured against
             noise = measure_noise(data.obs, steps[2].prediction, data.train, data.att_mask, sensor.camera)
         if noise is not None and noise.applied:
             steps = _outlier_rounds(scaled(observations, noise), attitudes, sensor, cands, gyro, options)
         obs_used = scaled(observations, noise) if noise is not None and noise.applied else observations
+        done(PHASES[2])
         shape = _describe(steps[0], steps[2], steps[3], sensor) if steps[3].unexplained else None
+        done(PHASES[3])
         evidence, given, before = tuple(steps[3].evidence), sensor_model(sensor.scenario), None
         if shape is not None and shape.correction is not None:
             sensor, steps, shape = _corrected(shape, given.scenario, obs_used, attitudes, cands, gyro, options)
             steps, noise = _noise_again(noise, steps, observations, attitudes, sensor, cands, gyro, options)
             before = _as_given(steps[0], given)
+        done(PHASES[4])
         check = None
         if reference is not None and options.reference_sigma_arcsec is not None:
             check = reference_check(steps[0].data, steps[2], cands, list(steps[1].problem.absorbed), *reference,
                                     options.reference_sigma_arcsec, options.min_delta_bic)
+        done(PHASES[5])
     return Diagnosis(sensor, *steps[:4], choice, steps[4], noise, shape, evidence, before, check)
 
 

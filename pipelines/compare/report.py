@@ -47,13 +47,18 @@ TERMINAL_COLUMNS = ("variant", "pipeline", "valid (%)", "att. RMSE x / y / z (ar
                     "pixel efficiency x / y / z", "rate RMSE x / y / z (deg/s)", "CPU ms/frame")
 
 
-def terminal_tables(results: dict) -> list[tuple[str, list[str], list[list[str]]]]:
-    """The main columns of :func:`tables` (``TERMINAL_COLUMNS``) for the terminal, without the columns
-    that are n/a in every row."""
+def _informative(header: list[str], body: list[list[str]], columns) -> list[int]:
+    """Indices of ``columns`` in ``header`` that are not n/a in every row."""
+    keep = [header.index(c) for c in columns if c in header]
+    return [k for k in keep if any(set(row[k].split(" / ")) != {"n/a"} for row in body)]
+
+
+def terminal_tables(results: dict, columns=TERMINAL_COLUMNS) -> list[tuple[str, list[str], list[list[str]]]]:
+    """The ``columns`` of :func:`tables` (default: the main ones, for the terminal), without the
+    columns that are n/a in every row."""
     out = []
     for title, header, body in tables(results):
-        keep = [header.index(c) for c in TERMINAL_COLUMNS if c in header]
-        keep = [k for k in keep if any(set(row[k].split(" / ")) != {"n/a"} for row in body)]
+        keep = _informative(header, body, columns)
         out.append((title, [header[k] for k in keep], [[row[k] for k in keep] for row in body]))
     return out
 
@@ -279,7 +284,7 @@ def html_report(results: dict, images: list[tuple[str, str]], command: str) -> s
     # the main figure first (errors against rate when the comparison sweeps the rate), then the tables
     lead = [im for im in images if im[0].startswith("img/error_vs_rate_")] or images[:1]
     parts += [figure(*im) for im in lead]
-    for title, header, body in tables(results):
+    for title, header, body in terminal_tables(results, columns=tables(results)[0][1] if results["results"] else ()):
         parts.append(f"<h2>{html.escape(title)}</h2><table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>")
         parts += ["<tr>" + "".join(f"<td>{html.escape(v)}</td>" for v in row) + "</tr>" for row in body]
         parts.append("</table>")
