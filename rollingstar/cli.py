@@ -293,6 +293,19 @@ def info(log: Path = typer.Argument(..., help="MCAP file")):
 
 
 @command()
+def preview(log: Path = typer.Argument(..., help="MCAP file (a run's output, ideally written with --with-images)"),
+            output: Path = typer.Option(..., "-o", "--output", help="PNG file to write"),
+            layout: Path = typer.Option(None, "--layout", help="Foxglove layout JSON (default: the shipped "
+                                        "configs/foxglove/run.json)"),
+            frame: int = typer.Option(None, "--frame", min=0, help="image shown (default: the middle one)")):
+    """A still picture of a log as a Foxglove layout shows it: the image with its overlays and every plot."""
+    from rollingstar.pipelines.preview import DEFAULT_LAYOUT, render_preview
+
+    path = render_preview(log, output, layout or DEFAULT_LAYOUT, frame)
+    out.print(f"wrote {path}", highlight=False)
+
+
+@command()
 def plugins(name: str = typer.Argument(None, metavar="[KIND|ROLE]",
                                         help="show only this plugin kind (cog) or role (centroider)")):
     """Every registered plugin by role: each parameter's type, default, unit and meaning."""

@@ -115,3 +115,16 @@ def test_overlays_fall_on_the_image(output):
         pts = [c.position for c in ann.circles]
         assert pts and all(0 <= p.x <= img.width and 0 <= p.y <= img.height for p in pts)
         assert any(t.text not in ("", "?") for t in ann.texts)  # identified stars carry their catalogue id
+
+
+def test_preview_draws_the_layout_from_the_output(output, tmp_path):
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "rollingstar.cli", "preview", str(output), "-o",
+                           str(tmp_path / "p.png")], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "p.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    proc = subprocess.run([sys.executable, "-m", "rollingstar.cli", "preview", str(output), "-o", str(output)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and "input" in proc.stderr  # the log itself is never overwritten
