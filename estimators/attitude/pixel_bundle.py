@@ -38,7 +38,7 @@ from scipy.spatial.transform import Rotation
 
 from rollingstar.estimators.attitude.frame_fit import apply_step, predicted_directions
 from rollingstar.estimators.centroiders.cog import robust_sigma
-from rollingstar.estimators.centroiders.streak_kernel import normal_equations
+from rollingstar.estimators.centroiders.streak_kernel import normal_equations, nuisance_equations
 from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.so3 import skew
 from rollingstar.sensors.streak_model import effective_sigma
@@ -132,6 +132,13 @@ class _Pixels(NamedTuple):
         return normal_equations(p, self.row0, self.col0, self.nrows, self.ncols, self.image, self.saturation,
                                 self.noise2, self.inv_gain, self.se, self.exposure_s, self.ld_s)
 
+    def nuisance_equations(self, pv: np.ndarray, nuis: np.ndarray):
+        """The flux-and-background block of :meth:`normal_equations` alone, and the pixels used
+        (:func:`rollingstar.estimators.centroiders.streak_kernel.nuisance_equations`)."""
+        p = np.ascontiguousarray(np.column_stack([pv, nuis]), dtype=float)
+        return nuisance_equations(p, self.row0, self.col0, self.nrows, self.ncols, self.image, self.saturation,
+                                  self.noise2, self.inv_gain, self.se, self.exposure_s, self.ld_s)
+
     def take(self, keep: np.ndarray) -> "_Pixels":
         return self._replace(row0=np.ascontiguousarray(self.row0[keep]), col0=np.ascontiguousarray(self.col0[keep]))
 
@@ -166,9 +173,9 @@ def _initial_nuisance(pv: np.ndarray, pixels: _Pixels) -> tuple[np.ndarray, np.n
     shape (one exact step from unit flux and zero background: the model is linear in both), and
     each star's live pixels."""
     start = np.column_stack([np.ones(len(pv)), np.zeros(len(pv))])
-    M, g, _, used = pixels.normal_equations(pv, start)
+    N, h, used = pixels.nuisance_equations(pv, start)
     with np.errstate(invalid="ignore", divide="ignore"):
-        step = np.linalg.solve(M[:, 4:, 4:] + 1e-12 * np.eye(2), g[:, 4:, None])[..., 0]
+        step = np.linalg.solve(N + 1e-12 * np.eye(2), h[..., None])[..., 0]
     return start + step, used
 
 

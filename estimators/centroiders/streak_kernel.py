@@ -94,6 +94,41 @@ def normal_equations(p, row0, col0, nrows, ncols, image, saturation, noise2, inv
     return hess, grad_sum, chi2, used
 
 
+@njit(cache=True, nogil=True, fastmath=_FAST)
+def nuisance_equations(p, row0, col0, nrows, ncols, image, saturation, noise2, inv_gain, se, exposure,
+                       ld):  # pragma: no cover - compiled
+    """The flux and background block of :func:`normal_equations` alone: ``(N (n, 2, 2), h (n, 2),
+    pixels used (n,))``, equal to ``H[:, 4:, 4:]``, ``g[:, 4:]`` and ``used`` of it. The model is
+    linear in flux and background, so one solve of this gives both exactly for a given shape; it
+    evaluates only the profile, not its derivatives (about half the work per pixel)."""
+    n = p.shape[0]
+    height, width = image.shape
+    hess = np.zeros((n, 2, 2))
+    grad_sum = np.zeros((n, 2))
+    used = np.zeros(n, dtype=np.int64)
+    for k in range(n):
+        x, y, vx, vy, flux, b = p[k, 0], p[k, 1], p[k, 2], p[k, 3], p[k, 4], p[k, 5]
+        ux, uy, speed = star_geometry(vx, vy)
+        for i in range(max(row0[k], 0), min(row0[k] + nrows, height)):
+            dt = (i - y) * ld
+            for j in range(max(col0[k], 0), min(col0[k] + ncols, width)):
+                raw = float(image[i, j])
+                if raw >= saturation:
+                    continue
+                g = pixel_profile(j - x - vx * dt, i - y - vy * dt, ux, uy, speed, exposure, se)[0]
+                star = flux * g
+                w = 1.0 / (noise2 + max(star, 0.0) * inv_gain)
+                r = raw - star - b
+                hess[k, 0, 0] += g * g * w
+                hess[k, 0, 1] += g * w
+                hess[k, 1, 1] += w
+                grad_sum[k, 0] += g * w * r
+                grad_sum[k, 1] += w * r
+                used[k] += 1
+        hess[k, 1, 0] = hess[k, 0, 1]
+    return hess, grad_sum, used
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _within_sigmas(hess, v_weight, step, step_sigmas, ridge):  # pragma: no cover - compiled
     """True when the step of position and velocity is below ``step_sigmas`` of each one's standard
