@@ -46,8 +46,9 @@ def rotate_by_rotvec(rotvec: np.ndarray, v: np.ndarray) -> np.ndarray:
     safe = np.where(small, 1.0, th)
     a = np.where(small, 1.0 - th**2 / 6.0, np.sin(safe) / safe)
     b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
-    kxv = np.cross(rotvec, v)
-    return v + a * kxv + b * np.cross(rotvec, kxv)
+    rotvec, v = np.asarray(rotvec, dtype=float), np.asarray(v, dtype=float)
+    kxv = cross(rotvec, v)
+    return v + a * kxv + b * cross(rotvec, kxv)
 
 
 def rotate_at_rate(omega, w: np.ndarray, dt_s: np.ndarray) -> np.ndarray:

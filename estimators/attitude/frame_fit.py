@@ -18,7 +18,7 @@ def star_times(stars, t_ref_ns: int) -> np.ndarray:
 
 def predicted_directions(R: Rotation, omega: np.ndarray, ref: np.ndarray, dt: np.ndarray) -> np.ndarray:
     """Camera directions ``w_i = (R Exp(omega dt_i))^T r_i = Exp(-omega dt_i) R^T r_i`` (n, 3)."""
-    return rotate_at_rate(-np.asarray(omega, dtype=float), R.inv().apply(ref), dt)
+    return rotate_at_rate(-np.asarray(omega, dtype=float), ref @ R.as_matrix(), dt)  # R^T r as r^T R
 
 
 def position_normal(R: Rotation, omega: np.ndarray, ref: np.ndarray, dt: np.ndarray, d, k: int,

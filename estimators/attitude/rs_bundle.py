@@ -40,6 +40,7 @@ from rollingstar.estimators.attitude.pixel_bundle import refine_on_pixels
 from rollingstar.estimators.attitude.robust import RobustParams, apply_robust
 from rollingstar.estimators.attitude.star_covariance import direction_covariance
 from rollingstar.estimators.data import AttitudeEstimate, FrameData, RateEstimate, default_sigma_px, frame_camera
+from rollingstar.sensors.so3 import rotate_at_rate
 
 HUBER_K = 3.0  # Huber threshold (Mahalanobis sigmas) of the position step that starts the pixel step
 
@@ -90,7 +91,7 @@ class RsBundleSolver(AttitudeSolver):
         fit_rate = n >= p.min_rate_stars and np.ptp(dt) > 0
         ref = stars.ref_icrs / np.linalg.norm(stars.ref_icrs, axis=1, keepdims=True)
         d = direction_covariance(camera, stars.x, stars.y, stars.position_covariance(self._sigma_px))
-        body0 = Rotation.from_rotvec(dt[:, None] * omega0[None, :]).apply(d.body)
+        body0 = rotate_at_rate(omega0, d.body, dt)
         R0, _ = Rotation.align_vectors(ref, body0)
         huber = HUBER_K if p.pixels and frame.image is not None else None  # a robust start for the pixel step
         R, omega, info = fit_positions(R0, omega0, ref, dt, d, p.iterations + (2 if huber else 0), fit_rate, huber)

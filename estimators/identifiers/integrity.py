@@ -50,7 +50,7 @@ from scipy.stats import binom, chi2
 
 from rollingstar.estimators.data import DEFAULT_CENTROID_SIGMA_PX, FrameData, IdentificationCheck, StarTable
 from rollingstar.sensors.conventions import S_PER_NS
-from rollingstar.sensors.so3 import skew
+from rollingstar.sensors.so3 import rotate_by_rotvec, skew
 
 #: Largest accepted chance probability of a frame's matches (one frame's hypothesis; a pattern
 #: search that tests ~1e4 hypotheses still leaves ~1e-5 per frame).
@@ -149,11 +149,11 @@ def fit_residuals(ident: StarTable, camera, omega_rad_s=None, cov=None) -> tuple
     cov = ident.position_covariance(DEFAULT_CENTROID_SIGMA_PX) if cov is None else cov
     weights = 2.0 / np.trace(cov, axis1=1, axis2=2) if ident.n else np.zeros(0)
     # R^T r_i = Exp(phi_i) b_i: the stars referred to the middle time, then Wahba's problem
-    R, _ = Rotation.align_vectors(ref, Rotation.from_rotvec(phi).apply(body), weights=weights)
+    R, _ = Rotation.align_vectors(ref, rotate_by_rotvec(phi, body), weights=weights)
     if rate_fitted(ident):
         phi, _ = fit_rate(R, body, ref, dt, np.sqrt(weights))
     # predicted camera vectors: w_i = (R Exp(phi_i))^T r_i
-    w = (R * Rotation.from_rotvec(phi)).inv().apply(ref) if ident.n else np.zeros((0, 3))
+    w = _predicted(R, phi, ref) if ident.n else np.zeros((0, 3))
     px, py, front = camera.project(w)
     dx = np.column_stack([ident.x - px, ident.y - py])
     resid = np.where(front, np.hypot(dx[:, 0], dx[:, 1]), np.inf)
@@ -181,7 +181,7 @@ def _rate_step(R: Rotation, body: np.ndarray, ref: np.ndarray, dt: np.ndarray, p
     least-squares step of the attitude-and-rate fit from ``phi``: ``b_i - w_i = [w_i]x (d delta +
     d omega dt_i)`` with ``w_i = (R Exp(phi_i))^T r_i``, each star's rows scaled by ``root_weights``;
     and the step's rate change ``d omega``."""
-    w = (R * Rotation.from_rotvec(phi)).inv().apply(ref)
+    w = _predicted(R, phi, ref)
     S = skew(w)  # (n, 3, 3)
     rw = np.repeat(root_weights, 3)
     A = np.concatenate([S, S * dt[:, None, None]], axis=2).reshape(-1, 6) * rw[:, None]
@@ -189,12 +189,19 @@ def _rate_step(R: Rotation, body: np.ndarray, ref: np.ndarray, dt: np.ndarray, p
     return phi + sol[:3][None, :] + dt[:, None] * sol[3:][None, :], sol[3:]
 
 
+def _predicted(R: Rotation, phi: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """``w_i = (R Exp(phi_i))^T r_i = Exp(-phi_i) R^T r_i``, written with the rotation matrix and
+    Rodrigues' formula (scipy's per-star ``Rotation`` compositions cost more than the rest of the
+    check on a tracked frame)."""
+    return rotate_by_rotvec(-phi, ref @ R.as_matrix())
+
+
 def predicted_count(attitude: Rotation, camera, catalog) -> int:
     """Catalogue stars the camera sees on its detector at ``attitude``."""
     idx = np.asarray(catalog.cone(attitude.apply([0.0, 0.0, 1.0]), camera.half_diagonal_rad), dtype=np.intp)
     if idx.size == 0:
         return 0
-    x, y, front = camera.project(attitude.inv().apply(catalog.unit_icrs[idx]))
+    x, y, front = camera.project(catalog.unit_icrs[idx] @ attitude.as_matrix())
     return int(np.count_nonzero(front & camera.contains(x, y)))
 
 

@@ -373,7 +373,7 @@ class TrackingIdentifier(Identifier):
         R = self._last_attitude if attitude is None else attitude
         cam = self.context.camera
         idx = self._cone(R.apply([0.0, 0.0, 1.0]), self._radius)
-        w = R.inv().apply(self.context.catalog.unit_icrs[idx]) if idx.size else np.zeros((0, 3))
+        w = self.context.catalog.unit_icrs[idx] @ R.as_matrix() if idx.size else np.zeros((0, 3))  # R^T r
         x, y, front = cam.project(w)
         ok = front & cam.contains(x, y, margin_px=-self.params.gate_px)
         return idx[ok], x[ok], y[ok]
