@@ -43,7 +43,20 @@ def _valid_percent(row: dict) -> str:
     return "n/a" if valid is None or not frames else f"{100.0 * valid / frames:.3g}"
 
 
-TERMINAL_COLUMNS = ("variant", "pipeline", "valid (%)", "att. RMSE x / y / z (arcsec)", "efficiency x / y / z",
+def _flagged_percent(row: dict) -> str:
+    """Flagged frames (%, mean over seeds) and the flags most frames carry, per reason (frames)."""
+    flagged, frames = _m(row, "outcomes.flagged_frames")[0], _m(row, "outcomes.frames")[0]
+    if flagged is None or not frames:
+        return "n/a"
+    prefix = "outcomes.flag_reasons."
+    reasons = sorted(((s["mean"], k[len(prefix):]) for k, s in row["metrics"].items()
+                      if k.startswith(prefix) and s["mean"]), reverse=True)
+    top = ", ".join(f"{name} {n:.3g}" for n, name in reasons[:2]) + (", ..." if len(reasons) > 2 else "")
+    return f"{100.0 * flagged / frames:.3g}" + (f" ({top})" if top else "")
+
+
+TERMINAL_COLUMNS = ("variant", "pipeline", "valid (%)", "flagged (%)", "att. RMSE x / y / z (arcsec)",
+                    "efficiency x / y / z",
                     "pixel efficiency x / y / z", "rate RMSE x / y / z (deg/s)", "CPU ms/frame")
 
 
@@ -73,7 +86,8 @@ def tables(results: dict) -> list[tuple[str, list[str], list[list[str]]]]:
     scenarios = list(dict.fromkeys(r["scenario"] for r in results["results"]))
     for sc in scenarios:
         rows = [r for r in results["results"] if r["scenario"] == sc]
-        header = ["variant", "pipeline", "seeds", "valid (%)", "att. RMSE x / y / z (arcsec)", "CRB x / y / z (arcsec)",
+        header = ["variant", "pipeline", "seeds", "valid (%)", "flagged (%)", "att. RMSE x / y / z (arcsec)",
+                  "CRB x / y / z (arcsec)",
                   "efficiency x / y / z", "pixel CRB x / y / z (arcsec)", "pixel efficiency x / y / z",
                   "rate RMSE x / y / z (deg/s)", "rate CRB x / y / z (deg/s)", "pixel rate CRB x / y / z (deg/s)",
                   "pixel rate efficiency x / y / z", "pair dist. RMSE (px)", "updates (Hz)", "CPU ms/frame"]
@@ -84,7 +98,7 @@ def tables(results: dict) -> list[tuple[str, list[str], list[list[str]]]]:
             cpu = r["timing"]["cpu_s_per_frame"]["mean"]
             body.append([
                 r["variant"], r["pipeline"], str(len(r["seeds"])) + (f" ({len(r['errors'])} failed)" if r["errors"] else ""),
-                _valid_percent(r),
+                _valid_percent(r), _flagged_percent(r),
                 trio("attitude_error_arcsec.", "_rmse"), trio("attitude_crb_arcsec."), trio("efficiency.attitude_"),
                 trio("pixel_crb_arcsec."), trio("efficiency_pixel.attitude_"),
                 trio("rate_error_deg_s.", "_rmse"), trio("rate_crb_deg_s."), trio("pixel_rate_crb_deg_s."),
@@ -247,7 +261,8 @@ def _cpu_time_figure(rows: list[dict], pipelines: list[str], colours: dict, path
     plt.close(fig)
 
 
-_LEGEND = ("valid = frames with a valid attitude estimate; CRB = single-frame Cramér–Rao bound, centroid-level "
+_LEGEND = ("valid = frames with a valid attitude estimate; flagged = frames carrying a flag (a note, not a "
+           "verdict), with the commonest flags and their frames per seed; CRB = single-frame Cramér–Rao bound, centroid-level "
            "(the scenario's centroid sigma taken as given); pixel CRB = the bound from the rendered pixels "
            "(image-level recordings); efficiency = RMSE / bound.")
 

@@ -264,3 +264,13 @@ def test_html_report_leads_with_its_main_figure(serial):
     images = [("img/error_vs_rate_fu2022.png", "fu2022: error vs rate per axis"), ("img/cpu_time.png", "CPU")]
     page = html_report(serial.results, images, "rollingstar compare tiny")
     assert page.index("error_vs_rate_fu2022.png") < page.index("<table>") < page.index("cpu_time.png")
+
+
+def test_flagged_percent_names_the_commonest_flags():
+    from rollingstar.pipelines.compare.report import _flagged_percent
+
+    means = {"outcomes.flagged_frames": 15.0, "outcomes.frames": 20.0, "outcomes.flag_reasons.saturated_stars": 15.0,
+             "outcomes.flag_reasons.edge_truncated_stars": 4.5, "outcomes.flag_reasons.fragments": 1.0}
+    row = {"metrics": {k: {"mean": v, "std": 0.0} for k, v in means.items()}}
+    assert _flagged_percent(row) == "75 (saturated_stars 15, edge_truncated_stars 4.5, ...)"
+    assert _flagged_percent({"metrics": {}}) == "n/a"
