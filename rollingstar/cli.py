@@ -396,10 +396,14 @@ def reproduce(paper: str = typer.Argument(..., help="he2021a | he2021b | fu2022 
               quick: bool = typer.Option(False, "--quick", help="the reduced version the test suite runs"),
               as_json: bool = typer.Option(False, "--json", help="print one JSON object {rows: [...]}"),
               plots: Path = typer.Option(None, "--plots", help="write the paper's figures redrawn from our runs here"),
-              seed: int = _seed()):
+              seed: int = _seed(),
+              quiet: bool = _quiet()):
     """Reproduce a seed paper's experiment: paper value, ours (measured now), ratio."""
+    from rollingstar.progress import silence
     from rollingstar.studies.reproduce import run_reproduction
 
+    if quiet:
+        silence()
     rows = run_reproduction(paper, quick=quick, plots_dir=plots, seed=seed)
     if as_json:
         print(json.dumps({"paper": paper, "quick": quick, "rows": [r.as_dict() for r in rows]}, indent=2))

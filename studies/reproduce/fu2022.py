@@ -25,6 +25,7 @@ import yaml
 from rollingstar.config import CONFIGS
 from rollingstar.estimators.data import FrameData, SensorContext, StarTable
 from rollingstar.estimators.rates.pso import PsoRateEstimator, image_velocity_px_s
+from rollingstar.progress import progress_bar
 from rollingstar.sensors.conventions import DEG_TO_RAD, attitude_from_radec_roll
 from rollingstar.sensors.motion import constant_rate
 from rollingstar.sensors.scenario import load_scenario
@@ -115,11 +116,17 @@ def run_condition(args) -> dict:
 
 
 def _run_all(conds: list[tuple], workers: int) -> list[dict]:
-    if workers <= 1:
-        return [run_condition(c) for c in conds]
-    _setup()  # load the catalogue once, inherited by the forked workers
-    with mp.get_context("fork").Pool(workers) as pool:
-        return pool.map(run_condition, conds, chunksize=1)
+    with progress_bar("fu2022 conditions", len(conds)) as advance:
+        if workers <= 1:
+            return [_advanced(run_condition(c), advance) for c in conds]
+        _setup()  # load the catalogue once, inherited by the forked workers
+        with mp.get_context("fork").Pool(workers) as pool:
+            return [_advanced(r, advance) for r in pool.imap(run_condition, conds, chunksize=1)]
+
+
+def _advanced(result, advance):
+    advance()
+    return result
 
 
 def _norm(res: dict) -> np.ndarray:

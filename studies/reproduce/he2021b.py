@@ -45,6 +45,7 @@ from rollingstar.estimators.identifiers.tracking import TrackingIdentifier
 from rollingstar.estimators.rates.pso import PsoRateEstimator
 from rollingstar.pipelines.simulate import build_simulator, truth_sample_times
 from rollingstar.pipelines.truth import attitude_crb_rad2
+from rollingstar.progress import progress_bar
 from rollingstar.sensors import build
 from rollingstar.sensors.conventions import RAD_TO_ARCSEC, S_PER_NS, attitude_error_body_arcsec
 from rollingstar.sensors.gyro import simulate_gyro
@@ -252,47 +253,53 @@ def measure(quick: bool, seed: int) -> dict:
                  "pso_err": {}, "gyro_err": {}, "rate_expl": {}}
     start = time.perf_counter()
     cpu_start = time.process_time()
-    for i in range(trials):
-        frames, motion, ctx, period_s, crb = simulate(table2_scenario(0.05, n_frames, seed + i))
-        frames = identify(frames, ctx)
-        res["crb"].append(crb)
-        for g in GROUPS:
-            for rho in RHOS:
-                out = run_stages(request_stages(g, forgetting=rho), frames, ctx)
-                _collect(res["table"], (g, rho), out, motion, n_frames, period_s)
-        out = run_stages(request_stages("frame", forgetting=0.0), frames, ctx)
-        _collect(res["table"], ("frame", 0.0), out, motion, n_frames, period_s)
-        gframes, gmotion, gctx, _, _ = simulate(table2_scenario(0.05, n_frames, seed + i, mode="global"))
-        out = run_stages([QuestSolver()], identify(gframes, gctx), gctx)
-        _collect(res["table"], ("global", None), out, gmotion, n_frames, period_s)
-    # the noise / memory reading that explains Table 3, checked by a measured run (same seeds)
-    fit = explain_table3(res["table"], paper_values("he2021b")["table3_rmse_arcsec"], 0.05)
-    res["fit"] = fit
-    rho_b = fit["best"]
-    sig_b = fit["fits"][rho_b][0]
-    for i in range(trials):
-        frames, motion, ctx, period_s, _ = simulate(table2_scenario(0.05, n_frames, seed + i, sigma_px=sig_b))
-        frames = identify(frames, ctx)
-        for g in GROUPS:
-            out = run_stages(request_stages(g, forgetting=rho_b), frames, ctx)
-            _collect(res["explained"], g, out, motion, n_frames, period_s)
-    for rate in rates:
-        for i in range(rate_trials):
-            frames, motion, ctx, period_s, _ = simulate(table2_scenario(rate, n_frames, seed + i, gyro=True))
+    total = 2 * trials + len(rates) * rate_trials + star_trials
+    with progress_bar("he2021b trials", total) as advance:
+        for i in range(trials):
+            frames, motion, ctx, period_s, crb = simulate(table2_scenario(0.05, n_frames, seed + i))
             frames = identify(frames, ctx)
-            _rate_sweep_runs(res, frames, motion, ctx, n_frames, period_s, rate)
-            # the same sweep at the explained reading (fitted noise and memory), per 5 stars
-            frames, motion, ctx, period_s, _ = simulate(table2_scenario(rate, n_frames, seed + i, sigma_px=sig_b, gyro=True))
+            res["crb"].append(crb)
+            for g in GROUPS:
+                for rho in RHOS:
+                    out = run_stages(request_stages(g, forgetting=rho), frames, ctx)
+                    _collect(res["table"], (g, rho), out, motion, n_frames, period_s)
+            out = run_stages(request_stages("frame", forgetting=0.0), frames, ctx)
+            _collect(res["table"], ("frame", 0.0), out, motion, n_frames, period_s)
+            gframes, gmotion, gctx, _, _ = simulate(table2_scenario(0.05, n_frames, seed + i, mode="global"))
+            out = run_stages([QuestSolver()], identify(gframes, gctx), gctx)
+            _collect(res["table"], ("global", None), out, gmotion, n_frames, period_s)
+            advance()
+        # the noise / memory reading that explains Table 3, checked by a measured run (same seeds)
+        fit = explain_table3(res["table"], paper_values("he2021b")["table3_rmse_arcsec"], 0.05)
+        res["fit"] = fit
+        rho_b = fit["best"]
+        sig_b = fit["fits"][rho_b][0]
+        for i in range(trials):
+            frames, motion, ctx, period_s, _ = simulate(table2_scenario(0.05, n_frames, seed + i, sigma_px=sig_b))
             frames = identify(frames, ctx)
-            for so in ("truth", "gyro"):
-                out = run_stages(request_stages(5, rate_source=so, forgetting=rho_b), frames, ctx)
-                _collect(res["rate_expl"], (rate, so), out, motion, n_frames, period_s)
-    for i in range(star_trials):
-        frames, motion, ctx, period_s, _ = simulate(star1000_scenario(30, seed + i))
-        frames = identify(frames, ctx)
-        for g in STAR1000_GROUPS:
-            out = run_stages(request_stages(g), frames, ctx)
-            _collect(res["star"], g, out, motion, 30, period_s)
+            for g in GROUPS:
+                out = run_stages(request_stages(g, forgetting=rho_b), frames, ctx)
+                _collect(res["explained"], g, out, motion, n_frames, period_s)
+            advance()
+        for rate in rates:
+            for i in range(rate_trials):
+                frames, motion, ctx, period_s, _ = simulate(table2_scenario(rate, n_frames, seed + i, gyro=True))
+                frames = identify(frames, ctx)
+                _rate_sweep_runs(res, frames, motion, ctx, n_frames, period_s, rate)
+                # the same sweep at the explained reading (fitted noise and memory), per 5 stars
+                frames, motion, ctx, period_s, _ = simulate(table2_scenario(rate, n_frames, seed + i, sigma_px=sig_b, gyro=True))
+                frames = identify(frames, ctx)
+                for so in ("truth", "gyro"):
+                    out = run_stages(request_stages(5, rate_source=so, forgetting=rho_b), frames, ctx)
+                    _collect(res["rate_expl"], (rate, so), out, motion, n_frames, period_s)
+                advance()
+        for i in range(star_trials):
+            frames, motion, ctx, period_s, _ = simulate(star1000_scenario(30, seed + i))
+            frames = identify(frames, ctx)
+            for g in STAR1000_GROUPS:
+                out = run_stages(request_stages(g), frames, ctx)
+                _collect(res["star"], g, out, motion, 30, period_s)
+            advance()
     res["seconds"] = time.perf_counter() - start
     res["cpu_seconds"] = time.process_time() - cpu_start
     res["crb"] = np.sqrt(np.mean(np.square(res["crb"]), axis=0))

@@ -39,6 +39,7 @@ from rollingstar.config import CONFIGS
 from rollingstar.estimators.data import FrameData, GyroSamples, SensorContext
 from rollingstar.pipelines.config import load_pipeline
 from rollingstar.pipelines.runner import build_stages
+from rollingstar.progress import progress_bar
 from rollingstar.sensors import build
 from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.effects.base import Effect
@@ -248,7 +249,12 @@ def _std(err: np.ndarray) -> np.ndarray:
 def experiment(quick: bool, seed: int, keep_images: int = 0):
     """All Monte Carlo runs: list of (RunResult, images)."""
     cfg = QUICK if quick else FULL
-    return [run_once(seed + i, cfg["frames"], keep_images if i == 0 else 0) for i in range(cfg["runs"])]
+    with progress_bar("liu2013 runs", cfg["runs"]) as advance:
+        out = []
+        for i in range(cfg["runs"]):
+            out.append(run_once(seed + i, cfg["frames"], keep_images if i == 0 else 0))
+            advance()
+        return out
 
 
 def summarise(results) -> dict:
