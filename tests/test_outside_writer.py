@@ -240,9 +240,10 @@ def centroid_frame(k: int, t0: int, attitude, stars, cam: Camera, rng, sigma_px:
     return record, true_directions
 
 
-def write_centroid_recording(path: Path, frames: int, sigma_px: float, seed: int) -> tuple[np.ndarray, float]:
+def write_centroid_recording(path: Path, frames: int, sigma_px: float, seed: int, edit=None) -> tuple[np.ndarray, float]:
     """The rolling-shutter recording; returns the attitude floor per axis (arcsec) and the mean
-    number of stars per frame."""
+    number of stars per frame. ``edit(record, rng)``: changes each centroid record before it is
+    written (a detector defect, a noise other than the stated one)."""
     rng = np.random.default_rng(seed)
     cam = Camera(ROLLING)
     omega = np.radians([0.25, -0.15, 0.25])  # deg/s about camera x, y, z
@@ -267,7 +268,7 @@ def write_centroid_recording(path: Path, frames: int, sigma_px: float, seed: int
             # gyro samples since the previous frame, logged at the last one (t0): frame k's
             add_json(w, gyro, t0, gyro_record(omega, list(range(t0 - period + GYRO_STEP_NS, t0 + 1, GYRO_STEP_NS)), rng))
             record, w_cam = centroid_frame(k, t0, attitude, stars, cam, rng, sigma_px)
-            add_json(w, centroids, t0, record)
+            add_json(w, centroids, t0, edit(record, rng) if edit else record)
             directions.append((w_cam, np.full(len(w_cam), sigma_px / cam.f)))
         w.finish()
     return attitude_floor_arcsec(directions), float(np.mean([len(d) for d, _ in directions]))
@@ -407,3 +408,34 @@ def test_outside_image_folder_imports_and_solves_at_the_noise_floor(tmp_path):
     cli("import", "images", folder, "--sidecar", meta / "recording.yaml", "-o", recording)
     metrics = run_and_evaluate("baseline", recording)
     check_at_floor("image-level outside recording (import images, baseline)", metrics, floor, frames, stars)
+
+
+def test_diagnosis_of_an_outside_recording_measures_its_noise_and_locates_a_stitch(tmp_path):
+    """A recording whose sensor has a 0.3 px stitch in y across column 512 (the halves of the
+    detector offset) and whose centroid noise is 1.5x the stated ``sigma_px``, written by the
+    outsider: ``rollingstar diagnose`` against the model the recording declares names no library
+    physics for either, measures the noise factor and describes the stitch where it is. The
+    recording's scenario declares no motion although the camera turns: the diagnosis finds the
+    motion in the frames themselves (``inputs.sequence_moves``); taking the declaration at its word
+    named three effects on the same recording without the stitch."""
+    def stitched_and_noisier(record, rng):
+        x = np.asarray(record["x"])
+        y = np.asarray(record["y"]) + np.where(x >= 512.0, 0.3, 0.0)
+        n = len(x)
+        extra = 0.1 * np.sqrt(1.5**2 - 1.0)  # noise 1.5x the stated 0.1 px
+        return {**record, "x": (x + rng.normal(0, extra, n)).tolist(), "y": (y + rng.normal(0, extra, n)).tolist()}
+
+    recording = tmp_path / "stitched.mcap"
+    write_centroid_recording(recording, 40, sigma_px=0.1, seed=5, edit=stitched_and_noisier)
+    proc = cli("diagnose", "--recording", recording, "--json", "-q")
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(proc.stdout)
+    print(result["summary"])
+    assert result["effects"] == [], result["summary"]
+    noise = result["noise_check"]
+    assert noise["applied"] and abs(noise["factor"] - 1.5) < 4 * noise["factor_sigma"], noise
+    shape = result["unexplained_systematic"]["description"]
+    assert shape is not None and (shape["shape"], shape["axis"], shape["coordinate"]) == ("step", "y", "column"), shape
+    low, high = shape["between_px"]  # the step lies between two stars' columns: 512 must be in that gap
+    assert low - 1 <= 511.5 <= high + 1, shape
+    assert abs(shape["coefficients_px"][0] - 0.3) < 4 * shape["sigmas_px"][0], shape

@@ -32,7 +32,7 @@ from rollingstar.config import validate
 from rollingstar.estimators.diagnosis import summary
 from rollingstar.estimators.diagnosis.describe import Description, describe, refine
 from rollingstar.estimators.diagnosis.gyro_channel import GyroData
-from rollingstar.estimators.diagnosis.inputs import DiagnoseOptions, SensorModel, sensor_model
+from rollingstar.estimators.diagnosis.inputs import DiagnoseOptions, SensorModel, sensor_model, sequence_moves
 from rollingstar.estimators.diagnosis.library import Candidate, library
 from rollingstar.estimators.diagnosis.locating import Location, locate
 from rollingstar.estimators.diagnosis.modelling import EffectModel, known_noise, model_effects, updated_scenario
@@ -111,9 +111,11 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
     done = on_phase or (lambda name: None)
     with threadpool_limits(limits=1, user_api="blas"):
         sensor = sensor_model(scenario)
+        moves = sensor.moving or sequence_moves(observations, attitudes, sensor.camera, sensor.timing)
+        sensor = sensor_model(scenario, moves)
         choice = choose_projection(observations, attitudes, sensor, options)
         if choice is not None and choice.renamed:
-            sensor = sensor_model(with_projection(scenario, choice))
+            sensor = sensor_model(with_projection(scenario, choice), moves)
         done(PHASES[0])
         cands: dict[str, Candidate] = library(exclude=exclude_effects)
         steps = _outlier_rounds(observations, attitudes, sensor, cands, gyro, options)
@@ -127,9 +129,10 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
         done(PHASES[2])
         shape = _describe(steps[0], steps[2], steps[3], sensor) if steps[3].unexplained else None
         done(PHASES[3])
-        evidence, given, before = tuple(steps[3].evidence), sensor_model(sensor.scenario), None
+        evidence, given, before = tuple(steps[3].evidence), sensor_model(sensor.scenario, moves), None
         if shape is not None and shape.correction is not None:
-            sensor, steps, shape = _corrected(shape, given.scenario, obs_used, attitudes, cands, gyro, options)
+            sensor, steps, shape = _corrected(shape, given.scenario, obs_used, attitudes, cands, gyro, options,
+                                              given.moving)
             steps, noise = _noise_again(noise, steps, observations, attitudes, sensor, cands, gyro, options)
             before = _as_given(steps[0], given)
         done(PHASES[4])
@@ -142,14 +145,14 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
 
 
 def _corrected(shape: Description, given: ScenarioConfig, obs: Observations, attitudes: Rotation,
-               cands: dict[str, Candidate], gyro: GyroData | None, options: DiagnoseOptions):
+               cands: dict[str, Candidate], gyro: GyroData | None, options: DiagnoseOptions, moving: bool):
     """The diagnosis with ``shape``'s empirical correction in the model as given: the physics is
     named again (an effect that only absorbed part of the shape drops), and what the corrected
     model still leaves of the same shape, with the named effects free, is added to the correction
     (:data:`MAX_CORRECTION_ROUNDS`). Returns the sensor model, the last round's steps and the
-    shape that round ran with."""
+    shape that round ran with; ``moving``: the motion flag of the sensor model (:func:`sequence_moves`)."""
     for k in range(MAX_CORRECTION_ROUNDS):
-        sensor = sensor_model(with_correction(given, shape))
+        sensor = sensor_model(with_correction(given, shape), moving)
         steps = _outlier_rounds(obs, attitudes, sensor, cands, gyro, options)
         if k == MAX_CORRECTION_ROUNDS - 1:
             break
@@ -241,7 +244,7 @@ def _outlier_rounds(observations: Observations, attitudes: Rotation, sensor: Sen
         if not rejected or not names or names == gate_names:
             break
         gate_names = names
-        gate = sensor_model(updated_scenario(sensor.scenario, verification.named, verification.thetas))
+        gate = sensor_model(updated_scenario(sensor.scenario, verification.named, verification.thetas), sensor.moving)
     return location, naming, model, verification, tuple(rounds)
 
 

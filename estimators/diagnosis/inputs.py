@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from rollingstar.estimators.diagnosis.selection import MIN_DELTA_BIC
 from rollingstar.sensors import build
 from rollingstar.sensors.camera import PinholeCamera
@@ -51,10 +53,37 @@ class SensorModel:
     moving: bool  # whether the scenario declares any motion (:func:`scenario_moves`)
 
 
-def sensor_model(scenario: ScenarioConfig) -> SensorModel:
-    """Camera, timing, effect chain and motion flag of ``scenario``."""
+def sensor_model(scenario: ScenarioConfig, moving: bool | None = None) -> SensorModel:
+    """Camera, timing, effect chain and motion flag of ``scenario`` (``moving``: the flag decided
+    from the recording, :func:`sequence_moves`; None: the scenario's own, :func:`scenario_moves`)."""
     return SensorModel(scenario, build.build_camera(scenario), build.build_timing(scenario),
-                       tuple(build.build_effects(scenario)), scenario_moves(scenario))
+                       tuple(build.build_effects(scenario)), scenario_moves(scenario) if moving is None else moving)
+
+
+MIN_SHARED_STARS = 3  # identified stars two consecutive frames share when they are one trajectory
+SHARED_FRACTION = 0.8  # of the consecutive frame pairs
+MOVING_NOISE_FRACTION = 0.5  # rolling-shutter displacement across a readout, in centroid sigmas
+
+
+def sequence_moves(obs, attitudes, camera, timing) -> bool:
+    """Whether the recording's frames are one moving trajectory, whatever its scenario declares (a
+    recording from another tool or a real tracker may declare no motion at all): at least
+    ``SHARED_FRACTION`` of the consecutive frame pairs share ``MIN_SHARED_STARS`` identified stars
+    (unrelated images share none), and the body rate their attitudes imply moves a star across one
+    readout by more than ``MOVING_NOISE_FRACTION`` of the centroid noise (median over frames; a
+    still sensor's rate from differenced attitudes is noise, and fitting it would only add noise)."""
+    from rollingstar.estimators.diagnosis.observations import rates_from_attitudes
+
+    if obs.n_frames < 2 or len(attitudes) != obs.n_frames:
+        return False
+    ids = [set(obs.catalog_id[(obs.frame == k) & (obs.catalog_id >= 0)].tolist()) for k in range(obs.n_frames)]
+    shared = np.mean([len(a & b) >= MIN_SHARED_STARS for a, b in zip(ids[:-1], ids[1:])])
+    if shared < SHARED_FRACTION:
+        return False
+    _, _, rate = rates_from_attitudes(attitudes, obs.t_ref_ns)
+    readout_s = timing.effective_line_delay_ns * 1e-9 * camera.height
+    shift_px = np.linalg.norm(rate, axis=1) * readout_s * camera.focal_px
+    return bool(np.median(shift_px) > MOVING_NOISE_FRACTION * np.median(obs.sigma))
 
 
 def scenario_moves(scenario: ScenarioConfig) -> bool:
