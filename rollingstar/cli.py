@@ -583,11 +583,12 @@ def bench_discrepancy(quick: bool = typer.Option(False, "--quick", help="the red
                       as_json: bool = typer.Option(False, "--json", help="print one JSON object"),
                       seed: int = _seed(),
                       cases: int = typer.Option(None, "--cases", min=1, help="number of recordings (default 12 quick, 120 full)"),
-                      out_md: Path = typer.Option(None, "--markdown", help="also write the results table here")):
+                      out_md: Path = typer.Option(None, "--markdown", help="also write the results table here"),
+                      quiet: bool = _quiet()):
     """Diagnose simulated recordings with concealed effects; score naming, nulls, parameters, held-out gain."""
     from rollingstar.studies.bench.discrepancy import format_markdown, run_benchmark
 
-    result = run_benchmark(quick=quick, seed=seed, n_cases=cases, show_progress=not as_json)
+    result = run_benchmark(quick=quick, seed=seed, n_cases=cases, show_progress=not (as_json or quiet))
     if out_md is not None:
         write_text(out_md, format_markdown(result))
     if as_json:
@@ -599,12 +600,13 @@ def bench_discrepancy(quick: bool = typer.Option(False, "--quick", help="the red
 @command(bench_app, "perf")
 def bench_perf(quick: bool = typer.Option(False, "--quick", help="tiny sizes (the test suite's run; ratios not meaningful)"),
                as_json: bool = typer.Option(False, "--json", help="print one JSON object"),
-               only: list[str] = typer.Option(None, "--only", help="run only these lines: quest kf rate centroid replay compare"),
-               markdown: bool = typer.Option(False, "--markdown", help="print the markdown table of docs/performance.md")):
+               only: list[str] = typer.Option(None, "--only", help="run only these lines (repeat the option): quest kf rate centroid chain replay compare diagnose"),
+               markdown: bool = typer.Option(False, "--markdown", help="print the markdown table of docs/performance.md"),
+               quiet: bool = _quiet()):
     """Hot paths side by side with a peer or the frame.sum() floor, as ratios; docs/performance.md."""
     from rollingstar.studies.bench.perf import format_markdown, render_table, run_perf
 
-    result = run_perf(quick=quick, show_progress=not (as_json or markdown), only=only)
+    result = run_perf(quick=quick, show_progress=not (as_json or markdown or quiet), only=only)
     if as_json:
         print(json.dumps(result, indent=2))
     elif markdown:
