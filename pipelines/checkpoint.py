@@ -67,28 +67,32 @@ def _sha256_text(text: str) -> str:
 @dataclass(frozen=True)
 class RunIdentity:
     """What a run's output is made from: SHA-256 of the recording's content, of the scenario YAML
-    and of the pipeline YAML. Written to the output (metadata record ``run``) and to each checkpoint."""
+    and of the pipeline YAML, and whether the recording's images are copied into it
+    (``run --with-images``). Written to the output (metadata record ``run``) and to each checkpoint."""
 
     recording_sha256: str
     scenario_sha256: str
     pipeline_sha256: str
+    with_images: bool = False
 
     @classmethod
-    def of(cls, recording: str | Path, scenario_yaml: str, pipeline_yaml: str) -> RunIdentity:
+    def of(cls, recording: str | Path, scenario_yaml: str, pipeline_yaml: str, with_images: bool = False) -> RunIdentity:
         with open(recording, "rb") as fh:
             content = hashlib.file_digest(fh, "sha256").hexdigest()
-        return cls(content, _sha256_text(scenario_yaml), _sha256_text(pipeline_yaml))
+        return cls(content, _sha256_text(scenario_yaml), _sha256_text(pipeline_yaml), bool(with_images))
 
     def as_metadata(self) -> dict[str, str]:
-        return {"recording_sha256": self.recording_sha256, "scenario_sha256": self.scenario_sha256,
-                "pipeline_sha256": self.pipeline_sha256}
+        out = {"recording_sha256": self.recording_sha256, "scenario_sha256": self.scenario_sha256,
+               "pipeline_sha256": self.pipeline_sha256}
+        return out | ({"with_images": "true"} if self.with_images else {})
 
     @classmethod
     def from_metadata(cls, record: dict[str, str]) -> RunIdentity | None:
         """The identity in a ``run`` metadata record; None when the record lacks one of its keys."""
         try:
-            return cls(record["recording_sha256"], record["scenario_sha256"], record["pipeline_sha256"])
-        except (KeyError, TypeError):
+            return cls(record["recording_sha256"], record["scenario_sha256"], record["pipeline_sha256"],
+                       record.get("with_images") == "true")
+        except (KeyError, TypeError, AttributeError):
             return None
 
     def differences(self, other: RunIdentity) -> str:
@@ -96,6 +100,8 @@ class RunIdentity:
         differ"``); empty when none does."""
         names = [f"the {name}" for name in ("recording", "scenario", "pipeline")
                  if getattr(self, f"{name}_sha256") != getattr(other, f"{name}_sha256")]
+        if self.with_images != getattr(other, "with_images", False):
+            names.append("the --with-images choice")
         if not names:
             return ""
         return f"{' and '.join(names)} {'differs' if len(names) == 1 else 'differ'}"
@@ -198,7 +204,7 @@ def load_checkpoints(output: Path, identity: RunIdentity, context) -> list[RunSt
             continue
         differ = saved.differences(identity)
         if differ:
-            raise UserError(f"--resume: checkpoint {path} belongs to another recording, scenario or pipeline "
+            raise UserError(f"--resume: checkpoint {path} belongs to a run of other inputs "
                             f"({differ}); remove {path.parent} or run without --resume")
         states.append(state)
     return states

@@ -155,26 +155,40 @@ def _notes(m: dict, truth, truth_stars: dict, scenario, valid: list, rates: list
     no_truth = "the log carries no /truth/attitude (a real recording): errors and bounds need the truth"
     if truth is None:
         for key in ("attitude_error_arcsec", "rate_error_deg_s", "centroid_error_px", "star_pair_distance_error_px",
-                    "attitude_crb_arcsec", "rate_crb_deg_s", "pixel_crb_arcsec", "efficiency", "efficiency_pixel"):
+                    "attitude_crb_arcsec", "attitude_crb_rate_unknown_arcsec", "rate_crb_deg_s", "pixel_crb_arcsec",
+                    "pixel_rate_crb_deg_s", "efficiency", "efficiency_pixel"):
             notes[key] = no_truth
         return notes
     if not valid:
         notes["attitude_error_arcsec"] = "no valid attitude estimate to compare with the truth"
-    if not rates or not any(r.get("valid") for r in rates):
-        notes["rate_error_deg_s"] = "the pipeline wrote no valid rate estimate (no rate stage)"
-        notes["rate_crb_deg_s"] = "reported only beside rate estimates"
+    if not rates:
+        notes["rate_error_deg_s"] = "the pipeline wrote no rate estimate (no stage estimates the rate)"
+    elif not any(r.get("valid") for r in rates):
+        notes["rate_error_deg_s"] = "every rate estimate the pipeline wrote is invalid"
+    if "rate_error_deg_s" in notes:
+        notes["rate_crb_deg_s"] = "reported only beside valid rate estimates"
     if not truth_stars:
         for key in ("centroid_error_px", "star_pair_distance_error_px", "attitude_crb_arcsec"):
             notes[key] = "the log carries no /truth/stars"
-    elif m["centroid_error_px"]["rmse"] is None:
-        notes["centroid_error_px"] = "no estimated star matched a true one"
+    else:
+        if m["centroid_error_px"]["rmse"] is None:
+            notes["centroid_error_px"] = "no estimated star matched a true one"
+        if m["star_pair_distance_error_px"]["rmse"] is None:
+            notes["star_pair_distance_error_px"] = "no frame with two estimated stars matched to true ones"
     if m["attitude_crb_arcsec"].get("x") is None and "attitude_crb_arcsec" not in notes:
         notes["attitude_crb_arcsec"] = ("the scenario states no centroid sigma" if not scenario.noise.centroid_sigma_px
                                         else "no frame with two identified stars matched to the truth")
+    if m["attitude_crb_rate_unknown_arcsec"].get("x") is None and "attitude_crb_rate_unknown_arcsec" not in notes:
+        notes["attitude_crb_rate_unknown_arcsec"] = (
+            "the scenario states no centroid sigma" if not scenario.noise.centroid_sigma_px
+            else "no frame with three identified stars at distinct times matched to the truth")
     if m["pixel_crb_arcsec"].get("x") is None:
         notes["pixel_crb_arcsec"] = ("a centroid-level recording: the pixel-level bound needs the pixels "
                                      "(an image-level recording)" if scenario.level != "image"
                                      else "no frame with three true stars and truth at its reference time")
+        notes["pixel_rate_crb_deg_s"] = notes["pixel_crb_arcsec"]
+    if m["update_rate_hz"] is None:
+        notes["update_rate_hz"] = "the log has no frames"
     for key, bound in (("efficiency", "attitude_crb_arcsec"), ("efficiency_pixel", "pixel_crb_arcsec")):
         if all(v is None for v in m[key].values()):
             notes[key] = notes.get(bound) or notes.get("attitude_error_arcsec") or "error or bound missing"
@@ -384,16 +398,19 @@ def _rate_crb(est_stars, truth_stars, truth, camera, scenario, has_rate: bool) -
 
 
 def _joint_attitude_crb(est_stars, truth_stars, truth, camera, scenario, valid: list[dict]) -> dict:
-    """RMS over frames of the single-frame attitude bound with the body rate unknown too (arcsec per
-    axis): the attitude block of :func:`rollingstar.pipelines.truth.rate_crb_rad2`'s joint
-    information, at the time of the frame's valid attitude estimate (at its stars' mean time when
-    it has none). This is the bound of an estimator that knows neither, as one frame alone leaves
+    """RMS over the valid attitude estimates of the single-frame attitude bound with the body rate
+    unknown too (arcsec per axis): the attitude block of
+    :func:`rollingstar.pipelines.truth.joint_crb_rad2`, from the frame's identified stars, at the
+    estimate's own time (at the stars' mean time for a frame without a valid estimate). This is the bound of an estimator that knows neither, as one frame alone leaves
     every single-frame estimator; ``attitude_crb_arcsec`` holds the rate known."""
     keys = ("x", "y", "z")
     sigma = scenario.noise.centroid_sigma_px
     if truth is None or not sigma:
         return dict.fromkeys(keys)
-    t_ref = {int(a["frame"]): int(a["t_ns"]) for a in valid if "frame" in a}
+    t_ref: dict[int, list[int]] = {}
+    for a in valid:
+        if "frame" in a:
+            t_ref.setdefault(int(a["frame"]), []).append(int(a["t_ns"]))
     variances = []
     for frame, est in est_stars.items():
         tru = truth_stars.get(frame)
@@ -402,8 +419,8 @@ def _joint_attitude_crb(est_stars, truth_stars, truth, camera, scenario, valid: 
         if ei.size < 3 or not truth.covers(t).all() or np.ptp(t) == 0:
             continue
         w = truth.attitude(t).inv().apply(tru["ref_icrs"][tj])
-        dt = (t - t_ref.get(frame, int(np.mean(t)))) * S_PER_NS
-        variances.append(np.diag(joint_crb_rad2(camera, w, dt, sigma)[:3, :3]))
+        for ref in t_ref.get(frame, [int(np.mean(t))]):  # every estimate of the frame, at its own time
+            variances.append(np.diag(joint_crb_rad2(camera, w, (t - ref) * S_PER_NS, sigma)[:3, :3]))
     if not variances:
         return dict.fromkeys(keys)
     rms = np.sqrt(np.mean(variances, axis=0)) * RAD_TO_ARCSEC

@@ -17,6 +17,7 @@ from pydantic_core import PydanticUndefined
 
 # longest first: ``_deg_s2`` before ``_deg_s`` before ``_s``
 UNIT_SUFFIXES = (
+    ("_deg_s_sqrt_s", "deg/s/√s"), ("_arcsec_sqrt_s", "arcsec/√s"), ("_deg_sqrt_h", "deg/√h"), ("_deg_h", "deg/h"),
     ("_rad_sqrt_s", "rad/√s"), ("_e_per_adu", "e-/ADU"), ("_deg_s2", "deg/s²"), ("_deg_s", "deg/s"),
     ("_rad_s", "rad/s"), ("_px_s", "px/s"), ("_arcsec", "arcsec"), ("_rad2", "rad²"), ("_adu", "ADU"),
     ("_deg", "deg"), ("_rad", "rad"), ("_px", "px"), ("_ms", "ms"), ("_us", "µs"), ("_ns", "ns"),
@@ -24,13 +25,17 @@ UNIT_SUFFIXES = (
 )
 _BRACKET_UNITS = ("px", "ADU", "deg", "deg/s", "rad/s", "arcsec", "s", "ms", "µs", "us", "ns", "Hz", "e-/ADU",
                   "px/s", "tiles", "frames", "pixels", "sigmas", "rad", "mm")
+_ABBREVIATIONS = ("e.g", "i.e", "etc", "vs", "cf")
 _ROLE = re.compile(r":(?:func|class|mod|meth|attr|data|obj|ref|doc):`~?([^`]+)`")
 _SEE_DOCSTRING = re.compile(r"\s*\(\s*(?:see )?(?:the )?(?:(?:module|class)(?:'s)? )?docstring[^)]*\)"
                             r"|[;,]\s*see (?:the )?(?:(?:module|class) )?docstring(?=\))")
 
 
-def unit_of(name: str, description: str) -> str:
-    """The unit of parameter ``name`` (module docstring); ``""`` when it has none."""
+def unit_of(name: str, description: str, annotation=None) -> str:
+    """The unit of parameter ``name`` (module docstring); ``""`` when it has none (a switch, a
+    ``bool`` ``annotation``, has none whatever its description mentions)."""
+    if annotation is bool:
+        return ""
     for suffix, unit in UNIT_SUFFIXES:
         if name.lower().endswith(suffix):
             return unit
@@ -55,8 +60,9 @@ def first_sentence(text: str) -> str:
     for i, ch in enumerate(text):
         depth += ch in "([{"
         depth -= ch in ")]}"
-        if ch in ".;" and depth == 0 and (i + 1 == len(text) or text[i + 1] == " ") and not text[max(0, i - 3):i].endswith("e.g"):
-            return text[: i + (ch == ".")]
+        if ch == "." and depth == 0 and (i + 1 == len(text) or text[i + 1] == " ") \
+                and not text[max(0, i - 3):i].endswith(_ABBREVIATIONS):
+            return text[: i + 1]
     return text
 
 
@@ -116,7 +122,8 @@ def parameters(cls) -> list[Parameter]:
     out = []
     for name, field in cls.Params.model_fields.items():
         description = field.description or ""
-        out.append(Parameter(name, type_name(field.annotation), default_text(field), unit_of(name, description),
+        out.append(Parameter(name, type_name(field.annotation), default_text(field),
+                             unit_of(name, description, field.annotation),
                              first_sentence(description)))
     return out
 

@@ -111,8 +111,9 @@ def check_identity(path: Path, reader: LogReader, identity: RunIdentity) -> None
                         f"from (metadata '{IDENTITY_RECORD}'); remove it or run without --resume")
     differ = saved.differences(identity)
     if differ:
-        raise UserError(f"--resume: {path} was made from another recording, scenario or pipeline ({differ}: their "
-                        f"SHA-256 are not the ones it records); remove it or run without --resume")
+        raise UserError(f"--resume: {path} was made from other inputs ({differ}: the recording, scenario and "
+                        f"pipeline SHA-256 and the --with-images choice it records are not this run's); remove it or "
+                        f"run without --resume")
 
 
 def find_resume_point(output: Path, identity: RunIdentity, context) -> ResumePoint:

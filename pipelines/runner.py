@@ -106,9 +106,7 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
     check_stages_on_recording(stages, rec.provides, str(recording), pipeline_source, [s.kind for s in pipeline.stages])
     setup_stages(stages, rec.context, pipeline_source, recording)
     pipeline_yaml = to_yaml(pipeline)
-    # the output's content depends on --with-images too: a resume must not mix outputs with and without
-    identity = RunIdentity.of(recording, rec.scenario.get("yaml", ""),
-                              pipeline_yaml + ("\n# run --with-images\n" if with_images else ""))
+    identity = RunIdentity.of(recording, rec.scenario.get("yaml", ""), pipeline_yaml, with_images)
     metadata = {"scenario": rec.scenario, "pipeline": {"yaml": pipeline_yaml, "source": str(pipeline_source)},
                 IDENTITY_RECORD: identity.as_metadata()}
     tmp = None

@@ -37,8 +37,6 @@ from rollingstar.logs.writer import LogWriter
 from rollingstar.pipelines.outcomes import Outcomes
 from rollingstar.sensors.conventions import attitude_error_body_arcsec, quat_to_fields
 
-TRUTH_KEPT_NS = 60_000_000_000  # truth samples kept behind the newest: a smoother's output lags by less
-
 
 def new_counts() -> Outcomes:
     """The sink's counters before the first frame (:class:`~rollingstar.pipelines.outcomes.Outcomes`)."""
@@ -46,20 +44,45 @@ def new_counts() -> Outcomes:
 
 
 class _TruthAttitude:
-    """The ``/truth/attitude`` samples passed through so far (the last ``TRUTH_KEPT_NS``), and the
-    truth at a time between two of them (spherical linear interpolation)."""
+    """Every ``/truth/attitude`` sample passed through so far (a smoother can release its frames at the
+    end of the run), in time order, and the truth at a time between two of them (spherical linear
+    interpolation). The samples are appended to arrays that double when full, so a long run costs
+    amortised constant time per sample."""
 
     def __init__(self) -> None:
-        self.t = np.zeros(0, dtype=np.int64)
-        self.q = np.zeros((0, 4))
+        self._t = np.zeros(64, dtype=np.int64)
+        self._q = np.zeros((64, 4))
+        self._n = 0
+        self._sorted = True
+
+    @property
+    def t(self) -> np.ndarray:
+        self._order()
+        return self._t[: self._n]
+
+    @property
+    def q(self) -> np.ndarray:
+        self._order()
+        return self._q[: self._n]
 
     def add(self, record: dict) -> None:
         t = np.asarray(record["t_ns"], dtype=np.int64)
         q = np.column_stack([record["qx"], record["qy"], record["qz"], record["qw"]])
-        keep = self.t >= (t.max() - TRUTH_KEPT_NS) if t.size else slice(None)
-        order = np.argsort(np.concatenate([self.t[keep], t]), kind="stable")
-        self.t = np.concatenate([self.t[keep], t])[order]
-        self.q = np.concatenate([self.q[keep], q])[order]
+        while self._n + t.size > self._t.size:
+            self._t = np.concatenate([self._t, np.zeros_like(self._t)])
+            self._q = np.concatenate([self._q, np.zeros_like(self._q)])
+        if t.size and self._n and (t[0] < self._t[self._n - 1] or np.any(np.diff(t) < 0)):
+            self._sorted = False
+        self._t[self._n: self._n + t.size] = t
+        self._q[self._n: self._n + t.size] = q
+        self._n += t.size
+
+    def _order(self) -> None:
+        if not self._sorted:  # messages out of time order: sort once, before the next lookup
+            order = np.argsort(self._t[: self._n], kind="stable")
+            self._t[: self._n] = self._t[: self._n][order]
+            self._q[: self._n] = self._q[: self._n][order]
+            self._sorted = True
 
     def at(self, t_ns: np.ndarray):
         """The true attitudes at the times ``t_ns`` (a scipy ``Rotation`` of them, interpolated along

@@ -384,7 +384,7 @@ def demo(output: Path = typer.Option(Path("rollingstar-demo"), "-o", "--output",
     out.print("next (activate the environment first: . .venv/bin/activate):", highlight=False)
     for cmd, why in ((f"rollingstar evaluate {d}/rs-bundle.mcap --plots {d}-plots", "every metric, and its plots"),
                      (f"rollingstar info {d}/recording.mcap", "what a recording holds"),
-                     ("rollingstar simulate he2021a -o rec.mcap --frames 30", "an image-level recording at 3 deg/s"),
+                     ("rollingstar simulate he2021a -o rec.mcap --frames 30", "an image-level recording at 1 deg/s"),
                      ("rollingstar run high_dynamic rec.mcap -o out.mcap", "pixels to attitude, cold start included"),
                      ("rollingstar plugins", "every estimator you can put in a pipeline"),
                      ("rollingstar compare --help", "estimators side by side over scenarios and seeds")):

@@ -63,6 +63,7 @@ def sensor_model(scenario: ScenarioConfig, moving: bool | None = None) -> Sensor
 MIN_SHARED_STARS = 3  # identified stars two consecutive frames share when they are one trajectory
 SHARED_FRACTION = 0.8  # of the consecutive frame pairs
 MOVING_NOISE_FRACTION = 0.5  # rolling-shutter displacement across a readout, in centroid sigmas
+UNSTATED_NOISE_PX = 0.05  # the centroid sigma assumed here when the recording states none
 
 
 def sequence_moves(obs, attitudes, camera, timing) -> bool:
@@ -83,7 +84,9 @@ def sequence_moves(obs, attitudes, camera, timing) -> bool:
     _, _, rate = rates_from_attitudes(attitudes, obs.t_ref_ns)
     readout_s = timing.effective_line_delay_ns * 1e-9 * camera.height
     shift_px = np.linalg.norm(rate, axis=1) * readout_s * camera.focal_px
-    return bool(np.median(shift_px) > MOVING_NOISE_FRACTION * np.median(obs.sigma))
+    known = np.isfinite(obs.sigma)
+    noise = float(np.median(obs.sigma[known])) if known.any() else UNSTATED_NOISE_PX
+    return bool(np.median(shift_px) > MOVING_NOISE_FRACTION * noise)
 
 
 def scenario_moves(scenario: ScenarioConfig) -> bool:

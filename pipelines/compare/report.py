@@ -49,7 +49,9 @@ def _flagged_percent(row: dict) -> str:
     if flagged is None or not frames:
         return "n/a"
     prefix = "outcomes.flag_reasons."
-    reasons = sorted(((s["mean"], k[len(prefix):]) for k, s in row["metrics"].items()
+    seeds = max(len(row.get("seeds") or ()), 1)
+    # a seed without a flag has no key for it: the mean per seed counts it as zero frames
+    reasons = sorted(((s["mean"] * s.get("n", seeds) / seeds, k[len(prefix):]) for k, s in row["metrics"].items()
                       if k.startswith(prefix) and s["mean"]), reverse=True)
     top = ", ".join(f"{name} {n:.3g}" for n, name in reasons[:2]) + (", ..." if len(reasons) > 2 else "")
     return f"{100.0 * flagged / frames:.3g}" + (f" ({top})" if top else "")
@@ -198,7 +200,7 @@ def _error_vs_rate_figure(sc: str, sub: list[dict], pipelines: list[str], colour
 
 def _log_errorbar(ax, x, m, s, colour: str, label: str) -> None:
     """Means with std bars on a logarithmic axis, drawn honestly: a bar never reaches below zero (its
-    lower arm stops at a tenth of the mean, marked by no cap), and a mean of zero, which a log axis
+    lower arm stops at a tenth of the mean), and a mean of zero, which a log axis
     cannot place, is a hollow triangle on the axis' floor with the label "0"."""
     pos = m > 0
     lower = np.where(s < m, s, 0.9 * m)

@@ -128,3 +128,28 @@ def test_preview_draws_the_layout_from_the_output(output, tmp_path):
     proc = subprocess.run([sys.executable, "-m", "rollingstar.cli", "preview", str(output), "-o", str(output)],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2 and "input" in proc.stderr  # the log itself is never overwritten
+
+
+def test_the_sinks_truth_buffer_interpolates_as_evaluate_does_in_any_message_order():
+    """Samples added out of time order and past the buffer's first capacity give the same truth as
+    the evaluation's trajectory (Slerp over all samples)."""
+    from scipy.spatial.transform import Rotation
+
+    from rollingstar.pipelines.sink import _TruthAttitude
+    from rollingstar.pipelines.truth import TruthTrajectory
+
+    rng = np.random.default_rng(2)
+    t = np.arange(0, 300) * 5_000_000
+    q = Rotation.from_rotvec(np.cumsum(rng.normal(0, 1e-3, (t.size, 3)), axis=0)).as_quat()
+    buf = _TruthAttitude()
+    chunks = np.array_split(np.arange(t.size), 30)
+    for k in rng.permutation(len(chunks)):  # messages out of order
+        i = chunks[k]
+        buf.add({"t_ns": t[i].tolist(), "qx": q[i, 0], "qy": q[i, 1], "qz": q[i, 2], "qw": q[i, 3]})
+    when = rng.integers(t[0], t[-1], 200)
+    got, covered = buf.at(when)
+    want = TruthTrajectory(t, q, np.zeros((t.size, 3))).attitude(when)
+    assert covered.all()
+    assert np.degrees((got.inv() * want).magnitude()).max() * 3600 < 1e-6  # arcsec
+    _, outside = buf.at(np.array([t[-1] + 1]))
+    assert not outside.any()

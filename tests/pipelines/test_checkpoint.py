@@ -61,11 +61,12 @@ def test_round_trip_reattaches_the_context_and_keeps_the_newest(tmp_path):
 @pytest.mark.parametrize("other, what", [
     (RunIdentity("x" * 64, "s" * 64, "p" * 64), "the recording differs"),
     (RunIdentity("r" * 64, "x" * 64, "x" * 64), "the scenario and the pipeline differ"),
+    (RunIdentity("r" * 64, "s" * 64, "p" * 64, with_images=True), "the --with-images choice differs"),
 ])
 def test_a_checkpoint_of_another_run_is_refused_naming_what_differs(tmp_path, other, what):
     ctx, out = Context(), tmp_path / "o.mcap"
     CheckpointWriter(out, ctx, every=10).save(_state([Stage(ctx)], identity=other))
-    with pytest.raises(UserError, match=f"another recording, scenario or pipeline \\({what}\\)"):
+    with pytest.raises(UserError, match=f"other inputs \\({what}\\)"):
         load_checkpoints(out, IDENTITY, ctx)
 
 

@@ -72,8 +72,12 @@ def test_plugin_text_helpers_on_known_inputs():
     assert unit_of("rate_sigma_deg_s", "") == "deg/s" and unit_of("accel_sigma_deg_s2", "") == "deg/s²"
     assert unit_of("tile_px", "") == "px" and unit_of("map_filter_tiles", "Median-filter width (tiles) of") == "tiles"
     assert unit_of("threshold_sigma", "in noise sigmas.") == ""
+    assert unit_of("angular_accel_noise_deg_s_sqrt_s", "") == "deg/s/√s" and unit_of("gyro_arw_deg_sqrt_h", "") == "deg/√h"
+    assert unit_of("use_star_velocity", "Use each star's image velocity (px/s)", bool) == ""
     assert plain("see :func:`~rollingstar.sensors.so3.skew` and ``x``") == "see skew and x"
     assert first_sentence("Fit it (e.g. twice. Really). Then more.") == "Fit it (e.g. twice. Really)."
+    assert first_sentence("'median': one; 'tiles': two. Else.") == "'median': one; 'tiles': two."
+    assert first_sentence("Use i.e. this one. Not that.") == "Use i.e. this one."
     from typing import Literal
 
     assert type_name(float | None) == "float or None" and type_name(Literal["a", "b"]) == "'a' | 'b'"

@@ -98,8 +98,16 @@ def test_skip_first_leaves_the_start_out_of_every_metric(run_with_a_bad_frame):
     assert by_time["attitude_error_arcsec"] == later["attitude_error_arcsec"]
 
 
+def _missing(m: dict) -> set[str]:
+    """Metrics that are null, or dicts whose every value is null."""
+    skip = {"notes", "axes", "outcomes", "series"}
+    return {k for k, v in m.items() if k not in skip and (v is None or (isinstance(v, dict) and v
+                                                                            and all(x is None for x in v.values())))}
+
+
 def test_every_missing_metric_says_why(small_output):
     m = evaluate_log(small_output)
+    assert _missing(m) <= set(m["notes"]), _missing(m) - set(m["notes"])
     for key in ("pixel_crb_arcsec", "efficiency_pixel", "rate_error_deg_s"):
         assert key in m["notes"] and m["notes"][key]
     assert "centroid-level" in m["notes"]["pixel_crb_arcsec"]
@@ -116,6 +124,7 @@ def test_every_missing_metric_says_why(small_output):
             if msg.topic in TOPIC_RECORDS and not msg.topic.startswith("/truth"):
                 w.write_json(msg.topic, msg.data, msg.log_time_ns)
     m = evaluate_log(no_truth)
+    assert _missing(m) <= set(m["notes"]), _missing(m) - set(m["notes"])
     assert m["attitude_error_arcsec"]["x_rmse"] is None
     assert "truth" in m["notes"]["attitude_error_arcsec"] and "truth" in m["notes"]["attitude_crb_arcsec"]
 
