@@ -439,3 +439,23 @@ def test_diagnosis_of_an_outside_recording_measures_its_noise_and_locates_a_stit
     low, high = shape["between_px"]  # the step lies between two stars' columns: 512 must be in that gap
     assert low - 1 <= 511.5 <= high + 1, shape
     assert abs(shape["coefficients_px"][0] - 0.3) < 4 * shape["sigmas_px"][0], shape
+
+
+def test_diagnosis_of_the_outside_image_folder_finds_no_mismatch(tmp_path):
+    """The outsider's rendered frames (its own Gaussian renderer, OpenCV camera frame, a sidecar)
+    imported and diagnosed against the model they declare: nothing named and nothing left
+    unexplained. A star the renderer cut at the detector's edge sits 13 sigma off in one held-out
+    frame: it is reported as an isolated misfit, not taken for a systematic."""
+    folder, meta = tmp_path / "frames", tmp_path / "meta"
+    folder.mkdir()
+    meta.mkdir()
+    write_image_folder(folder, meta, 16, seed=5)
+    recording = tmp_path / "outside_images.mcap"
+    assert cli("import", "images", folder, "--sidecar", meta / "recording.yaml", "-o", recording).returncode == 0
+    proc = cli("diagnose", "--recording", recording, "--json", "-q")
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(proc.stdout)
+    print(result["summary"])
+    assert result["effects"] == [] and not result["unexplained_systematic"]["present"], result["summary"]
+    assert not result["mismatch"]
+    assert len(result["isolated_misfits"]) <= 2

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 def paragraph(result: dict) -> str:
     """One paragraph summarising ``result`` (a :func:`.algorithm.as_json` object)."""
-    parts = [_what_differs(result), _heldout(result), *_ambiguous(result), _unexplained(result), _reference(result),
-             _untestable(result)]
+    parts = [_what_differs(result), _heldout(result), *_ambiguous(result), _unexplained(result), _isolated(result),
+             _reference(result), _untestable(result)]
     return " ".join(p for p in parts if p)
 
 
@@ -98,6 +98,16 @@ def _unexplained(r: dict) -> str:
     if desc:
         return f"Left unexplained (outside the library): {desc['text']}."
     return "Left unexplained (outside the library): " + ", ".join(f"{e['basis']} (z = {e['z']:.1f})" for e in u["evidence"]) + "."
+
+
+def _isolated(r: dict) -> str:
+    stars = r.get("isolated_misfits") or []
+    if not stars:
+        return ""
+    where = "; ".join(f"frame {s['frame']}, catalogue {s['catalog_id']} at ({s['x']:.0f}, {s['y']:.0f}), "
+                      f"{s['sigmas']:.0f} sigma" for s in stars)
+    return (f"{len(stars)} star{'s' if len(stars) > 1 else ''} alone off the model ({where}): a local defect "
+            f"(a detector edge, a blend, a hot pixel), not a systematic; left out of the held-out test.")
 
 
 def _reference(r: dict) -> str:
