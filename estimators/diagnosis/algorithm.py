@@ -205,7 +205,10 @@ def _describe(location: Location, model: EffectModel, verification: Verification
     """The shape of the systematic left (:mod:`.describe`): on the residual of the named model with
     the named effects free, or on the residual of the model as given (the named effects then only
     absorbed the shape), whichever leaves the lower held-out chi-square (the lower BIC without
-    held-out data); the model as given alone when the named model was rejected on the held-out data."""
+    held-out data); the model as given alone when the named model was rejected on the held-out data.
+    A shape of the model as given that becomes no correction (a catch-all basis) is not reported
+    beside named effects: it would describe, as left unexplained, what they explain; what the named
+    model leaves is reported instead (None when it leaves no significant shape)."""
     data = location.data
     as_given = describe(data.obs, location.prediction, data.train, sensor.camera)
     if not verification.named or not model.chosen:
@@ -216,7 +219,10 @@ def _describe(location: Location, model: EffectModel, verification: Verification
     k_named = sum(len(c.parameters) for c in model.chosen)
     options = [((d.heldout_chi2[1] if d.heldout_chi2 is not None else np.inf), d.bic(k), d)
                for d, k in ((as_given, 0), (with_named, k_named)) if d is not None]
-    return min(options, key=lambda o: o[:2])[2] if options else None
+    chosen = min(options, key=lambda o: o[:2])[2] if options else None
+    if chosen is as_given and as_given is not None and as_given.correction is None:
+        return with_named
+    return chosen
 
 
 def _named_rows(data, model: EffectModel, mask) -> np.ndarray | None:

@@ -43,6 +43,7 @@ from rollingstar.estimators.diagnosis.observations import Observations, Predicti
 from rollingstar.estimators.diagnosis.residuals import z_from_sf
 
 STEP_GRID_PX = 4.0
+MIN_STEP_STARS = 2  # distinct stars a step needs on each side: one star beyond a line is an isolated misfit
 MIN_PERIOD_PX = 8.0
 CLOSE_BIC = 10.0  # a second shape this close is reported beside the best
 AXES = ("x", "y")
@@ -194,12 +195,13 @@ def _steps(obs, aj, r, train, camera) -> list[Shape]:
     for c, coord in enumerate(_coords(obs)):
         size = camera.width if c == 0 else camera.height
         grid = np.arange(STEP_GRID_PX, size - STEP_GRID_PX, STEP_GRID_PX) - 0.5
+        sides = _stars_each_side(obs.catalog_id[train], coord[train], grid)
         beyond = (coord[:, None] > grid[None, :]).astype(float)
         for axis in (0, 1):
             cols = _single_axis(beyond, axis)
             g = aj.rows(whiten(obs, cols), train)
             gg = np.einsum("nm,nm->m", g, g)
-            ok = gg > 1e-9 * max(gg.max(initial=0.0), 1e-300)
+            ok = (gg > 1e-9 * max(gg.max(initial=0.0), 1e-300)) & sides
             if not ok.any():
                 continue
             gr = g.T @ r
@@ -211,6 +213,20 @@ def _steps(obs, aj, r, train, camera) -> list[Shape]:
             out.append(Shape("step", label, cols[:, :, j:j + 1], np.array([gr[j] / gg[j]]), np.array([[1.0 / gg[j]]]),
                              float(d[j]), 4 * int(ok.sum())))  # scanned: positions x 2 axes x 2 coordinates
     return out
+
+
+def _stars_each_side(ids: np.ndarray, coord: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """For each step position of ``grid``: whether at least ``MIN_STEP_STARS`` distinct stars (by
+    catalogue id) are seen below it and as many beyond it."""
+    if ids.size == 0:
+        return np.zeros(grid.size, dtype=bool)
+    order = np.argsort(ids, kind="stable")
+    ids, coord = ids[order], coord[order]
+    starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
+    lo, hi = np.minimum.reduceat(coord, starts), np.maximum.reduceat(coord, starts)
+    below = np.searchsorted(np.sort(lo), grid, side="right")  # stars seen at or below the position
+    beyond = hi.size - np.searchsorted(np.sort(hi), grid, side="right")  # stars seen beyond it
+    return (below >= MIN_STEP_STARS) & (beyond >= MIN_STEP_STARS)
 
 
 def _ripples(obs, aj, r, train, camera) -> list[Shape]:
