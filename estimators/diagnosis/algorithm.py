@@ -254,16 +254,16 @@ def _outlier_rounds(observations: Observations, attitudes: Rotation, sensor: Sen
     return location, naming, model, verification, tuple(rounds)
 
 
-def _isolated(obs: Observations, pred) -> list[dict]:
-    """The stars the final model misses alone (:func:`.verifying.isolated_misfits` over every star),
-    with where they are and by how many sigma."""
+def _isolated(obs: Observations, pred, heldout: np.ndarray) -> list[dict]:
+    """The held-out stars the final model misses alone, which the held-out test leaves out
+    (:func:`.verifying.isolated_misfits`), with where they are and by how many sigma."""
     from rollingstar.estimators.diagnosis.observations import star_chi2
     from rollingstar.estimators.diagnosis.verifying import isolated_misfits
 
-    idx = np.flatnonzero(isolated_misfits(obs, pred, np.ones(obs.n, dtype=bool)))
+    idx = np.flatnonzero(isolated_misfits(obs, pred, heldout))
     c = star_chi2(obs, pred)
     return [{"frame": int(obs.frame_index[obs.frame[i]]), "catalog_id": int(obs.catalog_id[i]), "x": float(obs.x[i]),
-             "y": float(obs.y[i]), "sigmas": float(np.sqrt(c[i])), "heldout": bool(obs.heldout[i])} for i in idx]
+             "y": float(obs.y[i]), "sigmas": float(np.sqrt(c[i]))} for i in idx]
 
 
 def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
@@ -282,7 +282,7 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
         "noise": {"sigma_px_median": float(np.median(data.obs.sigma)), "source": data.obs.sigma_source},
         "noise_check": d.noise.as_json() if d.noise is not None else None,
         "rejected_outliers": data.n_rejected,
-        "isolated_misfits": _isolated(data.obs, d.model.prediction),
+        "isolated_misfits": _isolated(data.obs, d.model.prediction, data.heldout),
         "outlier_rounds": list(d.outlier_rounds),
         "split": {"unit": data.unit, "frames": data.obs.n_frames, "train_frames": data.n_train_frames,
                   "heldout_frames": data.n_heldout_frames, "train_observations": int(data.train.sum()),
