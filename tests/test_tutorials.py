@@ -3,11 +3,12 @@
 import os
 import re
 import shlex
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from typer.testing import CliRunner
+
+from rollingstar import cli as cli_module
 
 ROOT = Path(__file__).resolve().parents[1]
 TUTORIALS = ROOT / "docs" / "tutorials"
@@ -35,7 +36,7 @@ def test_the_tutorial_pages_are_the_ones_the_index_lists():
 
 
 @pytest.mark.parametrize("page", sorted(p.stem for p in TUTORIALS.glob("*.md") if p.stem != "index"))
-def test_tutorial_runs(page, tmp_path):
+def test_tutorial_runs(page, tmp_path, monkeypatch):
     text = (TUTORIALS / f"{page}.md").read_text()
     env = dict(os.environ)
     if "$ROLLINGSTAR_REAL_DATA" in text:
@@ -44,17 +45,20 @@ def test_tutorial_runs(page, tmp_path):
             pytest.skip(f"real data not found at {real} (set ROLLINGSTAR_REAL_DATA to the shared/data/real folder)")
         env["ROLLINGSTAR_REAL_DATA"] = str(real.resolve())
     printed = ""
+    monkeypatch.chdir(tmp_path)  # the commands run in the command line's own process (no interpreter start-up each)
+    monkeypatch.setitem(cli_module._state, "debug", False)
+    for name, value in env.items():
+        if name == "ROLLINGSTAR_REAL_DATA":
+            monkeypatch.setenv(name, value)
     for step in steps(TUTORIALS / f"{page}.md"):
         if step[0] == "file":
             (tmp_path / step[1]).write_text(step[2])
             continue
         args = shlex.split(step[1].replace("$ROLLINGSTAR_REAL_DATA", env.get("ROLLINGSTAR_REAL_DATA", "")))
         assert args[0] == "rollingstar", step[1]
-        proc = subprocess.run([sys.executable, "-m", "rollingstar.cli", *args[1:], "-q"] if _takes_quiet(args)
-                              else [sys.executable, "-m", "rollingstar.cli", *args[1:]],
-                              cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
-        assert proc.returncode == 0, (step[1], proc.stdout[-2000:], proc.stderr[-2000:])
-        printed += proc.stdout
+        res = CliRunner().invoke(cli_module.app, [*args[1:], "-q"] if _takes_quiet(args) else args[1:])
+        assert res.exit_code == 0, (step[1], res.output[-3000:])
+        printed += res.output
     if page == "simulate-and-evaluate":
         assert {p.name for p in (tmp_path / "plots").iterdir()} >= {"attitude_error.png", "rate_error.png"}
     if page == "diagnose-a-mismatch":

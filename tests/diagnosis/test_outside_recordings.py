@@ -50,7 +50,7 @@ def test_diagnosis_of_the_outside_image_folder_finds_no_mismatch(tmp_path):
     folder, meta = tmp_path / "frames", tmp_path / "meta"
     folder.mkdir()
     meta.mkdir()
-    write_image_folder(folder, meta, 16, seed=5)
+    write_image_folder(folder, meta, 12, seed=5)
     recording = tmp_path / "outside_images.mcap"
     assert cli("import", "images", folder, "--sidecar", meta / "recording.yaml", "-o", recording).returncode == 0
     proc = cli("diagnose", "--recording", recording, "--json", "-q")

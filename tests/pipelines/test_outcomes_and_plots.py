@@ -171,10 +171,13 @@ def test_evaluate_plots_writes_each_figure_it_has_data_for(tmp_path, small_recor
 
 
 def test_demo_shows_what_the_rolling_shutter_costs_and_writes_its_plot(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "rollingstar.cli", "demo", "--frames", "40", "-q", "-o",
-                           str(tmp_path / "demo")], capture_output=True, text=True, cwd=tmp_path, timeout=300)
-    assert proc.returncode == 0, proc.stderr
-    text = proc.stdout
+    from typer.testing import CliRunner
+
+    from rollingstar.cli import app
+
+    res = CliRunner().invoke(app, ["demo", "--frames", "40", "-q", "-o", str(tmp_path / "demo")])
+    assert res.exit_code == 0, res.output
+    text = res.output
     for needle in ("What you are looking at", "bound, rate unknown", "baseline / rs-bundle", "next"):
         assert needle in text, needle
     for name in ("recording.mcap", "baseline.mcap", "rs-bundle.mcap"):
