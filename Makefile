@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo test bench docs clean
+.PHONY: install demo test test-long bench docs clean
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "rollingstar needs Python 3.11+; set PYTHON=python3.11")'
@@ -23,7 +23,13 @@ demo: $(STAMP)
 # that a module's shared fixtures (a study run once for its tests) are computed once.
 test: $(STAMP)
 	$(PY) -m ruff check --no-cache .
-	@$(PY) -m pytest -q -p no:cacheprovider -n 2 --dist loadfile --durations=10; rc=$$?; \
+	@$(PY) -m pytest -q -p no:cacheprovider -n 2 --dist loadfile --durations=10 -m "not long_study"; rc=$$?; \
+	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; exit 1; fi; exit $$rc
+
+# The whole-study checks (each minutes of CPU: the adversarial identification set, the rendered and
+# real cameras, the he2021b reproduction), which .ci/run runs after `make test`.
+test-long: $(STAMP)
+	@$(PY) -m pytest -q -p no:cacheprovider -n 2 --dist loadfile -m long_study; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; exit 1; fi; exit $$rc
 
 bench: $(STAMP)

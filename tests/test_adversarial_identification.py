@@ -7,6 +7,8 @@ import pytest
 
 from rollingstar.studies.adversarial import CASES, run_adversarial
 
+pytestmark = pytest.mark.long_study  # 950 adversarial frames through every identifier: `make test-long`
+
 
 @pytest.fixture(scope="module")
 def result():

@@ -9,6 +9,8 @@ import pytest
 
 from rollingstar.studies import real_cameras as rc
 
+pytestmark = pytest.mark.long_study  # cameras rendered and imported, a peer solver on every frame: `make test-long`
+
 RENDERED = [s.name for s in rc.RENDERED]
 # A frame holding this many stars 0.5 mag above the 5-sigma limit (peak >= 8 sigma) is identifiable:
 # a pattern needs 4, verification 4 with a false-match probability <= 1e-9.
