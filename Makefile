@@ -26,8 +26,9 @@ test: $(STAMP)
 	@$(PY) -m pytest -q -p no:cacheprovider -n 2 --dist loadfile --durations=10 -m "not long_study"; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; exit 1; fi; exit $$rc
 
-# The whole-study checks (each minutes of CPU: the adversarial identification set, the rendered and
-# real cameras, the he2021b reproduction), which .ci/run runs after `make test`.
+# The whole-study checks (each up to a minute or more of CPU: the adversarial identification set, the
+# rendered and real cameras, the he2021b and fu2022 reproductions, the quick run of every benchmark
+# line), which .ci/run runs after `make test`.
 test-long: $(STAMP)
 	@$(PY) -m pytest -q -p no:cacheprovider -n 2 --dist loadfile -m long_study; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: failing"; exit 1; fi; exit $$rc

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 from rollingstar.cli import app
 
-pytestmark = pytest.mark.slow  # whole reproductions, benchmarks or killed processes: `-m 'not slow'` skips them
+pytestmark = [pytest.mark.slow, pytest.mark.long_study]  # every benchmark line, quick: `make test-long` runs it
 
 EXPECTED = {"quest", "kf", "rate", "centroid_full", "centroid_windowed", "render", "render_speedup",
             "replay_centroid", "replay_image", "compare",

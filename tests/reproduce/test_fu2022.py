@@ -12,7 +12,7 @@ import pytest
 
 from rollingstar.studies.reproduce import run_reproduction
 
-pytestmark = pytest.mark.slow  # whole reproductions, benchmarks or killed processes: `-m 'not slow'` skips them
+pytestmark = [pytest.mark.slow, pytest.mark.long_study]  # a whole reproduction: `make test-long` runs it
 
 
 @pytest.fixture(scope="module")
