@@ -14,8 +14,8 @@ quantisation; the second term the star's own shot noise, left out when the gain 
 ``inv_gain = 0``). Pixels at or above the saturation level carry no information (they read the
 saturation level whatever ``p``) and are left out. :func:`normal_equations` returns per star
 ``H = J^T W J`` (the Fisher information), ``g = J^T W (I - mu)`` and ``chi2 = sum (I - mu)^2 W``;
-:func:`chi_square` only the last; :func:`star_pixels` the footprint summary of the fitted stars and
-:func:`window_moments` the fit's starting point. Why compiled: the Jacobian of a frame's ~30 streaks is
+:func:`nuisance_equations` the flux-and-background block of the first two; :func:`star_pixels` the
+footprint summary of the fitted stars and :func:`window_moments` the fit's starting point. Why compiled: the Jacobian of a frame's ~30 streaks is
 ~20 000 pixels x 6, built and summed ten times per frame; the fused loop never stores it.
 """
 from __future__ import annotations
@@ -212,28 +212,6 @@ def levenberg_marquardt(p, row0, col0, nrows, ncols, image, saturation, noise2, 
         hess[k, 2, 2] += v_weight[k]
         hess[k, 3, 3] += v_weight[k]
     return p, hess, chi2, used
-
-
-@njit(cache=True, nogil=True)
-def chi_square(p, row0, col0, nrows, ncols, image, saturation, noise2, inv_gain, se, exposure,
-               ld):  # pragma: no cover - compiled
-    """``chi2`` (n,) of the stars ``p`` (module docstring)."""
-    n = p.shape[0]
-    height, width = image.shape
-    chi2 = np.zeros(n)
-    for k in range(n):
-        x, y, vx, vy, flux, b = p[k, 0], p[k, 1], p[k, 2], p[k, 3], p[k, 4], p[k, 5]
-        ux, uy, speed = star_geometry(vx, vy)
-        for i in range(max(row0[k], 0), min(row0[k] + nrows, height)):
-            dt = (i - y) * ld
-            for j in range(max(col0[k], 0), min(col0[k] + ncols, width)):
-                raw = float(image[i, j])
-                if raw >= saturation:
-                    continue
-                star = flux * pixel_profile(j - x - vx * dt, i - y - vy * dt, ux, uy, speed, exposure, se)[0]
-                r = raw - star - b
-                chi2[k] += r * r / (noise2 + max(star, 0.0) * inv_gain)
-    return chi2
 
 
 @njit(cache=True, nogil=True)
