@@ -18,9 +18,9 @@ width comes from the spot itself: a pixel-sampled Gaussian spot of flux ``F`` ha
 about ``F / (2 pi s^2)`` (its centre pixel: 8 % less for ``s`` = 1 px, so ``s`` comes out a little
 large, which enlarges the bias: the safe side), and a cut spot has ``F`` times ``T_x T_y`` of the
 whole, so ``s^2 = F / (2 pi peak T_x T_y)``; ``s`` and ``mu`` are solved together by fixed-point
-iteration (``_ITERATIONS`` steps, vectorised over the spots that reach the edge: 0.3-0.5 ms for a
-frame that has any, mostly numpy's per-call cost on a handful of spots, nothing otherwise;
-`benchmarks/centroid_speed.py`, edge term column).
+iteration (``_ITERATIONS`` steps per spot that reaches the edge, compiled: the numpy form spent
+0.3-0.7 ms a frame in per-call overhead on a handful of spots, more than a tracked frame's whole
+window fit; `benchmarks/centroid_speed.py`, edge term column).
 
 Reported: the position covariance with ``diag(bias_x^2, bias_y^2)`` added (the bias lies along
 the axis the edge cuts; ``sigma_px`` follows from the covariance, covariance.py). The position
@@ -31,8 +31,10 @@ Spots with more than ``1 - ON_DETECTOR`` of their profile on the detector are re
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
-from scipy.special import ndtr
+from numba import njit
 
 from rollingstar.estimators.centroiders.covariance import with_axes
 
@@ -42,12 +44,40 @@ _ITERATIONS = 20
 _INV_SQRT_2PI = 1.0 / np.sqrt(2.0 * np.pi)
 
 
-def _truncated_shift(mu: np.ndarray, s: np.ndarray, n) -> tuple[np.ndarray, np.ndarray]:
-    """(``m(mu) - mu``, ``T``) of a Gaussian of sigma ``s`` at ``mu`` cut to ``[-0.5, n - 0.5]``."""
+@njit(cache=True, nogil=True)
+def _fixed_point(meas, width_sq, n_x, n_y, iterations):  # pragma: no cover - compiled
+    """(``m(mu) - mu``, ``T``) at the fixed point of ``m(mu) = measured``, spot by spot, as
+    :func:`edge_bias_px` defines it: ``meas`` holds the spots' x then their y (2k,), ``width_sq``
+    their uncut ``s^2`` (k,); ``n_x, n_y`` the detector's columns and rows. Both outputs are laid
+    out as ``meas``."""
+    k = width_sq.size
+    d = np.empty(2 * k)
+    T = np.empty(2 * k)
+    mu = np.empty(2)
+    n = np.array([n_x, n_y])
+    for i in range(k):
+        s = math.sqrt(width_sq[i])
+        for a in range(2):
+            mu[a] = min(max(meas[a * k + i], -0.5), n[a] - 0.5)
+        for step in range(iterations + 1):
+            for a in range(2):
+                d[a * k + i], T[a * k + i] = _shift(mu[a], s, n[a])
+            if step == iterations:
+                break
+            for a in range(2):
+                mu[a] = min(max(meas[a * k + i] - d[a * k + i], -0.5), n[a] - 0.5)
+            s = math.sqrt(width_sq[i] / (T[i] * T[k + i]))
+    return d, T
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _shift(mu, s, n):  # pragma: no cover - compiled
+    """(``m(mu) - mu``, ``T``) of a Gaussian of sigma ``s`` at ``mu`` cut to ``[-0.5, n - 0.5]``
+    (``T >= 0.5`` while ``mu`` is on the detector; the iteration keeps it there)."""
     a = (-0.5 - mu) / s
     b = (n - 0.5 - mu) / s
-    T = ndtr(b) - ndtr(a)  # >= 0.5 while mu is on the detector (the iteration keeps it there)
-    return s * _INV_SQRT_2PI * (np.exp(-0.5 * a * a) - np.exp(-0.5 * b * b)) / T, T
+    T = 0.5 * (math.erfc(-b / math.sqrt(2.0)) - math.erfc(-a / math.sqrt(2.0)))
+    return s * _INV_SQRT_2PI * (math.exp(-0.5 * a * a) - math.exp(-0.5 * b * b)) / T, T
 
 
 def near_edge(x, y, flux, peak, shape: tuple[int, int]) -> np.ndarray:
@@ -87,17 +117,9 @@ def edge_bias_px(x, y, flux, peak, shape: tuple[int, int],
         near &= np.asarray(candidates, dtype=bool).reshape(-1)
     if not near.any():
         return bx, by, cut
+    d, T = _fixed_point(np.concatenate([x[near], y[near]]), flux[near] / (2.0 * np.pi * peak[near]),
+                        float(W), float(H), int(_ITERATIONS))
     k = int(near.sum())
-    meas = np.concatenate([x[near], y[near]])  # both axes in one array: half the numpy calls per step
-    n = np.repeat([float(W), float(H)], k)
-    width_sq = np.tile(flux[near] / (2.0 * np.pi * peak[near]), 2)  # s^2 of the uncut spot, per axis entry
-    s = np.sqrt(width_sq)
-    mu = np.clip(meas, -0.5, n - 0.5)
-    for _ in range(_ITERATIONS):
-        d, T = _truncated_shift(mu, s, n)
-        mu = np.clip(meas - d, -0.5, n - 0.5)  # fixed point of m(mu) = measured, centre on the detector
-        s = np.sqrt(width_sq / np.tile(T[:k] * T[k:], 2))
-    d, T = _truncated_shift(mu, s, n)
     dx, dy, tx, ty = d[:k], d[k:], T[:k], T[k:]
     is_cut = tx * ty < ON_DETECTOR
     bx[near] = np.where(is_cut, dx, 0.0)

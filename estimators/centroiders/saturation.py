@@ -51,6 +51,8 @@ the smear.
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy.special import erfcx, j0, j1, ndtr
 
@@ -78,17 +80,26 @@ def clipped_cog_sigma_px(flux: np.ndarray, n_saturated: np.ndarray, saturation_a
         return out
     F, n, S = flux[sat], n_sat[sat], s_d[sat]
     F_u = np.maximum(F - n * S, S)  # flux outside the plateau; at least one pixel's worth (noise, truncated wings)
-    r0 = np.sqrt(n / np.pi)
-    slope = 2.0 * (n * S / F_u) * S / r0  # s = 2 L S_d / r_s
-    r = np.maximum(r0[:, None] + _RADIUS_OFFSETS[None], 0.05)[:, :, None]  # (spots, radii, 1)
-    k = 2.0 * np.pi * _RHO[None, None]  # (1, 1, freqs)
+    slope = 2.0 * (n * S / F_u) * S / np.sqrt(n / np.pi)  # s = 2 L S_d / r_s
+    shape = np.array([_plateau_sum(float(v)) for v in n])
+    var = shape * (slope / (2.0 * np.pi * F)) ** 2
+    out[sat] = np.sqrt(var)
+    return out
+
+
+@functools.lru_cache(maxsize=4096)
+def _plateau_sum(n_saturated: float) -> float:
+    """``mean_t sum_(k,l) (k / rho)^2 (C'(rho) / s)^2`` of the module docstring: the part of a
+    clipped spot's ``sigma_clip^2 (2 pi F_m)^2 / s^2`` that depends only on its plateau radius
+    ``r_s = sqrt(n_sat / pi)``, so only on the pixel count ``n_sat``. Cached per count: the Bessel
+    sums (9 radii x 80 frequencies) would otherwise be most of a tracked frame's covariance time."""
+    r = np.maximum(np.sqrt(n_saturated / np.pi) + _RADIUS_OFFSETS, 0.05)[:, None]  # (radii, 1)
+    k = 2.0 * np.pi * _RHO[None]  # (1, freqs)
     z = k * r
     bessel_1 = j1(z)  # J1 and J2 = 2 J1 / z - J0 (the recurrence): the order-specific kernels are ~8x faster than jv
     bessel_2 = 2.0 * bessel_1 / z - j0(z)
-    dC = 4.0 * np.pi**2 * slope[:, None, None] * r * (r * bessel_1 / k**2 - 4.0 * bessel_2 / k**3)
-    var = np.mean(np.sum(_AXIS_WEIGHT * dC**2, axis=2), axis=1) / (2.0 * np.pi * F) ** 2
-    out[sat] = np.sqrt(var)
-    return out
+    dC = 4.0 * np.pi**2 * r * (r * bessel_1 / k**2 - 4.0 * bessel_2 / k**3)
+    return float(np.mean(np.sum(_AXIS_WEIGHT * dC**2, axis=1)))
 
 
 _FREQS_1D = np.arange(1, _MAX_FREQ + 1, dtype=float)
