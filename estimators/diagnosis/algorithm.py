@@ -22,7 +22,7 @@ reported as a noise-model mismatch instead of being fitted as physics.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -40,7 +40,12 @@ from rollingstar.estimators.diagnosis.naming import Naming, name_effects
 from rollingstar.estimators.diagnosis.noise import NoiseCheck, combined, scaled
 from rollingstar.estimators.diagnosis.noise import measure as measure_noise
 from rollingstar.estimators.diagnosis.observations import Observations, fit_nuisance
-from rollingstar.estimators.diagnosis.projection import ProjectionChoice, choose_projection, with_projection
+from rollingstar.estimators.diagnosis.projection import (
+    ProjectionChoice,
+    choose_projection,
+    fitted_camera,
+    with_projection,
+)
 from rollingstar.estimators.diagnosis.reference import ReferenceCheck, reference_check
 from rollingstar.estimators.diagnosis.signatures import candidate_signatures
 from rollingstar.estimators.diagnosis.verifying import Verification, chi2_dof, rms_px, verify
@@ -118,13 +123,13 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
             sensor = sensor_model(with_projection(scenario, choice), moves)
         done(PHASES[0])
         cands: dict[str, Candidate] = library(exclude=exclude_effects)
-        steps = _outlier_rounds(observations, attitudes, sensor, cands, gyro, options)
+        steps = _outlier_rounds(observations, attitudes, sensor, cands, gyro, options, choice)
         done(PHASES[1])
         data, noise = steps[0].data, None
         if known_noise(data):  # a noise estimated from the residuals has nothing to be measured against
             noise = measure_noise(data.obs, steps[2].prediction, data.train, data.att_mask, sensor.camera)
         if noise is not None and noise.applied:
-            steps = _outlier_rounds(scaled(observations, noise), attitudes, sensor, cands, gyro, options)
+            steps = _outlier_rounds(scaled(observations, noise), attitudes, sensor, cands, gyro, options, choice)
         obs_used = scaled(observations, noise) if noise is not None and noise.applied else observations
         done(PHASES[2])
         shape = _describe(steps[0], steps[2], steps[3], sensor) if steps[3].unexplained else None
@@ -132,8 +137,8 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
         evidence, given, before = tuple(steps[3].evidence), sensor_model(sensor.scenario, moves), None
         if shape is not None and shape.correction is not None:
             sensor, steps, shape = _corrected(shape, given.scenario, obs_used, attitudes, cands, gyro, options,
-                                              given.moving)
-            steps, noise = _noise_again(noise, steps, observations, attitudes, sensor, cands, gyro, options)
+                                              given.moving, choice)
+            steps, noise = _noise_again(noise, steps, observations, attitudes, sensor, cands, gyro, options, choice)
             before = _as_given(steps[0], given)
         done(PHASES[4])
         check = None
@@ -145,15 +150,17 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
 
 
 def _corrected(shape: Description, given: ScenarioConfig, obs: Observations, attitudes: Rotation,
-               cands: dict[str, Candidate], gyro: GyroData | None, options: DiagnoseOptions, moving: bool):
+               cands: dict[str, Candidate], gyro: GyroData | None, options: DiagnoseOptions, moving: bool,
+               lens: ProjectionChoice | None):
     """The diagnosis with ``shape``'s empirical correction in the model as given: the physics is
     named again (an effect that only absorbed part of the shape drops), and what the corrected
     model still leaves of the same shape, with the named effects free, is added to the correction
     (:data:`MAX_CORRECTION_ROUNDS`). Returns the sensor model, the last round's steps and the
-    shape that round ran with; ``moving``: the motion flag of the sensor model (:func:`sequence_moves`)."""
+    shape that round ran with; ``moving``: the motion flag of the sensor model (:func:`sequence_moves`);
+    ``lens``: the projection search's fit (:func:`_outlier_rounds`)."""
     for k in range(MAX_CORRECTION_ROUNDS):
         sensor = sensor_model(with_correction(given, shape), moving)
-        steps = _outlier_rounds(obs, attitudes, sensor, cands, gyro, options)
+        steps = _outlier_rounds(obs, attitudes, sensor, cands, gyro, options, lens)
         if k == MAX_CORRECTION_ROUNDS - 1:
             break
         data, model, verification = steps[0].data, steps[2], steps[3]
@@ -166,7 +173,8 @@ def _corrected(shape: Description, given: ScenarioConfig, obs: Observations, att
 
 
 def _noise_again(noise: NoiseCheck | None, steps: tuple, observations: Observations, attitudes: Rotation,
-                 sensor: SensorModel, cands: dict[str, Candidate], gyro: GyroData | None, options: DiagnoseOptions):
+                 sensor: SensorModel, cands: dict[str, Candidate], gyro: GyroData | None, options: DiagnoseOptions,
+                 lens: ProjectionChoice | None):
     """The noise measured once more on the corrected model (a shape left in the first residual
     moves stars between frames too); the last round runs again when the factor it used changes."""
     if noise is None:
@@ -179,7 +187,7 @@ def _noise_again(noise: NoiseCheck | None, steps: tuple, observations: Observati
     if total.applied == noise.applied and not again.applied:  # the factor the rounds used stands
         return steps, noise if noise.applied else total
     obs = scaled(observations, total) if total.applied else observations
-    return _outlier_rounds(obs, attitudes, sensor, cands, gyro, options), total
+    return _outlier_rounds(obs, attitudes, sensor, cands, gyro, options, lens), total
 
 
 def _as_given(location: Location, given: SensorModel) -> dict:
@@ -233,19 +241,25 @@ def _named_rows(data, model: EffectModel, mask) -> np.ndarray | None:
 
 
 def _outlier_rounds(observations: Observations, attitudes: Rotation, sensor: SensorModel, cands: dict[str, Candidate],
-                    gyro: GyroData | None, options: DiagnoseOptions) -> tuple:
+                    gyro: GyroData | None, options: DiagnoseOptions, lens: ProjectionChoice | None = None) -> tuple:
     """The four steps in rounds of model-aware outlier rejection: the gross-outlier gate of each
     round after the first is the model the previous round named (stars its physics explains come
-    back); a fixed point when a round names what its gate held. Returns the last round's
-    (location, naming, model, verification) and each round's gate and rejected fraction."""
-    gate, gate_names, rounds = None, (), []
+    back); a fixed point when a round names what its gate held. The first round's gate is the model
+    as given, or, when the projection was searched (``lens``), the model with the projection, focal
+    length and ``k1`` the search fitted: a strong distortion the model as given leaves out moves
+    corner stars beyond the gate, and they must not be lost before step 2 can name it. Returns the
+    last round's (location, naming, model, verification) and each round's gate and rejected
+    fraction."""
+    gate_names, rounds = (), []
+    gate = None if lens is None else replace(sensor, camera=fitted_camera(sensor.camera, lens))
     for _ in range(MAX_OUTLIER_ROUNDS):
         location = locate(observations, attitudes, sensor, cands, gyro, options, gate)
         naming = name_effects(location, sensor, cands, options)
         model = model_effects(location.data, naming, sensor, options)
         verification = verify(location, naming, model, sensor, cands, options)
         rejected = location.data.n_rejected
-        rounds.append({"gate": list(gate_names), "rejected": rejected, "fraction": rejected / max(observations.n, 1)})
+        rounds.append({"gate": list(gate_names) or (["projection search's fit"] if gate is not None else []),
+                       "rejected": rejected, "fraction": rejected / max(observations.n, 1)})
         names = tuple(c.name for c in verification.named)
         if not rejected or not names or names == gate_names:
             break

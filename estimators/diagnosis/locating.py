@@ -32,6 +32,7 @@ from rollingstar.estimators.diagnosis.signatures import linear_problem
 
 MIN_STARS_PER_FRAME = 4  # an attitude from fewer stars says little: frames keep at least this many
 OUTLIER_SIGMA = 30.0  # far beyond noise, below the identifier's refine gate: a wrong match, not physics
+GATE_ROUNDS = 4  # attitude refits of the gross-outlier gate (:func:`gross_outliers`)
 MIN_TRAINING_STARS = 10  # fewer training stars left after the outlier gate: nothing to diagnose
 LOCATED_STRUCTURE_ROWS = 12  # covariate x channel tests reported (strongest first)
 
@@ -131,14 +132,10 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
         obs = estimate_sigma(obs, pred0)
         nuis0, pred0 = fit_nuisance(obs, attitudes, *fit, att_mask, sensor.moving)
     # gross outliers (misidentified stars: the tracking refine gate is 2 px = 40 sigma at 0.05 px)
-    far = _beyond_gate(obs, pred0)
-    if gate is not None:  # the named model's misses, its attitudes fitted without the stars beyond its gate
-        gate_fit = (gate.camera, gate.timing, gate.effects)
-        _, pred_gate = fit_nuisance(obs, attitudes, *gate_fit, att_mask, gate.moving)
-        for _ in range(2):  # a wrong identification pulls its frame's attitude: gate again without it
-            far = _beyond_gate(obs, pred_gate)
-            _, pred_gate = fit_nuisance(obs, attitudes, *gate_fit, att_mask & ~far, gate.moving)
-        far = _beyond_gate(obs, pred_gate)
+    if gate is None:
+        far = gross_outliers(obs, attitudes, sensor, att_mask, pred0)
+    else:  # the named model's misses
+        far = gross_outliers(obs, attitudes, gate, att_mask)
     n_rejected = int(far.sum())
     if np.count_nonzero(~obs.heldout) < MIN_TRAINING_STARS:
         raise UserError(f"only {np.count_nonzero(~obs.heldout)} of the {obs.n} identified stars are left for training "
@@ -164,7 +161,31 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
     return Dataset(obs, unit, frame_has_train, att_mask, n_rejected, chan_out), nuis0, pred0
 
 
-def _beyond_gate(obs: Observations, pred: Prediction) -> np.ndarray:
+def gross_outliers(obs: Observations, attitudes, model: SensorModel, att_mask: np.ndarray,
+                   pred: Prediction | None = None) -> np.ndarray:
+    """The stars ``model`` misses by more than ``OUTLIER_SIGMA`` with every frame's attitude fitted
+    without them: a fixed point of fitting the attitudes to the stars inside the gate and gating
+    every star again (at most ``GATE_ROUNDS`` fits). A wrong identification pulls its frame's
+    least-squares attitude, by tens of pixels when it is hundreds of pixels off, and a single gate
+    on that fit rejects good stars with it (4 wrong stars among 40 took 20 good ones along); the
+    refit without the far stars brings the good ones back. ``pred``: ``model``'s prediction with
+    every star in the fit, when already computed."""
+    fit = (model.camera, model.timing, model.effects)
+    if pred is None:
+        _, pred = fit_nuisance(obs, attitudes, *fit, att_mask, model.moving)
+    far = beyond_gate(obs, pred)
+    for _ in range(GATE_ROUNDS):
+        if not far.any():
+            break
+        _, pred = fit_nuisance(obs, attitudes, *fit, att_mask & ~far, model.moving)
+        again = beyond_gate(obs, pred)
+        if np.array_equal(again, far):
+            break
+        far = again
+    return far
+
+
+def beyond_gate(obs: Observations, pred: Prediction) -> np.ndarray:
     """The stars further than ``OUTLIER_SIGMA`` from ``pred`` (Mahalanobis under a 2 x 2 covariance)."""
     if obs.cov is None:
         return np.hypot(obs.x - pred.x, obs.y - pred.y) > OUTLIER_SIGMA * obs.sigma

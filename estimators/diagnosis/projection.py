@@ -32,7 +32,13 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from rollingstar.estimators.diagnosis.inputs import DiagnoseOptions, SensorModel
-from rollingstar.estimators.diagnosis.locating import attitude_mask, split_heldout
+from rollingstar.estimators.diagnosis.locating import (
+    GATE_ROUNDS,
+    MIN_TRAINING_STARS,
+    attitude_mask,
+    beyond_gate,
+    split_heldout,
+)
 from rollingstar.estimators.diagnosis.observations import (
     Nuisance,
     Observations,
@@ -60,6 +66,7 @@ class ProjectionChoice:
     k1: dict
     dof: int
     heldout_rms_px: dict  # held-out RMS per axis under the declared and the named projection (their fits)
+    beyond_gate: int = 0  # stars every projection was fitted without (beyond the gross-outlier gate of the best)
 
     @property
     def renamed(self) -> bool:
@@ -72,7 +79,7 @@ class ProjectionChoice:
 
     def as_json(self) -> dict:
         return {"declared": self.declared, "named": self.named, "delta_chi2": self.delta_chi2, "dof": self.dof,
-                "heldout_rms_px": self.heldout_rms_px,
+                "heldout_rms_px": self.heldout_rms_px, "beyond_gate": self.beyond_gate,
                 "candidates": {p: {"chi2_dof": self.chi2[p] / max(self.dof, 1), "focal_px": self.focal_px[p],
                                    "k1": self.k1[p]} for p in self.chi2}}
 
@@ -121,38 +128,64 @@ def distinguishable(camera, sigma_px: float) -> bool:
 def choose_projection(obs: Observations, attitudes: Rotation, sensor: SensorModel,
                       options: DiagnoseOptions) -> ProjectionChoice | None:
     """Fit every projection to the training stars (module docstring) and name the best; None when
-    no projection is :func:`distinguishable` from the declared one over this camera's field."""
+    no projection is :func:`distinguishable` from the declared one over this camera's field.
+
+    Every projection is fitted to the same stars: those within the gross-outlier gate of the best
+    fit, found as a fixed point (fit all, gate every star on the best fit, fit again on the stars
+    inside; at most ``GATE_ROUNDS`` rounds). A misidentified star hundreds of pixels off would
+    otherwise decide the search: its miss is the same under every projection."""
     if obs.n == 0 or not distinguishable(sensor.camera, float(np.median(obs.sigma))):
         return None
     heldout, _ = split_heldout(obs, options.heldout_fraction, options.seed)
     obs = replace(obs, heldout=heldout)
     _, att_mask = attitude_mask(obs)
     train = ~heldout
-    # the frames' rates once, from the declared model's attitudes: a projection changes where stars
-    # image, not how the frame turns between frames (the attitudes are refitted in every evaluation)
-    start, _ = fit_nuisance(obs, attitudes, sensor.camera, sensor.timing, sensor.effects, att_mask, sensor.moving)
-    chi2, focal, k1, heldout_rms = {}, {}, {}, {}
-    for projection in PROJECTIONS:
-        chi2[projection], focal[projection], k1[projection], heldout_rms[projection] = _fit(
-            obs, start, sensor, projection, att_mask, train)
+    inside = np.ones(obs.n, dtype=bool)
+    for _ in range(GATE_ROUNDS):
+        # the frames' rates once, from the declared model's attitudes: a projection changes where stars
+        # image, not how the frame turns between frames (the attitudes are refitted in every evaluation)
+        start, _ = fit_nuisance(obs, attitudes, sensor.camera, sensor.timing, sensor.effects, att_mask & inside,
+                                sensor.moving)
+        fits = {p: _fit(obs, start, sensor, p, att_mask & inside, train & inside, inside) for p in PROJECTIONS}
+        finite = {p: f.chi2 for p, f in fits.items() if np.isfinite(f.chi2)}
+        best = min(finite, key=finite.get) if finite else sensor.camera.projection
+        if best not in finite:
+            break
+        again = ~beyond_gate(obs, fits[best].prediction)
+        if np.array_equal(again, inside) or np.count_nonzero(again & train) < MIN_TRAINING_STARS:
+            break
+        inside = again
     declared = sensor.camera.projection
-    finite = {p: c for p, c in chi2.items() if np.isfinite(c)}
-    best = min(finite, key=finite.get) if finite else declared
     # the best and the declared fitted again with every frame's rate free (as the locate step fits
     # them): the rates of a wrong model bias the focal length by a few parts in 1e4
     for projection in {best, declared}:
-        chi2[projection], focal[projection], k1[projection], heldout_rms[projection] = _fit(
-            obs, attitudes, sensor, projection, att_mask, train)
+        fits[projection] = _fit(obs, attitudes, sensor, projection, att_mask & inside, train & inside, inside)
+    chi2 = {p: f.chi2 for p, f in fits.items()}
     named = best if (not np.isfinite(chi2[declared]) or chi2[declared] - chi2[best] >= NAMING_DELTA) else declared
-    dof = int(2 * np.count_nonzero(train) - 3 * obs.n_frames - 2)
-    return ProjectionChoice(declared, named, chi2, focal, k1, dof, heldout_rms)
+    dof = int(2 * np.count_nonzero(train & inside) - 3 * obs.n_frames - 2)
+    return ProjectionChoice(declared, named, chi2, {p: f.focal_px for p, f in fits.items()},
+                            {p: f.k1 for p, f in fits.items()}, dof, {p: f.heldout_rms for p, f in fits.items()},
+                            int(np.count_nonzero(~inside)))
 
 
-def _fit(obs, start, sensor: SensorModel, projection: str, att_mask, train) -> tuple[float, float, float, float]:
-    """Chi-square, focal length and k1 of ``projection`` fitted to the training stars with every
-    frame's attitude, and the held-out RMS per axis with them (the held-out frames' attitudes fitted
-    to their own stars, the nuisance). ``start``: a :class:`Nuisance` whose rates are held (the
-    search), or bare attitudes, whose rates are fitted too (the final fits)."""
+@dataclass(frozen=True)
+class _Fit:
+    chi2: float
+    focal_px: float
+    k1: float
+    heldout_rms: float
+    prediction: object  # every star's, with the attitudes fitted to the stars the fit used
+
+
+_FAILED = _Fit(np.inf, np.nan, np.nan, np.nan, None)
+
+
+def _fit(obs, start, sensor: SensorModel, projection: str, att_mask, train, inside) -> _Fit:
+    """Chi-square, focal length and k1 of ``projection`` fitted to the ``train`` stars with every
+    frame's attitude (fitted to ``att_mask``), the held-out RMS per axis with them (the held-out
+    frames' attitudes fitted to their own stars, the nuisance; only stars ``inside`` the gate) and
+    every star's prediction. ``start``: a :class:`Nuisance` whose rates are
+    held (the search), or bare attitudes, whose rates are fitted too (the final fits)."""
 
     def nuisance_fit(camera, mask):
         if isinstance(start, Nuisance):
@@ -162,7 +195,7 @@ def _fit(obs, start, sensor: SensorModel, projection: str, att_mask, train) -> t
     cam0 = sensor.camera
     f0 = nominal_focal_px(cam0, projection)
     if not np.isfinite(f0) or f0 <= 0:
-        return np.inf, np.nan, np.nan, np.nan
+        return _FAILED
 
     def camera(p):
         return replace(cam0, projection=projection, focal_length_m=f0 * np.exp(p[0]) * cam0.pixel_size_m, k1=p[1])
@@ -177,12 +210,18 @@ def _fit(obs, start, sensor: SensorModel, projection: str, att_mask, train) -> t
         sol = least_squares(residuals, x0=[0.0, 0.0], bounds=([lo, -1.0], [hi, 1.0]), x_scale=[0.01, 0.01],
                             max_nfev=40)
     except (ValueError, np.linalg.LinAlgError):
-        return np.inf, np.nan, np.nan, np.nan
-    _, pred = nuisance_fit(camera(sol.x), None)
-    out = ~train
+        return _FAILED
+    _, pred = nuisance_fit(camera(sol.x), att_mask)
+    out = obs.heldout & inside
     miss = np.concatenate([obs.x[out] - pred.x[out], obs.y[out] - pred.y[out]])
     heldout_rms = float(np.sqrt(np.nanmean(miss**2))) if out.any() else float("nan")
-    return float(2.0 * sol.cost), float(f0 * np.exp(sol.x[0])), float(sol.x[1]), heldout_rms
+    return _Fit(float(2.0 * sol.cost), float(f0 * np.exp(sol.x[0])), float(sol.x[1]), heldout_rms, pred)
+
+
+def fitted_camera(camera, choice: ProjectionChoice):
+    """``camera`` with the named projection and the focal length and ``k1`` fitted with it."""
+    focal_m = choice.focal_px[choice.named] * camera.pixel_size_m
+    return replace(camera, projection=choice.named, focal_length_m=focal_m, k1=choice.k1[choice.named])
 
 
 def with_projection(scenario: ScenarioConfig, choice: ProjectionChoice) -> ScenarioConfig:
