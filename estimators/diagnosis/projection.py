@@ -131,35 +131,36 @@ def choose_projection(obs: Observations, attitudes: Rotation, sensor: SensorMode
     no projection is :func:`distinguishable` from the declared one over this camera's field.
 
     Every projection is fitted to the same stars: those within the gross-outlier gate of the best
-    fit, found as a fixed point (fit all, gate every star on the best fit, fit again on the stars
-    inside; at most ``GATE_ROUNDS`` rounds). A misidentified star hundreds of pixels off would
-    otherwise decide the search: its miss is the same under every projection."""
+    fit (with its rates free), found as a fixed point (fit, gate every star on the best fit, fit
+    again on the stars inside; at most ``GATE_ROUNDS`` refits). A misidentified star hundreds of
+    pixels off would otherwise decide the search: its miss is about the same under every projection."""
     if obs.n == 0 or not distinguishable(sensor.camera, float(np.median(obs.sigma))):
         return None
     heldout, _ = split_heldout(obs, options.heldout_fraction, options.seed)
     obs = replace(obs, heldout=heldout)
     _, att_mask = attitude_mask(obs)
     train = ~heldout
+    declared = sensor.camera.projection
     inside = np.ones(obs.n, dtype=bool)
-    for _ in range(GATE_ROUNDS):
+    for round_ in range(GATE_ROUNDS + 1):
         # the frames' rates once, from the declared model's attitudes: a projection changes where stars
         # image, not how the frame turns between frames (the attitudes are refitted in every evaluation)
         start, _ = fit_nuisance(obs, attitudes, sensor.camera, sensor.timing, sensor.effects, att_mask & inside,
                                 sensor.moving)
         fits = {p: _fit(obs, start, sensor, p, att_mask & inside, train & inside, inside) for p in PROJECTIONS}
         finite = {p: f.chi2 for p, f in fits.items() if np.isfinite(f.chi2)}
-        best = min(finite, key=finite.get) if finite else sensor.camera.projection
-        if best not in finite:
+        best = min(finite, key=finite.get) if finite else declared
+        # the best fitted again with every frame's rate free (as the locate step fits them): the
+        # rates of a wrong model bias the focal length by a few parts in 1e4
+        fits[best] = _fit(obs, attitudes, sensor, best, att_mask & inside, train & inside, inside)
+        if fits[best].prediction is None or round_ == GATE_ROUNDS:
             break
         again = ~beyond_gate(obs, fits[best].prediction)
         if np.array_equal(again, inside) or np.count_nonzero(again & train) < MIN_TRAINING_STARS:
             break
         inside = again
-    declared = sensor.camera.projection
-    # the best and the declared fitted again with every frame's rate free (as the locate step fits
-    # them): the rates of a wrong model bias the focal length by a few parts in 1e4
-    for projection in {best, declared}:
-        fits[projection] = _fit(obs, attitudes, sensor, projection, att_mask & inside, train & inside, inside)
+    if declared != best:
+        fits[declared] = _fit(obs, attitudes, sensor, declared, att_mask & inside, train & inside, inside)
     chi2 = {p: f.chi2 for p, f in fits.items()}
     named = best if (not np.isfinite(chi2[declared]) or chi2[declared] - chi2[best] >= NAMING_DELTA) else declared
     dof = int(2 * np.count_nonzero(train & inside) - 3 * obs.n_frames - 2)
