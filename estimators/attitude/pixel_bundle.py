@@ -199,7 +199,8 @@ def refine_on_pixels(frame, context, camera, stars, R: Rotation, omega, info, fi
     pixels, nuis = pixels.take(usable), nuis[usable]
     k = 6 if fit_rate else 3
     for it in range(params.pixel_iterations + 1):
-        pv, A, _ = kin(R, omega)
+        if it:  # the first iteration's kinematics are the ones computed above
+            pv, A, _ = kin(R, omega)
         b = _Blocks(pv[usable], A[usable], nuis, pixels)
         # a loose screen at the start, the strict one after every step (a star the start left out
         # comes back once the fit explains it)

@@ -46,7 +46,7 @@ from dataclasses import replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
-from scipy.stats import binom, chi2
+from scipy.special import bdtrc, chdtrc
 
 from rollingstar.estimators.data import DEFAULT_CENTROID_SIGMA_PX, FrameData, IdentificationCheck, StarTable
 from rollingstar.sensors.conventions import S_PER_NS
@@ -96,8 +96,10 @@ def check_identification(stars: StarTable | None, unmatched: StarTable | None, c
     fitted = 6 if rate_fitted(ident) else 3
     anchors = (fitted + 1) // 2  # stars the fit could have made match whatever they were
     n = max(n, k)
-    chance = float(binom.sf(k - 1, n, p))
-    prob = float(binom.sf(k - 1 - anchors, n - anchors, p)) if k > anchors else 1.0
+    # binomial and chi-square tails by scipy.special's functions: scipy.stats' distribution objects
+    # return the same values (they call these) at ~40x the cost, a tenth of a tracked frame
+    chance = float(bdtrc(k - 1, n, p))
+    prob = float(bdtrc(k - 1 - anchors, n - anchors, p)) if k > anchors else 1.0
     dof = 2 * k - fitted
     info = np.linalg.inv(cov)
     z2 = np.einsum("ni,nij,nj->n", dx, info, dx) if np.all(np.isfinite(dx)) else np.full(k, np.nan)
@@ -125,7 +127,7 @@ def check_frame(frame: FrameData, camera, catalog, bound: float = DEFAULT_MAX_FA
 
 def inconsistent(check: IdentificationCheck) -> bool:
     """True when the fit's chi-square contradicts the stars' stated covariances (``p < INCONSISTENT_P``)."""
-    return check.dof > 0 and np.isfinite(check.chi2_dof) and chi2.sf(check.chi2_dof * check.dof, check.dof) < INCONSISTENT_P
+    return check.dof > 0 and np.isfinite(check.chi2_dof) and chdtrc(check.dof, check.chi2_dof * check.dof) < INCONSISTENT_P
 
 
 def rate_fitted(ident: StarTable) -> bool:

@@ -21,6 +21,8 @@ ARCSEC = np.pi / (180.0 * 3600.0)
 CONE_SLACK_RAD = np.radians(1.0)
 #: Largest detections x predictions product matched by all pairwise distances (else k-d trees).
 BRUTE_FORCE_PAIRS = 40_000
+#: Chi-square (3 dof) above which a rate change between estimates is taken as an angular acceleration (99.9 %).
+ACCELERATION_CHI2 = float(chi2.ppf(0.999, 3))
 
 
 class RaDecRoll(BaseModel):
@@ -347,7 +349,7 @@ class TrackingIdentifier(Identifier):
             dt = (t_ns - self._rate_t_ns) * S_PER_NS
             alpha = (omega - self._rate_rad_s) / dt
             c_alpha = (cov + self._rate_cov) / dt**2
-            if alpha @ np.linalg.solve(c_alpha, alpha) > chi2.ppf(0.999, 3):
+            if alpha @ np.linalg.solve(c_alpha, alpha) > ACCELERATION_CHI2:
                 self._alpha = alpha
         self._rate_rad_s, self._rate_cov, self._rate_t_ns, self._rate_measured = omega, cov, t_ns, measured
 
