@@ -110,6 +110,7 @@ Where the rest lives
 """
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
@@ -207,29 +208,34 @@ class EffectContext:
     def __post_init__(self):
         x, y = (np.array(a) for a in np.broadcast_arrays(np.asarray(self.x, dtype=float).reshape(-1),
                                                         np.asarray(self.y, dtype=float).reshape(-1)))
-        n = x.shape[0]
-        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 - frozen dataclass
-        set_("x", x)
-        set_("y", y)
-        set_("t_ns", np.array(np.broadcast_to(np.asarray(self.t_ns, dtype=np.int64).reshape(-1), (n,))))
-        for k in self._INTS:
+        object.__setattr__(self, "x", x)
+        object.__setattr__(self, "y", y)
+        self._normalise(("t_ns", *self._INTS, *self._SCALARS, *self._VECTORS, "attitude", "covariates"))
+
+    def _normalise(self, names) -> None:
+        """Broadcast the fields ``names`` to this context's ``n`` observations (copies; a frozen
+        dataclass, so set in place once) and check the attitude's length."""
+        n = self.x.shape[0]
+        for k in names:
             v = getattr(self, k)
-            if v is not None:
-                set_(k, np.array(np.broadcast_to(np.asarray(v, dtype=np.int64).reshape(-1), (n,))))
-        for k in self._SCALARS:
-            v = getattr(self, k)
-            if v is not None:
-                set_(k, np.array(np.broadcast_to(np.asarray(v, dtype=float).reshape(-1), (n,))))
-        for k in self._VECTORS:
-            v = getattr(self, k)
-            if v is not None:
-                set_(k, np.array(np.broadcast_to(np.asarray(v, dtype=float).reshape(-1, 3), (n, 3))))
-        if self.attitude is not None and not self.attitude.single and len(self.attitude) not in (n,):
-            raise ValueError(f"EffectContext.attitude: expected {n} rotations, got {len(self.attitude)}")
-        cov = {}
-        for name, v in dict(self.covariates).items():
-            cov[str(name)] = np.array(np.broadcast_to(np.asarray(v, dtype=float).reshape(-1), (n,)))
-        set_("covariates", cov)
+            if v is None:
+                continue
+            if k in ("t_ns", *self._INTS):
+                v = np.array(np.broadcast_to(np.asarray(v, dtype=np.int64).reshape(-1), (n,)))
+            elif k in self._SCALARS:
+                v = np.array(np.broadcast_to(np.asarray(v, dtype=float).reshape(-1), (n,)))
+            elif k in self._VECTORS:
+                v = np.array(np.broadcast_to(np.asarray(v, dtype=float).reshape(-1, 3), (n, 3)))
+            elif k == "covariates":
+                v = {str(name): np.array(np.broadcast_to(np.asarray(c, dtype=float).reshape(-1), (n,)))
+                     for name, c in dict(v).items()}
+            elif k == "attitude":
+                if not v.single and len(v) not in (n,):
+                    raise ValueError(f"EffectContext.attitude: expected {n} rotations, got {len(v)}")
+                continue
+            else:
+                continue
+            object.__setattr__(self, k, v)
 
     @property
     def n(self) -> int:
@@ -280,8 +286,19 @@ class EffectContext:
         return EffectContext(**kw)
 
     def evolve(self, **changes) -> "EffectContext":
-        """A copy with ``changes`` (e.g. new ideal positions ``x=..., y=...``)."""
-        return replace(self, **changes)
+        """A copy with ``changes`` (e.g. new ideal positions ``x=..., y=...``). Only the changed
+        fields are broadcast again when the positions stay (the effect chain and the diagnosis
+        evolve contexts thousands of times per recording)."""
+        if "x" in changes or "y" in changes:
+            return replace(self, **changes)
+        unknown = set(changes) - set(self.__dataclass_fields__)
+        if unknown:
+            raise TypeError(f"EffectContext has no field(s) {', '.join(sorted(unknown))}")
+        out = copy.copy(self)
+        for k, v in changes.items():
+            object.__setattr__(out, k, v)
+        out._normalise(tuple(changes))
+        return out
 
     def unit_camera(self) -> np.ndarray:
         """Unit camera-frame line of sight of the ideal positions, (n, 3) (he2021b eq 2)."""
