@@ -96,6 +96,10 @@ def markdown(rows: list[dict]) -> str:
         p = r["projection"]
         if p is None:
             return "not searched"
+        if not p.get("searched", True):  # a narrow field far off the model: only the declared lens fitted
+            focal = p["candidates"][p["named"]]["focal_px"]
+            return "not searched; lens fitted" + (f", focal {focal:.0f} px (declared {p['declared_focal_px']:.0f})"
+                                                  if p["refocused"] else "")
         return p["named"] if p["named"] == p["declared"] else f"**{p['named']}** (declared {p['declared']})"
 
     def noise(r):

@@ -250,7 +250,9 @@ class FrameData:
     ``camera`` the camera model an identifier fitted on this frame (focal length, principal point,
     distortion), which later stages use instead of the sensor context's (None: the context's, see
     :func:`frame_camera`); ``identification`` the integrity check of the frame's identified stars
-    (:class:`IdentificationCheck`, None before an identifier ran).
+    (:class:`IdentificationCheck`, None before an identifier ran); ``psf_sigma_px`` the Gaussian PSF
+    sigma (px) a stage measured from the camera's pixels (None: none did), which earlier stages may
+    take for the next frame (:meth:`~rollingstar.estimators.plugin.Plugin.update_prior`).
     """
 
     index: int
@@ -265,6 +267,7 @@ class FrameData:
     truth: TruthSamples | None = None
     camera: Any = None
     identification: "IdentificationCheck | None" = None
+    psf_sigma_px: float | None = None
 
     def evolve(self, **changes) -> "FrameData":
         """A new frame with some fields replaced (frames are immutable)."""

@@ -38,6 +38,7 @@ from scipy.spatial.transform import Rotation
 
 from rollingstar.estimators.attitude.frame_fit import apply_step, predicted_directions
 from rollingstar.estimators.centroiders.cog import robust_sigma
+from rollingstar.estimators.centroiders.psf_width import measure_psf_sigma, star_windows
 from rollingstar.estimators.centroiders.streak_kernel import normal_equations, nuisance_equations
 from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.so3 import skew
@@ -94,18 +95,6 @@ def background_variance(image: np.ndarray) -> float:
     every ``BACKGROUND_STRIDE``-th pixel (stars cover a small fraction of them)."""
     sample = np.asarray(image)[::BACKGROUND_STRIDE, ::BACKGROUND_STRIDE]
     return max(robust_sigma(sample) ** 2, 1e-6)
-
-
-def _windows(pv: np.ndarray, exposure_s: float, params):
-    """Equal-size windows covering every star's streak: ``row0, col0, nrows, ncols``."""
-    half = params.window_sigmas * params.psf_sigma_px + 1.0
-    ext_x = 0.5 * np.abs(pv[:, 2]) * exposure_s * 1.1 + half
-    ext_y = 0.5 * np.abs(pv[:, 3]) * exposure_s * 1.1 + half
-    nr = 2 * int(np.ceil(ext_y.max())) + 1
-    nc = 2 * int(np.ceil(ext_x.max())) + 1
-    row0 = np.rint(pv[:, 1]).astype(np.int64) - nr // 2
-    col0 = np.rint(pv[:, 0]).astype(np.int64) - nc // 2
-    return row0, col0, nr, nc
 
 
 class _Pixels(NamedTuple):
@@ -179,25 +168,49 @@ def _initial_nuisance(pv: np.ndarray, pixels: _Pixels) -> tuple[np.ndarray, np.n
     return start + step, used
 
 
-def refine_on_pixels(frame, context, camera, stars, R: Rotation, omega, info, fit_rate: bool, t_ref: int, params):
-    """Attitude, rate, information and flags after the pixel step (module docstring); the position
-    solution ``(R, omega, info)`` is returned unchanged when no star has enough live pixels."""
+def _frame_pixels(frame, context, pv: np.ndarray, psf_sigma_px: float, window_sigmas: float) -> _Pixels:
+    """The frame's pixels and each star's window
+    (:func:`~rollingstar.estimators.centroiders.psf_width.star_windows`) for the pixel model of PSF
+    sigma ``psf_sigma_px``."""
     timing = context.timing
     exposure_s, ld_s = timing.exposure_ns * S_PER_NS, timing.effective_line_delay_ns * S_PER_NS
     gain = context.gain_e_per_adu or 1.0
-    ref = stars.ref_icrs / np.linalg.norm(stars.ref_icrs, axis=1, keepdims=True)
-    kin = partial(star_kinematics, camera, timing, frame.t0_ns, t_ref, ref=ref, t_ns=stars.t_ns)
-    pv, A, _ = kin(R, omega)
-    row0, col0, nr, nc = _windows(pv, exposure_s, params)
+    row0, col0, nr, nc = star_windows(pv, exposure_s, psf_sigma_px, window_sigmas)
     saturation = float((1 << int(context.bit_depth)) - 1) if context.bit_depth else np.inf
-    pixels = _Pixels(np.asarray(frame.image), row0, col0, nr, nc, saturation, background_variance(frame.image),
-                     1.0 / gain, effective_sigma(params.psf_sigma_px), exposure_s, ld_s)
+    return _Pixels(np.asarray(frame.image), row0, col0, nr, nc, saturation, background_variance(frame.image),
+                   1.0 / gain, effective_sigma(psf_sigma_px), exposure_s, ld_s)
+
+
+def _kinematics(frame, context, camera, stars, t_ref: int):
+    """:func:`star_kinematics` of ``stars`` in ``frame`` as a function of ``(R, omega)``."""
+    ref = stars.ref_icrs / np.linalg.norm(stars.ref_icrs, axis=1, keepdims=True)
+    return partial(star_kinematics, camera, context.timing, frame.t0_ns, t_ref, ref=ref, t_ns=stars.t_ns)
+
+
+def measure_psf(frame, context, camera, stars, R: Rotation, omega, t_ref: int, window_sigmas: float) -> float | None:
+    """The PSF sigma (px) of the frame's stars at the position solution ``(R, omega)``
+    (:func:`rollingstar.estimators.centroiders.psf_width.measure_psf_sigma`), or None."""
+    pv = _kinematics(frame, context, camera, stars, t_ref)(R, omega)[0]
+    px = _frame_pixels(frame, context, pv, 1.0, window_sigmas)
+    return measure_psf_sigma(px.image, pv, px.exposure_s, px.ld_s, px.saturation, px.noise2, px.inv_gain,
+                             window_sigmas)
+
+
+def refine_on_pixels(frame, context, camera, stars, R: Rotation, omega, info, fit_rate: bool, t_ref: int, params,
+                     psf_sigma_px: float):
+    """Attitude, rate, information and flags after the pixel step (module docstring) with the PSF
+    sigma ``psf_sigma_px``; the position solution ``(R, omega, info)`` is returned unchanged (and
+    flagged) when no star has enough live pixels, or when fewer than two stars pass the screen."""
+    kin = _kinematics(frame, context, camera, stars, t_ref)
+    pv, A, _ = kin(R, omega)
+    pixels = _frame_pixels(frame, context, pv, psf_sigma_px, params.window_sigmas)
     nuis, live = _initial_nuisance(pv, pixels)
     usable = live >= MIN_LIVE_PIXELS
     if not usable.any():
         return R, omega, info, frame.flags + ("pixel_step_skipped:no_live_pixels",)
     pixels, nuis = pixels.take(usable), nuis[usable]
     k = 6 if fit_rate else 3
+    start = (R, omega)
     for it in range(params.pixel_iterations + 1):
         if it:  # the first iteration's kinematics are the ones computed above
             pv, A, _ = kin(R, omega)
@@ -206,10 +219,16 @@ def refine_on_pixels(frame, context, camera, stars, R: Rotation, omega, info, fi
         # comes back once the fit explains it)
         strict = (nuis[:, 0] > 0) & (b.chi2 / b.dof <= MAX_STAR_CHI2)
         keep = (nuis[:, 0] > 0) & (b.chi2 / b.dof <= START_STAR_CHI2) if it == 0 else strict
+        if np.count_nonzero(keep) < 2:  # the model explains too few stars' pixels to fit anything
+            return (*start, info, frame.flags + (f"pixel_step_skipped:model_misfit({int(keep.sum())} of "
+                                                 f"{int(usable.sum())} stars explained)",))
         normal = np.sum(b.normal[keep][:, :k, :k], axis=0)
         if it == params.pixel_iterations:
             break
-        step = np.linalg.solve(normal, np.sum(b.rhs[keep][:, :k], axis=0))
+        try:
+            step = np.linalg.solve(normal, np.sum(b.rhs[keep][:, :k], axis=0))
+        except np.linalg.LinAlgError:
+            return (*start, info, frame.flags + ("pixel_step_skipped:singular_information",))
         nuis = nuis + b.nuisance_step(A[usable], step)
         R, omega = apply_step(R, omega, step)
         if np.array_equal(keep, strict) and np.all(np.abs(step) <= CONVERGED_SIGMAS * np.sqrt(np.diag(np.linalg.inv(normal)))):

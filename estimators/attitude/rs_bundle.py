@@ -36,7 +36,7 @@ from scipy.spatial.transform import Rotation
 
 from rollingstar.estimators.attitude.base import AttitudeSolver
 from rollingstar.estimators.attitude.frame_fit import fit_positions, star_times, velocity_rate
-from rollingstar.estimators.attitude.pixel_bundle import refine_on_pixels
+from rollingstar.estimators.attitude.pixel_bundle import measure_psf, refine_on_pixels
 from rollingstar.estimators.attitude.robust import RobustParams, apply_robust
 from rollingstar.estimators.attitude.star_covariance import direction_covariance
 from rollingstar.estimators.data import AttitudeEstimate, FrameData, RateEstimate, default_sigma_px, frame_camera
@@ -58,7 +58,9 @@ class RsBundleParams(RobustParams):
                          "recordings) with the rolling-shutter smear model; False: positions only.")
     pixel_iterations: int = Field(default=8, ge=1, le=30, description="Most Gauss-Newton iterations of the pixel "
                                   "step (it stops earlier once a step moves no parameter by 5 % of its sigma).")
-    psf_sigma_px: float = Field(default=1.0, gt=0, description="Gaussian PSF sigma of the pixel model (px).")
+    psf_sigma_px: float | None = Field(default=None, gt=0, description="Gaussian PSF sigma of the pixel model "
+                                       "(px); None: measured from the first frame's stars, and again after a "
+                                       "frame whose stars the model does not explain.")
     window_sigmas: float = Field(default=3.0, gt=1, description="Half width of each star's pixel window beyond "
                                  "its streak, in PSF sigmas.")
 
@@ -73,6 +75,7 @@ class RsBundleSolver(AttitudeSolver):
     def setup(self, context) -> None:
         super().setup(context)
         self._sigma_px = default_sigma_px(self.params.sigma_px, context)
+        self._psf_sigma_px = self.params.psf_sigma_px  # None until measured
 
     def process(self, frame: FrameData) -> FrameData:
         p = self.params
@@ -98,6 +101,7 @@ class RsBundleSolver(AttitudeSolver):
         flags = frame.flags
         if p.pixels and frame.image is not None:
             R, omega, info, flags = self._refine_on_pixels(frame, camera, stars, R, omega, info, fit_rate, t_ref)
+            frame = frame.evolve(psf_sigma_px=self._psf_sigma_px)
         return self._estimates(frame.evolve(flags=flags), t_ref, n, R, omega, info, fit_rate)
 
     def _initial_rate(self, frame: FrameData, camera, stars) -> np.ndarray:
@@ -107,7 +111,21 @@ class RsBundleSolver(AttitudeSolver):
         return np.zeros(3) if from_velocities is None else from_velocities
 
     def _refine_on_pixels(self, frame, camera, stars, R, omega, info, fit_rate, t_ref):
-        return refine_on_pixels(frame, self.context, camera, stars, R, omega, info, fit_rate, t_ref, self.params)
+        if self._psf_sigma_px is None:
+            self._psf_sigma_px = measure_psf(frame, self.context, camera, stars, R, omega, t_ref,
+                                             self.params.window_sigmas)
+            if self._psf_sigma_px is None:
+                return R, omega, info, frame.flags + ("pixel_step_skipped:psf_not_measured",)
+        R, omega, info, flags = refine_on_pixels(frame, self.context, camera, stars, R, omega, info, fit_rate, t_ref,
+                                                 self.params, self._psf_sigma_px)
+        if self.params.psf_sigma_px is None and any(f.startswith("pixel_step_skipped:model_misfit") for f in flags):
+            self._psf_sigma_px = None  # measured again on the next frame
+        return R, omega, info, flags
+
+    @property
+    def psf_sigma_px(self) -> float | None:
+        """The PSF sigma (px) the pixel step works with: the parameter, or the one measured."""
+        return self._psf_sigma_px
 
     def _estimates(self, frame: FrameData, t_ref: int, n: int, R: Rotation, omega, info, fit_rate: bool) -> FrameData:
         try:

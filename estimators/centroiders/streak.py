@@ -18,6 +18,7 @@ from rollingstar.estimators.centroiders.cog import (
 )
 from rollingstar.estimators.centroiders.covariance import effective_gain, isotropic_sigma
 from rollingstar.estimators.centroiders.edge import with_edge_covariance
+from rollingstar.estimators.centroiders.psf_width import measure_psf_sigma
 from rollingstar.estimators.centroiders.streak_kernel import levenberg_marquardt, star_pixels, window_moments
 from rollingstar.estimators.centroiders.window_kernel import centroid_windows_at
 from rollingstar.estimators.data import FrameData, StarTable, frame_camera
@@ -42,6 +43,8 @@ TRACKED_SAMPLE_PX = 4096
 ROUND_WINDOW_PX = 24  # window of a round spot's CoG in a tracked frame (a saturated bright star's spot fits)
 SAME_SPOT_PX = 1.0  # spots closer than this are one
 MAX_KERNELS = 256  # matched filters kept (by streak length in whole pixels and bin)
+DEFAULT_PSF_SIGMA_PX = 1.0  # the model's PSF sigma until a later stage measures the camera's
+PSF_CHANGE = 0.05  # a measured PSF sigma this far (relative) from the one in use replaces it
 # A fit with an expected velocity must come within this fraction of it plus VELOCITY_SLACK_PX of
 # streak length over the exposure (a fit across two collinear streaks, or onto a neighbour, is much
 # longer or turned; a PSF 30 % wider than the model's passes for a 3 px smear)
@@ -56,7 +59,9 @@ class StreakParams(BaseModel):
     threshold_sigma: float = Field(default=5.0, gt=0, description="Detection threshold of the matched filter, in "
                                    "sigmas of its output noise.")
     min_snr: float = Field(default=5.0, ge=0, description="Smallest fitted flux over its standard deviation kept.")
-    psf_sigma_px: float = Field(default=1.0, gt=0, description="Gaussian PSF sigma of the model (px).")
+    psf_sigma_px: float | None = Field(default=None, gt=0, description="Gaussian PSF sigma of the model (px); "
+                                       "None: measured from the stars of the first full search (1 px before), and taken from a "
+                                       "later stage that measures it (rs-bundle does) when it differs by more than 5 %.")
     background: Literal["median", "tiles", "map"] = Field(
         default="median", description="Background model, as the cog centroider's: one global median, bilinear tile "
         "medians, or tile medians median-filtered over map_filter_tiles tiles.")
@@ -259,7 +264,8 @@ class StreakCentroider(Centroider):
         timing = context.timing
         self._exposure = timing.exposure_ns * S_PER_NS
         self._ld = timing.effective_line_delay_ns * S_PER_NS
-        self._se = effective_sigma(self.params.psf_sigma_px)
+        self._set_psf(DEFAULT_PSF_SIGMA_PX if self.params.psf_sigma_px is None else self.params.psf_sigma_px)
+        self._measures_psf = self.params.psf_sigma_px is None  # on the first full search that finds stars
         self._omega = None
         self._sign_known = False
         self._previous = None  # (t0_ns, tracks (n, 4) = x, y, vx, vy at their own rows' mid-exposure)
@@ -283,9 +289,24 @@ class StreakCentroider(Centroider):
         v = rotation_jacobian(camera, x, y) @ np.asarray(omega, dtype=float)
         return float(np.max(np.hypot(v[:, 0], v[:, 1]))) * self._exposure
 
+    def _set_psf(self, psf_sigma_px: float) -> None:
+        """The model's PSF sigma, and what follows from it: the matched filters are built again, and
+        the next frame is searched in full (the stars tracked so far were found with the old filter,
+        which misses faint stars of another width)."""
+        self._psf = float(psf_sigma_px)
+        self._se = effective_sigma(self._psf)
+        self._kernels = {}
+        self._search_due = True
+
     def update_prior(self, frame: FrameData) -> bool:
         """Take the frame's body-rate estimate, when a later stage made a valid one, as the expected
-        motion of the next frame (it also settles the sign of motion along the columns)."""
+        motion of the next frame (it also settles the sign of motion along the columns); and the
+        PSF sigma a later stage measured, when this one's is not set and it differs by more than
+        ``PSF_CHANGE`` from the one in use."""
+        measured = frame.psf_sigma_px
+        if (self.params.psf_sigma_px is None and measured is not None and np.isfinite(measured)
+                and abs(measured / self._psf - 1.0) > PSF_CHANGE):
+            self._set_psf(measured)
         rate = frame.rate
         if rate is None or not rate.valid or not np.all(np.isfinite(rate.omega_rad_s)):
             return False
@@ -309,6 +330,8 @@ class StreakCentroider(Centroider):
         f = self._frame(frame)
         self.last_mode = "full"
         p, cov = self._stars(f, camera, omega) if omega is not None else (np.zeros((0, 6)), None)
+        if omega is not None and self._measure_psf(f, p):
+            p, cov = self._stars(f, camera, omega)
         if p.shape[0] < MIN_STARS_FOR_RATE:
             self.last_mode = "cold"
             p, cov = self._cold(f, camera)
@@ -318,6 +341,22 @@ class StreakCentroider(Centroider):
         self._searched(frame.t0_ns, p[:, :4], f.background)
         return frame.evolve(stars=self._table(frame, f, p, cov))
 
+    def _measure_psf(self, f: _Frame, p: np.ndarray) -> bool:
+        """On the first full search that finds stars, when no width is stated: the PSF sigma measured
+        from them (:func:`~rollingstar.estimators.centroiders.psf_width.measure_psf_sigma`) becomes
+        the model's when it differs by more than ``PSF_CHANGE``; True then (the caller searches
+        again: the matched filter of the wrong width misses faint stars)."""
+        if not self._measures_psf or p.shape[0] < MIN_STARS_FOR_RATE:
+            return False
+        measured = measure_psf_sigma(f.raw, p, self._exposure, self._ld, f.saturation, f.noise**2, f.inv_gain)
+        if measured is None:
+            return False
+        self._measures_psf = False
+        if abs(measured / self._psf - 1.0) <= PSF_CHANGE:
+            return False
+        self._set_psf(measured)
+        return True
+
     def _searched(self, t0_ns: int, tracks: np.ndarray, background) -> None:
         """State after a full-frame search: its stars ``(x, y, vx, vy)`` are the tracks, their count
         the reference a tracked frame is held to, and its background map the tracked frames'."""
@@ -325,6 +364,7 @@ class StreakCentroider(Centroider):
         self._misses = np.zeros(len(tracks), dtype=np.int64)
         self._searched_count = len(tracks)
         self._tracked_frames = 0
+        self._search_due = False
         self._inflow = {}  # (axis, edge) -> the sky's shift in through that edge since it was last searched (px)
         self._background = background
 
@@ -339,7 +379,7 @@ class StreakCentroider(Centroider):
     # ------------------------------------------------------------------ tracked frames
     def _can_track(self, omega) -> bool:
         p = self.params
-        due = p.full_search_frames and self._tracked_frames >= p.full_search_frames
+        due = self._search_due or (p.full_search_frames and self._tracked_frames >= p.full_search_frames)
         return (p.track_windows and omega is not None and self._sign_known and self._previous is not None
                 and self._previous[1].shape[0] >= MIN_STARS_FOR_RATE and not due)
 
@@ -529,6 +569,8 @@ class StreakCentroider(Centroider):
         sign the next frame settles)."""
         self._sign_known = False
         p, cov = self._stars(f, camera, None)
+        if self._measure_psf(f, p):
+            p, cov = self._stars(f, camera, None)
         omega = self._fitted_rate(camera, p, signed=False)
         if omega is not None:
             again = self._stars(f, camera, omega)
@@ -697,7 +739,7 @@ class StreakCentroider(Centroider):
             hy = int(np.ceil((abs(vy) * self._exposure / 2 + 3 * self._se) / k))
             c = (hx * k + (k - 1) / 2.0, hy * k + (k - 1) / 2.0)
             mu = streak_mu([c[0], c[1], vx, vy, 1.0, 0.0], 0, 0, (2 * hy + 1) * k, (2 * hx + 1) * k,
-                           self.params.psf_sigma_px, self._exposure, self._ld)[0]
+                           self._psf, self._exposure, self._ld)[0]
             kern = mu.reshape(2 * hy + 1, k, 2 * hx + 1, k).sum(axis=(1, 3))
             self._kernels[key] = _Kernel.of(kern / np.sqrt(np.sum(kern**2)))
         return self._kernels[key]

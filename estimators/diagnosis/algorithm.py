@@ -119,7 +119,7 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
         moves = sensor.moving or sequence_moves(observations, attitudes, sensor.camera, sensor.timing)
         sensor = sensor_model(scenario, moves)
         choice = choose_projection(observations, attitudes, sensor, options)
-        if choice is not None and choice.renamed:
+        if choice is not None and choice.restated:
             sensor = sensor_model(with_projection(scenario, choice), moves)
         done(PHASES[0])
         cands: dict[str, Candidate] = library(exclude=exclude_effects)
@@ -245,9 +245,10 @@ def _outlier_rounds(observations: Observations, attitudes: Rotation, sensor: Sen
     """The four steps in rounds of model-aware outlier rejection: the gross-outlier gate of each
     round after the first is the model the previous round named (stars its physics explains come
     back); a fixed point when a round names what its gate held. The first round's gate is the model
-    as given, or, when the projection was searched (``lens``), the model with the projection, focal
-    length and ``k1`` the search fitted: a strong distortion the model as given leaves out moves
-    corner stars beyond the gate, and they must not be lost before step 2 can name it. Returns the
+    as given, or, when the lens was fitted (``lens``, :mod:`.projection`), the model with the
+    projection, focal length and ``k1`` of that fit (reported as the gate "lens fit"): a strong
+    distortion the model as given leaves out moves corner stars beyond the gate, and they must not
+    be lost before step 2 can name it. Returns the
     last round's (location, naming, model, verification) and each round's gate and rejected
     fraction."""
     gate_names, rounds = (), []
@@ -258,7 +259,7 @@ def _outlier_rounds(observations: Observations, attitudes: Rotation, sensor: Sen
         model = model_effects(location.data, naming, sensor, options)
         verification = verify(location, naming, model, sensor, cands, options)
         rejected = location.data.n_rejected
-        rounds.append({"gate": list(gate_names) or (["projection search's fit"] if gate is not None else []),
+        rounds.append({"gate": list(gate_names) or (["lens fit"] if gate is not None else []),
                        "rejected": rejected, "fraction": rejected / max(observations.n, 1)})
         names = tuple(c.name for c in verification.named)
         if not rejected or not names or names == gate_names:
@@ -283,7 +284,7 @@ def _isolated(obs: Observations, pred, heldout: np.ndarray) -> list[dict]:
 def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
     """The report of ``d`` as one JSON-able dict; ``recording``, ``sim`` and ``pipeline`` name its inputs."""
     data, v, q = d.location.data, d.verification, d.verification.quality
-    renamed = d.projection is not None and d.projection.renamed
+    renamed = d.projection is not None and d.projection.restated
     noise_off = d.noise is not None and d.noise.applied
     referenced = d.reference.tested if d.reference is not None else []
     out = {
@@ -338,11 +339,11 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
 
 def _verdict(projection: ProjectionChoice | None, noise: NoiseCheck | None, description: Description | None,
              verdict: str, reference: ReferenceCheck | None = None) -> str:
-    """The verdict, led by the lens projection when one replaced the declared one, by the noise
+    """The verdict, led by the lens projection or focal length when one replaced the declared one, by the noise
     factor when the recording's noise is not the stated one, and by a shape outside the library
     when one was described."""
     lead = []
-    if projection is not None and projection.renamed:
+    if projection is not None and projection.restated:
         lead.append(projection.sentence())
     if noise is not None and noise.applied:
         lead.append(noise.sentence())

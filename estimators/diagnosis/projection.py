@@ -22,6 +22,15 @@ the BIC difference) is lower by ``NAMING_DELTA``; the scenario the rest of the d
 from then declares it with the focal length fitted with it (a nominal field through the wrong
 projection is off by more than the library's focal-length effect reaches), and the library names
 the distortion, and any focal-length error left, relative to it.
+
+Over a narrow field the projections cannot be told apart, but the lens can still be far from the
+model as given: a ``log.json`` field of view that is the lens's nominal one, not its own, or a
+strong distortion. When the model as given leaves more than ``LENS_FIT_FRACTION`` of the stars
+beyond the gross-outlier gate, the declared projection's focal length and ``k1`` are fitted the
+same way (no other projection is tried). In either case the fit is the first round's outlier
+gate, and a focal length off the declared one by more than ``REFOCUS_FRACTION`` is declared in the
+scenario the effects are named against, and stated in the verdict: the library's focal-length
+effect is a tolerance, bounded at 10 %, not a search.
 """
 from __future__ import annotations
 
@@ -37,6 +46,7 @@ from rollingstar.estimators.diagnosis.locating import (
     MIN_TRAINING_STARS,
     attitude_mask,
     beyond_gate,
+    gross_outliers,
     split_heldout,
 )
 from rollingstar.estimators.diagnosis.observations import (
@@ -52,6 +62,8 @@ from rollingstar.sensors.scenario import ScenarioConfig
 NAMING_DELTA = 10.0  # chi-square a projection must gain over the declared one (the library's BIC margin)
 FOCAL_RANGE = (0.7, 1.4)  # the focal length's freedom around the nominal field's
 SEPARATION_SIGMAS = 1.0  # a projection this far (in noise sigmas) from every focal and k1 change of the declared is searched
+LENS_FIT_FRACTION = 0.1  # stars beyond the gate of the model as given above which a narrow field's lens is fitted too
+REFOCUS_FRACTION = 0.05  # a focal length off the declared one by more than this is declared (the library's reaches 10 %)
 
 
 @dataclass(frozen=True)
@@ -67,10 +79,25 @@ class ProjectionChoice:
     dof: int
     heldout_rms_px: dict  # held-out RMS per axis under the declared and the named projection (their fits)
     beyond_gate: int = 0  # stars every projection was fitted without (beyond the gross-outlier gate of the best)
+    declared_focal_px: float = float("nan")
+    searched: bool = True  # False: a narrow field, only the declared projection's focal length and k1 fitted
 
     @property
     def renamed(self) -> bool:
         return self.named != self.declared
+
+    @property
+    def refocused(self) -> bool:
+        """Whether the named projection's focal length is off the declared one by more than
+        ``REFOCUS_FRACTION``: a nominal field that far off is stated in the scenario the effects are
+        named against (the library's focal-length effect is a tolerance, bounded at 10 %)."""
+        ratio = self.focal_px[self.named] / self.declared_focal_px
+        return bool(np.isfinite(ratio) and abs(ratio - 1.0) > REFOCUS_FRACTION)
+
+    @property
+    def restated(self) -> bool:
+        """Whether the scenario the diagnosis works from declares this fit's projection and focal length."""
+        return self.renamed or self.refocused
 
     @property
     def delta_chi2(self) -> float:
@@ -79,13 +106,19 @@ class ProjectionChoice:
 
     def as_json(self) -> dict:
         return {"declared": self.declared, "named": self.named, "delta_chi2": self.delta_chi2, "dof": self.dof,
-                "heldout_rms_px": self.heldout_rms_px, "beyond_gate": self.beyond_gate,
+                "heldout_rms_px": self.heldout_rms_px, "beyond_gate": self.beyond_gate, "searched": self.searched,
+                "declared_focal_px": self.declared_focal_px, "refocused": self.refocused,
                 "candidates": {p: {"chi2_dof": self.chi2[p] / max(self.dof, 1), "focal_px": self.focal_px[p],
                                    "k1": self.k1[p]} for p in self.chi2}}
 
     def sentence(self) -> str:
         if not self.renamed:
-            return ""
+            if not self.refocused:
+                return ""
+            f = self.focal_px[self.named]
+            return (f"focal length {f:.1f} px, not the declared {self.declared_focal_px:.1f} px "
+                    f"({100.0 * (f / self.declared_focal_px - 1.0):+.1f} %: the declared field is off; fitted with k1 "
+                    f"before any effect; held-out RMS {self.heldout_rms_px[self.named]:.3g} px)")
         return (f"lens projection: {self.named}, not the declared {self.declared}, focal length "
                 f"{self.focal_px[self.named]:.1f} px (training chi2/dof {self.chi2[self.declared] / max(self.dof, 1):.3g} "
                 f"-> {self.chi2[self.named] / max(self.dof, 1):.3g}, focal length and k1 fitted for each; held-out RMS "
@@ -127,15 +160,21 @@ def distinguishable(camera, sigma_px: float) -> bool:
 
 def choose_projection(obs: Observations, attitudes: Rotation, sensor: SensorModel,
                       options: DiagnoseOptions) -> ProjectionChoice | None:
-    """Fit every projection to the training stars (module docstring) and name the best; None when
-    no projection is :func:`distinguishable` from the declared one over this camera's field.
+    """Fit every projection to the training stars (module docstring) and name the best. When no
+    projection is :func:`distinguishable` from the declared one over this camera's field, only the
+    declared one is fitted (its focal length and ``k1``), and only when the model as given misses
+    many stars beyond the gross-outlier gate (:func:`_misses_many`); None otherwise.
 
     Every projection is fitted to the same stars: those within the gross-outlier gate of the best
     fit (with its rates free), found as a fixed point (fit, gate every star on the best fit, fit
     again on the stars inside; at most ``GATE_ROUNDS`` refits). A misidentified star hundreds of
     pixels off would otherwise decide the search: its miss is about the same under every projection."""
-    if obs.n == 0 or not distinguishable(sensor.camera, float(np.median(obs.sigma))):
+    if obs.n == 0:
         return None
+    searched = distinguishable(sensor.camera, float(np.median(obs.sigma)))
+    if not searched and not _misses_many(obs, attitudes, sensor):
+        return None
+    candidates = PROJECTIONS if searched else (sensor.camera.projection,)
     heldout, _ = split_heldout(obs, options.heldout_fraction, options.seed)
     obs = replace(obs, heldout=heldout)
     _, att_mask = attitude_mask(obs)
@@ -147,7 +186,7 @@ def choose_projection(obs: Observations, attitudes: Rotation, sensor: SensorMode
         # image, not how the frame turns between frames (the attitudes are refitted in every evaluation)
         start, _ = fit_nuisance(obs, attitudes, sensor.camera, sensor.timing, sensor.effects, att_mask & inside,
                                 sensor.moving)
-        fits = {p: _fit(obs, start, sensor, p, att_mask & inside, train & inside, inside) for p in PROJECTIONS}
+        fits = {p: _fit(obs, start, sensor, p, att_mask & inside, train & inside, inside) for p in candidates}
         finite = {p: f.chi2 for p, f in fits.items() if np.isfinite(f.chi2)}
         best = min(finite, key=finite.get) if finite else declared
         # the best fitted again with every frame's rate free (as the locate step fits them): the
@@ -166,7 +205,16 @@ def choose_projection(obs: Observations, attitudes: Rotation, sensor: SensorMode
     dof = int(2 * np.count_nonzero(train & inside) - 3 * obs.n_frames - 2)
     return ProjectionChoice(declared, named, chi2, {p: f.focal_px for p, f in fits.items()},
                             {p: f.k1 for p, f in fits.items()}, dof, {p: f.heldout_rms for p, f in fits.items()},
-                            int(np.count_nonzero(~inside)))
+                            int(np.count_nonzero(~inside)), sensor.camera.focal_px, searched)
+
+
+def _misses_many(obs: Observations, attitudes: Rotation, sensor: SensorModel) -> bool:
+    """Whether the model as given leaves more than ``LENS_FIT_FRACTION`` of the stars beyond the
+    gross-outlier gate (:func:`~.locating.gross_outliers`): a lens further off than its
+    tolerances (a nominal field of view that is not the lens's, a strong distortion), which the
+    gate would otherwise take for misidentifications."""
+    far = gross_outliers(obs, attitudes, sensor, np.ones(obs.n, dtype=bool))
+    return bool(np.count_nonzero(far) > LENS_FIT_FRACTION * obs.n)
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,9 @@ def _what_differs(r: dict) -> str:
     proj = r.get("projection")
     if proj and proj["named"] != proj["declared"]:
         found.append(f"the lens projection is {proj['named']}, not the declared {proj['declared']}")
+    elif proj and proj.get("refocused"):
+        focal = proj["candidates"][proj["named"]]["focal_px"]
+        found.append(f"the focal length is {focal:.1f} px, not the declared {proj['declared_focal_px']:.1f} px")
     noise = r.get("noise_check")
     if noise and noise.get("applied"):
         found.append(f"the centroid noise is {noise['factor']:.2f} +- {noise['factor_sigma']:.2f} x the stated "

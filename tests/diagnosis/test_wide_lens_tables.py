@@ -16,6 +16,7 @@ import math
 
 import numpy as np
 import pytest
+import yaml
 from typer.testing import CliRunner
 
 from rollingstar.cli import app
@@ -27,10 +28,12 @@ PIXEL_MM = 4.94e-3  # the creusot camera's pixel: its 16 mm lens gives log.json'
 N_STARS = 40
 
 
-def write_table(folder, lens_mm: float, k1: float, noise_px: float, wrong: int, seed: int) -> None:
+def write_table(folder, lens_mm: float, k1: float, noise_px: float, wrong: int, seed: int,
+                nominal_mm: float | None = None) -> None:
     """A corr table (FITS columns field_x/y, index_x/y, index_ra/dec, index_id, match_weight, FLUX;
     pixel centres 1-based) and log.json of one image through a pinhole with radial distortion
-    ``k1``; the first ``wrong`` rows carry a catalogue direction belonging elsewhere in the image."""
+    ``k1``; the first ``wrong`` rows carry a catalogue direction belonging elsewhere in the image.
+    ``nominal_mm``: the lens log.json's field is computed for (default: the true one)."""
     from astropy.io import fits
 
     rng = np.random.default_rng(seed)
@@ -52,7 +55,7 @@ def write_table(folder, lens_mm: float, k1: float, noise_px: float, wrong: int, 
     fits.BinTableHDU.from_columns(cols).writeto(folder / "corr.fits")
     c_ra, c_dec = (float(np.degrees(a)) for a in unit_to_radec(R.apply([0.0, 0.0, 1.0])))
     (folder / "log.json").write_text(json.dumps({
-        "fov_deg": math.degrees(math.hypot(W, H) / focal_px), "image_size": {"x": W, "y": H},
+        "fov_deg": math.degrees(math.hypot(W, H) * PIXEL_MM / (nominal_mm or lens_mm)), "image_size": {"x": W, "y": H},
         "center": {"ra_degrees": c_ra, "dec_degrees": c_dec}, "timestamp": {"date": "7/09/2023", "time": "9:30 PM"}}))
 
 
@@ -79,3 +82,35 @@ def test_a_wide_lens_table_with_wrong_identifications_closes_the_fit(tmp_path, l
     assert out["heldout_rms_after_px"] < 1.3 * noise, (out["heldout_rms_after_px"], noise)
     print(f"\n{lens_mm} mm, k1 {k1}: k1 fitted {fitted['value']:.4f} +- {fitted['sigma']:.4f}; held-out RMS "
           f"{out['heldout_rms_before_px']:.3g} -> {out['heldout_rms_after_px']:.3g} px against a noise of {noise:.3g} px")
+
+
+@pytest.mark.parametrize("lens_mm, nominal_mm, k1", [
+    (12.0, 10.5, 0.0),  # a narrow field declared 12.5 % too wide: no projection search, the gate alone refused it
+    (6.0, 6.9, -0.1),  # 15 % too narrow, with a distortion the library names after the focal length
+])
+def test_a_nominal_field_far_off_the_lens_is_fitted_and_stated(tmp_path, lens_mm, nominal_mm, k1):
+    """log.json's field is a nominal one (a lens's catalogue focal length) and off by more than the
+    focal-length effect's 10 % tolerance: the focal length is fitted before any effect, stated
+    in the verdict and in the updated scenario, and the fit closes."""
+    write_table(tmp_path / "sky" / "image", lens_mm, k1, 0.6, 2, seed=3, nominal_mm=nominal_mm)
+    runner = CliRunner()
+    res = runner.invoke(app, ["import", "corr", str(tmp_path / "sky"), "-o", str(tmp_path / "rec.mcap")])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, ["diagnose", "--recording", str(tmp_path / "rec.mcap"), "-o", str(tmp_path / "report"),
+                              "--json", "-q"])
+    assert res.exit_code == 0, res.output
+    out = json.loads(res.output)
+    proj = out["projection"]
+    assert proj["refocused"] and proj["named"] == "perspective", proj
+    focal = proj["candidates"]["perspective"]["focal_px"]
+    truth = lens_mm / PIXEL_MM
+    assert abs(focal / truth - 1) < 0.005, (focal, truth)
+    assert out["verdict"].startswith(f"focal length {focal:.1f} px, not the declared"), out["verdict"]
+    assert out["rejected_outliers"] == 2, out["outlier_rounds"]
+    assert out["heldout_rms_after_px"] < 1.3 * out["noise"]["sigma_px_median"], out["summary"]
+    sensor = yaml.safe_load((tmp_path / "report" / "scenario_updated.yaml").read_text())["sensor"]
+    assert abs(sensor["focal_length_mm"] / (sensor["pixel_size_um"] * 1e-3) / focal - 1) < 1e-6, sensor
+    named = {e["name"] for e in out["effects"]}
+    assert ("radial_distortion" in named) == (k1 != 0.0), named
+    print(f"\n{lens_mm} mm declared as {nominal_mm} mm: focal {focal:.1f} px (truth {truth:.1f}); named {sorted(named)}; "
+          f"held-out RMS {out['heldout_rms_after_px']:.3g} px against a noise of {out['noise']['sigma_px_median']:.3g} px")

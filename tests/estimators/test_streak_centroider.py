@@ -140,7 +140,7 @@ def test_a_psf_wider_than_the_model_still_finds_the_stars_and_widens_their_covar
     covers the scatter (normalised chi-square at most 1.5 x its nominal 2)."""
     ctx, model = _context(psf_sigma_px=1.3)
     rng = np.random.default_rng(5)
-    centroider = StreakCentroider()
+    centroider = StreakCentroider(psf_sigma_px=1.0)  # stated, not measured
     centroider.setup(ctx)
     chi2 = []
     for k in range(10):
@@ -309,8 +309,8 @@ def test_tracking_a_sky_rendered_with_a_wider_psf_than_the_model_loses_no_star(r
     """Stars rendered with a 1.4 px PSF (the fit's model: 1 px; cog has no model): tracked frames
     still find every star a full search of the frame finds, and no full search is needed."""
     ctx, frames, truth = _moving_sky(np.random.default_rng(12), rate_deg_s * PX_PER_S_PER_DEG_S, 6, psf_sigma_px=1.4)
-    tracked = StreakCentroider(cog_below_px=3.0)
-    full = StreakCentroider(cog_below_px=3.0, track_windows=False)
+    tracked = StreakCentroider(cog_below_px=3.0, psf_sigma_px=1.0)  # stated, not measured
+    full = StreakCentroider(cog_below_px=3.0, track_windows=False, psf_sigma_px=1.0)
     tracked.setup(ctx)
     full.setup(ctx)
     for k, (frame, (x, y)) in enumerate(zip(frames, truth)):
@@ -318,3 +318,25 @@ def test_tracking_a_sky_rendered_with_a_wider_psf_than_the_model_loses_no_star(r
         assert k == 0 or tracked.last_mode == "tracked", k
         ja, jb = set(_matched(a, x, y, 1.5)[0]), set(_matched(b, x, y, 1.5)[0])
         assert jb <= ja and len(ja) >= 0.8 * x.size, (k, jb - ja, len(ja), x.size)
+
+
+@pytest.mark.parametrize("psf_sigma_px", [1.4, 2.2])
+def test_the_cold_search_measures_the_psf_and_finds_what_the_stated_width_finds(psf_sigma_px):
+    """With no width stated the first cold search measures the camera's PSF from its stars and
+    searches again with it: the same stars as a centroider told the true width, at the same
+    positions within half their stated sigma (the measured width is off by a per cent or two)."""
+    ctx, frames, truth = _moving_sky(np.random.default_rng(21), 6.0 * PX_PER_S_PER_DEG_S, 3, psf_sigma_px=psf_sigma_px)
+    measured, stated = StreakCentroider(cog_below_px=3.0), StreakCentroider(cog_below_px=3.0, psf_sigma_px=psf_sigma_px)
+    measured.setup(ctx)
+    stated.setup(ctx)
+    for k, (frame, (x, y)) in enumerate(zip(frames, truth)):
+        a, b = measured.process(frame).stars, stated.process(frame).stars
+        if k == 0:
+            print(f"\nPSF {psf_sigma_px} px measured as {measured._psf:.3f} px")  # pytest -s
+            assert abs(measured._psf / psf_sigma_px - 1) < 0.03, measured._psf
+        ja, ia = _matched(a, x, y, 1.5)
+        jb, ib = _matched(b, x, y, 1.5)
+        assert set(ja) == set(jb), (k, set(jb) ^ set(ja))
+        order_a, order_b = ia[np.argsort(ja)], ib[np.argsort(jb)]
+        moved = np.hypot(a.x[order_a] - b.x[order_b], a.y[order_a] - b.y[order_b])
+        assert np.all(moved < 0.5 * b.sigma_px[order_b]), (moved.max(), np.median(b.sigma_px))

@@ -1,0 +1,87 @@
+"""The width of a camera's point-spread function, measured from the pixels of its stars.
+
+The smear model of :mod:`rollingstar.sensors.streak_model` draws a star as a Gaussian PSF of
+sigma ``s`` swept along its image velocity over each row's exposure. ``s`` belongs to the camera
+(focus, optics, pixel response), not to the simulator: a star tracker is often defocused on
+purpose to 1.5-3 px, and a model 1 px wide against 2 px stars puts every star beyond a
+chi-square screen (and the streak detector's matched filter then misses the faint ones).
+
+:func:`measure_psf_sigma` tries every sigma of ``PSF_GRID`` on the same windows (sized for the
+widest): for each, every star's flux and background exactly (the model is linear in both), then
+``FIT_STEPS`` Gauss-Newton steps of its position, flux and background (velocity held), and its
+reduced chi-square. The grid point with the lowest median over the stars wins (robust to a blend
+or a wrong identification); a parabola in ``log s`` through the summed chi-square of the stars
+consistent there (reduced chi-square at most ``CONSISTENT_CHI2``) at it and its two neighbours
+refines it. The sums are the compiled normal equations the fits use
+(:mod:`rollingstar.estimators.centroiders.streak_kernel`).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from rollingstar.estimators.centroiders.streak_kernel import normal_equations, nuisance_equations
+from rollingstar.sensors.streak_model import effective_sigma
+
+PSF_GRID = np.exp(np.linspace(np.log(0.5), np.log(3.5), 22))  # px, 9.7 % apart
+FIT_STEPS = 3  # Gauss-Newton steps of each star's position, flux and background per sigma
+MIN_STARS = 3  # fewest usable stars a sigma is measured from
+MIN_PIXELS = 12  # fewest live pixels of a star's window for it to count
+CONSISTENT_CHI2 = 2.0  # reduced chi-square of the stars the parabola is fitted to
+_FREE = [0, 1, 4, 5]  # of a star's (x, y, vx, vy, F, b): position, flux and background
+
+
+def star_windows(pv: np.ndarray, exposure_s: float, psf_sigma_px: float, window_sigmas: float):
+    """Equal-size windows covering every star's streak (``pv`` (n, >= 4): x, y, vx, vy at the
+    star's own row's mid-exposure, px and px/s): ``row0, col0, nrows, ncols``."""
+    half = window_sigmas * psf_sigma_px + 1.0
+    ext_x = 0.5 * np.abs(pv[:, 2]) * exposure_s * 1.1 + half
+    ext_y = 0.5 * np.abs(pv[:, 3]) * exposure_s * 1.1 + half
+    nr = 2 * int(np.ceil(ext_y.max())) + 1
+    nc = 2 * int(np.ceil(ext_x.max())) + 1
+    row0 = np.rint(pv[:, 1]).astype(np.int64) - nr // 2
+    col0 = np.rint(pv[:, 0]).astype(np.int64) - nc // 2
+    return row0, col0, nr, nc
+
+
+def measure_psf_sigma(image: np.ndarray, pv: np.ndarray, exposure_s: float, line_delay_s: float,
+                      saturation: float, noise2: float, inv_gain: float, window_sigmas: float = 3.0) -> float | None:
+    """The Gaussian PSF sigma (px) that explains the stars ``pv`` (module docstring), or None with
+    fewer than ``MIN_STARS`` usable stars. ``noise2``: the background noise variance and
+    ``inv_gain`` the shot-noise factor, in the image's units; pixels at ``saturation`` are left out."""
+    pv = np.ascontiguousarray(np.asarray(pv, dtype=float)[:, :4])
+    if len(pv) < MIN_STARS:
+        return None
+    image = np.asarray(image)
+    row0, col0, nr, nc = star_windows(pv, exposure_s, float(PSF_GRID[-1]), window_sigmas)
+    args = (row0, col0, nr, nc, image, float(saturation), float(noise2), float(inv_gain))
+    chi2 = np.full((PSF_GRID.size, len(pv)), np.nan)
+    dof = np.ones(len(pv))
+    for i, sigma in enumerate(PSF_GRID):
+        se = effective_sigma(float(sigma))
+        tail = (se, float(exposure_s), float(line_delay_s))
+        p = np.column_stack([pv, np.ones(len(pv)), np.zeros(len(pv))])
+        N, h, _ = nuisance_equations(p, *args, *tail)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            p[:, 4:] += np.linalg.solve(N + 1e-12 * np.eye(2), h[..., None])[..., 0]
+        for _ in range(FIT_STEPS):
+            M, g, _, _ = normal_equations(p, *args, *tail)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                step = np.linalg.solve(M[:, _FREE][:, :, _FREE] + 1e-9 * np.eye(4), g[:, _FREE, None])[..., 0]
+            p[:, _FREE] += np.where(np.isfinite(step), step, 0.0)
+        _, _, c, used = normal_equations(p, *args, *tail)
+        chi2[i] = np.where((used >= MIN_PIXELS) & (p[:, 4] > 0), c, np.nan)
+        dof = np.maximum(used - len(_FREE), 1)
+    reduced = chi2 / dof
+    usable = np.all(np.isfinite(reduced), axis=0)
+    if np.count_nonzero(usable) < MIN_STARS:
+        return None
+    best = int(np.argmin(np.median(reduced[:, usable], axis=1)))
+    consistent = usable & (reduced[best] <= CONSISTENT_CHI2)
+    if best in (0, PSF_GRID.size - 1) or np.count_nonzero(consistent) < MIN_STARS:
+        return float(PSF_GRID[best])
+    u = np.log(PSF_GRID[best - 1: best + 2])
+    total = chi2[best - 1: best + 2][:, consistent].sum(axis=1)
+    a, b, _ = np.polyfit(u - u[1], total, 2)
+    if a <= 0:
+        return float(PSF_GRID[best])
+    return float(np.exp(u[1] + np.clip(-b / (2.0 * a), u[0] - u[1], u[2] - u[1])))
