@@ -122,8 +122,12 @@ def markdown(rows: list[dict]) -> str:
                      f"{f(r['cpu_s'], '{:.2f}')} |")
     cpu = [r["cpu_s"] for r in rows]
     below = [r for r in rows if r["heldout_rms_after_px"] is not None and r["heldout_rms_after_px"] <= r["sigma_px"]]
-    lines += ["", f"- held-out RMS after at or below astrometry.net's in-sample residual: {len(below)} of {len(rows)} recordings",
-              f"- CPU seconds per diagnosis: median {np.median(cpu):.2f}, maximum {np.max(cpu):.2f} ({len(rows)} recordings)"]
+    lines += ["", f"- held-out RMS after at or below astrometry.net's in-sample residual: {len(below)} of {len(rows)} recordings"]
+    for lens in sorted({r["recording"].split("_", 1)[0] for r in rows}):
+        of = [r for r in rows if r["recording"].split("_", 1)[0] == lens and r["heldout_rms_after_px"] is not None]
+        ratios = [r["heldout_rms_after_px"] / r["sigma_px"] for r in of if r["sigma_px"]]
+        lines.append(f"  - {lens}: {sum(x <= 1.0 for x in ratios)} of {len(of)}, median ratio {np.median(ratios):.2f}")
+    lines.append(f"- CPU seconds per diagnosis: median {np.median(cpu):.2f}, maximum {np.max(cpu):.2f} ({len(rows)} recordings)")
     return "\n".join(lines)
 
 

@@ -12,9 +12,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
-
-import numpy as np
 
 PIPELINES = ("high_dynamic", "ls_rate", "baseline")
 AXES = ("x", "y", "z")
@@ -40,7 +39,10 @@ def _fmt(value: float | None) -> str:
         return "n/a"
     if abs(value) >= 99.5:
         return f"{value:.0f}"
-    return np.format_float_positional(value, precision=2, unique=False, fractional=False, trim="k").rstrip(".")
+    rounded = float(f"{value:.2g}")
+    if rounded == 0:
+        return "0"
+    return f"{rounded:.{max(0, 1 - math.floor(math.log10(abs(rounded))))}f}"
 
 
 def _cell(metrics: dict, with_rate: bool) -> str:
