@@ -126,7 +126,8 @@ def markdown(rows: list[dict]) -> str:
     for lens in sorted({r["recording"].split("_", 1)[0] for r in rows}):
         of = [r for r in rows if r["recording"].split("_", 1)[0] == lens and r["heldout_rms_after_px"] is not None]
         ratios = [r["heldout_rms_after_px"] / r["sigma_px"] for r in of if r["sigma_px"]]
-        lines.append(f"  - {lens}: {sum(x <= 1.0 for x in ratios)} of {len(of)}, median ratio {np.median(ratios):.2f}")
+        median = f"{np.median(ratios):.2f}" if ratios else "n/a"
+        lines.append(f"  - {lens}: {sum(x <= 1.0 for x in ratios)} of {len(of)}, median ratio {median}")
     lines.append(f"- CPU seconds per diagnosis: median {np.median(cpu):.2f}, maximum {np.max(cpu):.2f} ({len(rows)} recordings)")
     return "\n".join(lines)
 

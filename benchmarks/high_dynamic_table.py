@@ -26,8 +26,8 @@ def _mean(metric) -> float | None:
 
 
 def _valid(metrics: dict) -> float:
-    """Fraction of frames with a valid attitude (results written before the outcome counts: frames
-    less invalid estimates, one estimate per frame)."""
+    """Fraction of frames with a valid attitude (results without the outcome counts: frames less
+    invalid estimates, one estimate per frame)."""
     if "outcomes.valid_frames" in metrics:
         return _mean(metrics["outcomes.valid_frames"]) / _mean(metrics["outcomes.frames"])
     return 1.0 - _mean(metrics["invalid_attitude_estimates"]) / _mean(metrics["frames"])

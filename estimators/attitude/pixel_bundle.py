@@ -176,9 +176,13 @@ def _frame_pixels(frame, context, pv: np.ndarray, psf_sigma_px: float, window_si
     exposure_s, ld_s = timing.exposure_ns * S_PER_NS, timing.effective_line_delay_ns * S_PER_NS
     gain = context.gain_e_per_adu or 1.0
     row0, col0, nr, nc = star_windows(pv, exposure_s, psf_sigma_px, window_sigmas)
-    saturation = float((1 << int(context.bit_depth)) - 1) if context.bit_depth else np.inf
-    return _Pixels(np.asarray(frame.image), row0, col0, nr, nc, saturation, background_variance(frame.image),
+    return _Pixels(np.asarray(frame.image), row0, col0, nr, nc, _saturation(context), background_variance(frame.image),
                    1.0 / gain, effective_sigma(psf_sigma_px), exposure_s, ld_s)
+
+
+def _saturation(context) -> float:
+    """The ADC's full scale (ADU): pixels at it carry no information (+inf: unknown)."""
+    return float((1 << int(context.bit_depth)) - 1) if context.bit_depth else np.inf
 
 
 def _kinematics(frame, context, camera, stars, t_ref: int):
@@ -191,9 +195,11 @@ def measure_psf(frame, context, camera, stars, R: Rotation, omega, t_ref: int, w
     """The PSF sigma (px) of the frame's stars at the position solution ``(R, omega)``
     (:func:`rollingstar.estimators.centroiders.psf_width.measure_psf_sigma`), or None."""
     pv = _kinematics(frame, context, camera, stars, t_ref)(R, omega)[0]
-    px = _frame_pixels(frame, context, pv, 1.0, window_sigmas)
-    return measure_psf_sigma(px.image, pv, px.exposure_s, px.ld_s, px.saturation, px.noise2, px.inv_gain,
-                             window_sigmas)
+    timing = context.timing
+    return measure_psf_sigma(np.asarray(frame.image), pv, timing.exposure_ns * S_PER_NS,
+                             timing.effective_line_delay_ns * S_PER_NS, _saturation(context),
+                             background_variance(frame.image),
+                             1.0 / (context.gain_e_per_adu or 1.0), window_sigmas)
 
 
 def refine_on_pixels(frame, context, camera, stars, R: Rotation, omega, info, fit_rate: bool, t_ref: int, params,
@@ -214,7 +220,10 @@ def refine_on_pixels(frame, context, camera, stars, R: Rotation, omega, info, fi
     for it in range(params.pixel_iterations + 1):
         if it:  # the first iteration's kinematics are the ones computed above
             pv, A, _ = kin(R, omega)
-        b = _Blocks(pv[usable], A[usable], nuis, pixels)
+        try:
+            b = _Blocks(pv[usable], A[usable], nuis, pixels)
+        except np.linalg.LinAlgError:  # a star's flux and background not determined by its pixels
+            return (*start, info, frame.flags + ("pixel_step_skipped:singular_information",))
         # a loose screen at the start, the strict one after every step (a star the start left out
         # comes back once the fit explains it)
         strict = (nuis[:, 0] > 0) & (b.chi2 / b.dof <= MAX_STAR_CHI2)

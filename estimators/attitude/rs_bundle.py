@@ -42,6 +42,7 @@ from rollingstar.estimators.attitude.star_covariance import direction_covariance
 from rollingstar.estimators.data import AttitudeEstimate, FrameData, RateEstimate, default_sigma_px, frame_camera
 from rollingstar.sensors.so3 import rotate_at_rate
 
+DEFAULT_PSF_SIGMA_PX = 1.0  # the pixel model's PSF sigma on frames before one is measured
 HUBER_K = 3.0  # Huber threshold (Mahalanobis sigmas) of the position step that starts the pixel step
 
 
@@ -101,7 +102,7 @@ class RsBundleSolver(AttitudeSolver):
         flags = frame.flags
         if p.pixels and frame.image is not None:
             R, omega, info, flags = self._refine_on_pixels(frame, camera, stars, R, omega, info, fit_rate, t_ref)
-            frame = frame.evolve(psf_sigma_px=self._psf_sigma_px)
+            frame = frame.evolve(psf_sigma_px=self._psf_sigma_px)  # None until measured
         return self._estimates(frame.evolve(flags=flags), t_ref, n, R, omega, info, fit_rate)
 
     def _initial_rate(self, frame: FrameData, camera, stars) -> np.ndarray:
@@ -114,10 +115,10 @@ class RsBundleSolver(AttitudeSolver):
         if self._psf_sigma_px is None:
             self._psf_sigma_px = measure_psf(frame, self.context, camera, stars, R, omega, t_ref,
                                              self.params.window_sigmas)
-            if self._psf_sigma_px is None:
-                return R, omega, info, frame.flags + ("pixel_step_skipped:psf_not_measured",)
+        # too few stars to measure the width on: the default for this frame, measured on the next
+        psf = DEFAULT_PSF_SIGMA_PX if self._psf_sigma_px is None else self._psf_sigma_px
         R, omega, info, flags = refine_on_pixels(frame, self.context, camera, stars, R, omega, info, fit_rate, t_ref,
-                                                 self.params, self._psf_sigma_px)
+                                                 self.params, psf)
         if self.params.psf_sigma_px is None and any(f.startswith("pixel_step_skipped:model_misfit") for f in flags):
             self._psf_sigma_px = None  # measured again on the next frame
         return R, omega, info, flags

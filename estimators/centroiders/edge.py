@@ -18,9 +18,9 @@ width comes from the spot itself: a pixel-sampled Gaussian spot of flux ``F`` ha
 about ``F / (2 pi s^2)`` (its centre pixel: 8 % less for ``s`` = 1 px, so ``s`` comes out a little
 large, which enlarges the bias: the safe side), and a cut spot has ``F`` times ``T_x T_y`` of the
 whole, so ``s^2 = F / (2 pi peak T_x T_y)``; ``s`` and ``mu`` are solved together by fixed-point
-iteration (``_ITERATIONS`` steps per spot that reaches the edge, compiled: the numpy form spent
-0.3-0.7 ms a frame in per-call overhead on a handful of spots, more than a tracked frame's whole
-window fit; `benchmarks/centroid_speed.py`, edge term column).
+iteration (``_ITERATIONS`` steps per spot that reaches the edge, compiled: on a handful of spots
+a vectorised numpy loop is all per-call overhead, 0.3-0.7 ms a frame, more than a tracked frame's
+whole window fit; `benchmarks/centroid_speed.py`, edge term column).
 
 Reported: the position covariance with ``diag(bias_x^2, bias_y^2)`` added (the bias lies along
 the axis the edge cuts; ``sigma_px`` follows from the covariance, covariance.py). The position
@@ -118,7 +118,7 @@ def edge_bias_px(x, y, flux, peak, shape: tuple[int, int],
     if not near.any():
         return bx, by, cut
     d, T = _fixed_point(np.concatenate([x[near], y[near]]), flux[near] / (2.0 * np.pi * peak[near]),
-                        float(W), float(H), int(_ITERATIONS))
+                        float(W), float(H), max(int(_ITERATIONS), 0))
     k = int(near.sum())
     dx, dy, tx, ty = d[:k], d[k:], T[:k], T[k:]
     is_cut = tx * ty < ON_DETECTOR

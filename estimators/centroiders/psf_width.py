@@ -6,14 +6,17 @@ sigma ``s`` swept along its image velocity over each row's exposure. ``s`` belon
 purpose to 1.5-3 px, and a model 1 px wide against 2 px stars puts every star beyond a
 chi-square screen (and the streak detector's matched filter then misses the faint ones).
 
-:func:`measure_psf_sigma` tries every sigma of ``PSF_GRID`` on the same windows (sized for the
-widest): for each, every star's flux and background exactly (the model is linear in both), then
-``FIT_STEPS`` Gauss-Newton steps of its position, flux and background (velocity held), and its
-reduced chi-square. The grid point with the lowest median over the stars wins (robust to a blend
-or a wrong identification); a parabola in ``log s`` through the summed chi-square of the stars
-consistent there (reduced chi-square at most ``CONSISTENT_CHI2``) at it and its two neighbours
-refines it. The sums are the compiled normal equations the fits use
-(:mod:`rollingstar.estimators.centroiders.streak_kernel`).
+:func:`measure_psf_sigma` tries widths in two passes, each on one set of windows (sized for the
+widest width of the pass): a coarse grid from 0.4 to 5 px, then a fine one around the coarse
+winner, on windows that fit it (the coarse windows, sized for 5 px, take in the light of
+neighbouring stars, which widens the fit). For each width: every star's flux and background
+exactly (the model is linear in both), then ``FIT_STEPS`` Gauss-Newton steps of its position,
+flux and background (velocity held), and its reduced chi-square. The width with the lowest median
+over the stars wins (robust to a blend or a wrong identification); in the fine pass a parabola in
+``log s`` through the summed chi-square of the stars consistent there (reduced chi-square at most
+``CONSISTENT_CHI2``) at it and its two neighbours refines it. A coarse winner at either end of
+the grid is no measurement (the width lies beyond it). The sums are the compiled normal
+equations the fits use (:mod:`rollingstar.estimators.centroiders.streak_kernel`).
 """
 from __future__ import annotations
 
@@ -22,7 +25,8 @@ import numpy as np
 from rollingstar.estimators.centroiders.streak_kernel import normal_equations, nuisance_equations
 from rollingstar.sensors.streak_model import effective_sigma
 
-PSF_GRID = np.exp(np.linspace(np.log(0.5), np.log(3.5), 22))  # px, 9.7 % apart
+COARSE_GRID = np.exp(np.linspace(np.log(0.4), np.log(5.0), 15))  # px, 20 % apart
+FINE_STEPS = np.exp(np.linspace(np.log(0.75), np.log(1.3), 11))  # times the coarse width, 5.6 % apart
 FIT_STEPS = 3  # Gauss-Newton steps of each star's position, flux and background per sigma
 MIN_STARS = 3  # fewest usable stars a sigma is measured from
 MIN_PIXELS = 12  # fewest live pixels of a star's window for it to count
@@ -46,19 +50,31 @@ def star_windows(pv: np.ndarray, exposure_s: float, psf_sigma_px: float, window_
 def measure_psf_sigma(image: np.ndarray, pv: np.ndarray, exposure_s: float, line_delay_s: float,
                       saturation: float, noise2: float, inv_gain: float, window_sigmas: float = 3.0) -> float | None:
     """The Gaussian PSF sigma (px) that explains the stars ``pv`` (module docstring), or None with
-    fewer than ``MIN_STARS`` usable stars. ``noise2``: the background noise variance and
-    ``inv_gain`` the shot-noise factor, in the image's units; pixels at ``saturation`` are left out."""
+    fewer than ``MIN_STARS`` usable stars or a best width at an end of the coarse grid. ``noise2``:
+    the background noise variance and ``inv_gain`` the shot-noise factor, in the image's units;
+    pixels at ``saturation`` are left out."""
     pv = np.ascontiguousarray(np.asarray(pv, dtype=float)[:, :4])
     if len(pv) < MIN_STARS:
         return None
-    image = np.asarray(image)
-    row0, col0, nr, nc = star_windows(pv, exposure_s, float(PSF_GRID[-1]), window_sigmas)
-    args = (row0, col0, nr, nc, image, float(saturation), float(noise2), float(inv_gain))
-    chi2 = np.full((PSF_GRID.size, len(pv)), np.nan)
-    dof = np.ones(len(pv))
-    for i, sigma in enumerate(PSF_GRID):
-        se = effective_sigma(float(sigma))
-        tail = (se, float(exposure_s), float(line_delay_s))
+    frame = (np.asarray(image), float(saturation), float(noise2), float(inv_gain), float(exposure_s),
+             float(line_delay_s))
+    coarse = _best_width(frame, pv, COARSE_GRID, window_sigmas, refine=False)
+    if coarse is None or coarse in (COARSE_GRID[0], COARSE_GRID[-1]):
+        return None
+    return _best_width(frame, pv, coarse * FINE_STEPS, window_sigmas, refine=True)
+
+
+def _best_width(frame, pv: np.ndarray, grid: np.ndarray, window_sigmas: float, refine: bool) -> float | None:
+    """The width of ``grid`` whose reduced chi-square has the lowest median over the stars, on
+    windows sized for the widest (refined by the parabola of the module docstring when ``refine``);
+    None with fewer than ``MIN_STARS`` usable stars."""
+    image, saturation, noise2, inv_gain, exposure_s, line_delay_s = frame
+    row0, col0, nr, nc = star_windows(pv, exposure_s, float(grid[-1]), window_sigmas)
+    args = (row0, col0, nr, nc, image, saturation, noise2, inv_gain)
+    chi2 = np.full((grid.size, len(pv)), np.nan)
+    used = np.zeros(len(pv))  # live pixels per window: the windows are the same for every width
+    for i, sigma in enumerate(grid):
+        tail = (effective_sigma(float(sigma)), exposure_s, line_delay_s)
         p = np.column_stack([pv, np.ones(len(pv)), np.zeros(len(pv))])
         N, h, _ = nuisance_equations(p, *args, *tail)
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -70,18 +86,17 @@ def measure_psf_sigma(image: np.ndarray, pv: np.ndarray, exposure_s: float, line
             p[:, _FREE] += np.where(np.isfinite(step), step, 0.0)
         _, _, c, used = normal_equations(p, *args, *tail)
         chi2[i] = np.where((used >= MIN_PIXELS) & (p[:, 4] > 0), c, np.nan)
-        dof = np.maximum(used - len(_FREE), 1)
-    reduced = chi2 / dof
+    reduced = chi2 / np.maximum(used - len(_FREE), 1)
     usable = np.all(np.isfinite(reduced), axis=0)
     if np.count_nonzero(usable) < MIN_STARS:
         return None
     best = int(np.argmin(np.median(reduced[:, usable], axis=1)))
     consistent = usable & (reduced[best] <= CONSISTENT_CHI2)
-    if best in (0, PSF_GRID.size - 1) or np.count_nonzero(consistent) < MIN_STARS:
-        return float(PSF_GRID[best])
-    u = np.log(PSF_GRID[best - 1: best + 2])
+    if not refine or best in (0, grid.size - 1) or np.count_nonzero(consistent) < MIN_STARS:
+        return float(grid[best])
+    u = np.log(grid[best - 1: best + 2])
     total = chi2[best - 1: best + 2][:, consistent].sum(axis=1)
     a, b, _ = np.polyfit(u - u[1], total, 2)
     if a <= 0:
-        return float(PSF_GRID[best])
+        return float(grid[best])
     return float(np.exp(u[1] + np.clip(-b / (2.0 * a), u[0] - u[1], u[2] - u[1])))

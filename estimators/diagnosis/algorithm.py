@@ -11,7 +11,8 @@
 4. :func:`.verifying.verify` -> :class:`.verifying.Verification`: the fit before and after on
    training and held-out data, re-simulation, the claims and the verdict.
 
-Around them: the lens projection is chosen first (:mod:`.projection`, wide fields); the steps run
+Around them: the lens is fitted first (:mod:`.projection`: the projection on wide fields; the focal
+length and ``k1`` on a narrow field the model as given misses by far); the steps run
 in rounds of model-aware outlier rejection; and the recording's noise is measured against the
 stated one (:mod:`.noise`) on the named model's residuals: when it is off, every sigma is scaled
 by the measured factor and the steps run again, so white noise the simulation understates is
@@ -252,7 +253,8 @@ def _outlier_rounds(observations: Observations, attitudes: Rotation, sensor: Sen
     last round's (location, naming, model, verification) and each round's gate and rejected
     fraction."""
     gate_names, rounds = (), []
-    gate = None if lens is None else replace(sensor, camera=fitted_camera(sensor.camera, lens))
+    lens_camera = None if lens is None else fitted_camera(sensor.camera, lens)
+    gate = None if lens_camera is None else replace(sensor, camera=lens_camera)
     for _ in range(MAX_OUTLIER_ROUNDS):
         location = locate(observations, attitudes, sensor, cands, gyro, options, gate)
         naming = name_effects(location, sensor, cands, options)
@@ -284,14 +286,14 @@ def _isolated(obs: Observations, pred, heldout: np.ndarray) -> list[dict]:
 def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
     """The report of ``d`` as one JSON-able dict; ``recording``, ``sim`` and ``pipeline`` name its inputs."""
     data, v, q = d.location.data, d.verification, d.verification.quality
-    renamed = d.projection is not None and d.projection.restated
+    restated = d.projection is not None and d.projection.restated
     noise_off = d.noise is not None and d.noise.applied
     referenced = d.reference.tested if d.reference is not None else []
     out = {
         "recording": recording,
         "sim": sim,
         "pipeline": pipeline,
-        "mismatch": v.mismatch or renamed or noise_off or d.description is not None or bool(referenced),
+        "mismatch": v.mismatch or restated or noise_off or d.description is not None or bool(referenced),
         "verdict": _verdict(d.projection, d.noise, d.description, v.verdict, d.reference),
         "projection": d.projection.as_json() if d.projection is not None else None,
         "noise": {"sigma_px_median": float(np.median(data.obs.sigma)), "source": data.obs.sigma_source},

@@ -167,8 +167,8 @@ def gross_outliers(obs: Observations, attitudes, model: SensorModel, att_mask: n
     without them: a fixed point of fitting the attitudes to the stars inside the gate and gating
     every star again (at most ``GATE_ROUNDS`` fits). A wrong identification pulls its frame's
     least-squares attitude, by tens of pixels when it is hundreds of pixels off, and a single gate
-    on that fit rejects good stars with it (4 wrong stars among 40 took 20 good ones along); the
-    refit without the far stars brings the good ones back. ``pred``: ``model``'s prediction with
+    on that fit rejects good stars with it (4 wrong stars among 40 can take half the good ones
+    along); the refit without the far stars brings the good ones back. ``pred``: ``model``'s prediction with
     every star in the fit, when already computed."""
     fit = (model.camera, model.timing, model.effects)
     if pred is None:

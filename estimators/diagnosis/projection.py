@@ -88,11 +88,12 @@ class ProjectionChoice:
 
     @property
     def refocused(self) -> bool:
-        """Whether the named projection's focal length is off the declared one by more than
-        ``REFOCUS_FRACTION``: a nominal field that far off is stated in the scenario the effects are
-        named against (the library's focal-length effect is a tolerance, bounded at 10 %)."""
+        """Whether the declared projection stays but its fitted focal length is off the declared one
+        by more than ``REFOCUS_FRACTION``: a nominal field that far off is stated in the scenario the
+        effects are named against (the library's focal-length effect is a tolerance, bounded at
+        10 %). A renamed projection always brings its own focal length (:attr:`restated`)."""
         ratio = self.focal_px[self.named] / self.declared_focal_px
-        return bool(np.isfinite(ratio) and abs(ratio - 1.0) > REFOCUS_FRACTION)
+        return bool(not self.renamed and np.isfinite(ratio) and abs(ratio - 1.0) > REFOCUS_FRACTION)
 
     @property
     def restated(self) -> bool:
@@ -182,8 +183,9 @@ def choose_projection(obs: Observations, attitudes: Rotation, sensor: SensorMode
     declared = sensor.camera.projection
     inside = np.ones(obs.n, dtype=bool)
     for round_ in range(GATE_ROUNDS + 1):
-        # the frames' rates once, from the declared model's attitudes: a projection changes where stars
-        # image, not how the frame turns between frames (the attitudes are refitted in every evaluation)
+        # the frames' rates from the declared model's attitudes, held through the search: a projection
+        # changes where stars image, not how the frame turns between frames (the attitudes are
+        # refitted in every evaluation)
         start, _ = fit_nuisance(obs, attitudes, sensor.camera, sensor.timing, sensor.effects, att_mask & inside,
                                 sensor.moving)
         fits = {p: _fit(obs, start, sensor, p, att_mask & inside, train & inside, inside) for p in candidates}
@@ -268,7 +270,10 @@ def _fit(obs, start, sensor: SensorModel, projection: str, att_mask, train, insi
 
 
 def fitted_camera(camera, choice: ProjectionChoice):
-    """``camera`` with the named projection and the focal length and ``k1`` fitted with it."""
+    """``camera`` with the named projection and the focal length and ``k1`` fitted with it, or None
+    when that fit failed (no finite focal length or ``k1``)."""
+    if not (np.isfinite(choice.focal_px[choice.named]) and np.isfinite(choice.k1[choice.named])):
+        return None
     focal_m = choice.focal_px[choice.named] * camera.pixel_size_m
     return replace(camera, projection=choice.named, focal_length_m=focal_m, k1=choice.k1[choice.named])
 

@@ -97,7 +97,7 @@ def check_identification(stars: StarTable | None, unmatched: StarTable | None, c
     anchors = (fitted + 1) // 2  # stars the fit could have made match whatever they were
     n = max(n, k)
     # binomial and chi-square tails by scipy.special's functions: scipy.stats' distribution objects
-    # return the same values (they call these) at ~40x the cost, a tenth of a tracked frame
+    # return the same values (tested against them) at ~40x the cost, a tenth of a tracked frame
     chance = float(bdtrc(k - 1, n, p))
     prob = float(bdtrc(k - 1 - anchors, n - anchors, p)) if k > anchors else 1.0
     dof = 2 * k - fitted

@@ -288,7 +288,8 @@ class EffectContext:
     def evolve(self, **changes) -> "EffectContext":
         """A copy with ``changes`` (e.g. new ideal positions ``x=..., y=...``). Only the changed
         fields are broadcast again when the positions stay (the effect chain and the diagnosis
-        evolve contexts thousands of times per recording)."""
+        evolve contexts thousands of times per recording), so the copy shares its other arrays with
+        this context: a context's arrays are never written in place, here or by its users."""
         if "x" in changes or "y" in changes:
             return replace(self, **changes)
         unknown = set(changes) - set(self.__dataclass_fields__)

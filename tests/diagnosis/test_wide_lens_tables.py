@@ -4,10 +4,11 @@ writer): one image each, 40 stars, a few of them misidentified (a catalogue star
 detection somewhere else in the image), and ``log.json``'s field from the scale at the centre,
 as astrometry.net reports it, so the declared pinhole leaves the lens's distortion out.
 
-The wrong stars pull the least-squares attitude by tens of pixels; one outlier gate on that fit
-took most of the good stars with them, and on the widest lens the distortion itself put the
-corner stars beyond the gate. The fit must close anyway: the distortion named with its
-coefficient, the wrong identifications (and only they) left out, the held-out stars at the noise.
+The wrong stars pull the least-squares attitude by tens of pixels, so one outlier gate on that
+fit would take good stars with them; on the widest lens the distortion itself puts the corner
+stars beyond the gate of the pinhole as declared. The fit must close anyway: the distortion named
+with its coefficient, the wrong identifications (and only they) left out, the held-out stars at
+the noise.
 """
 from __future__ import annotations
 
@@ -85,7 +86,7 @@ def test_a_wide_lens_table_with_wrong_identifications_closes_the_fit(tmp_path, l
 
 
 @pytest.mark.parametrize("lens_mm, nominal_mm, k1", [
-    (12.0, 10.5, 0.0),  # a narrow field declared 12.5 % too wide: no projection search, the gate alone refused it
+    (12.0, 10.5, 0.0),  # a narrow field declared 12.5 % too wide: no projection search, most stars beyond the gate
     (6.0, 6.9, -0.1),  # 15 % too narrow, with a distortion the library names after the focal length
 ])
 def test_a_nominal_field_far_off_the_lens_is_fitted_and_stated(tmp_path, lens_mm, nominal_mm, k1):

@@ -1,11 +1,14 @@
-"""The fast forms in QUEST and the star-motion KF compute the same mathematics as the textbook forms.
+"""The fast forms in QUEST, the star-motion KF and the centroid covariance compute the same mathematics as
+the textbook forms.
 
 - QUEST's degeneracy test (Sylvester's criterion on ``info - t I``) decides as the smallest
   eigenvalue of ``info`` against ``t`` does, on frames spanning the threshold;
 - QUEST's written-out quaternion product and canonical sign equal scipy's ``Rotation`` composition
   and ``as_quat(canonical=True)``, including the ``w = 0`` cases;
 - the KF predict/update equal the matrix forms ``F X``, ``F P F^T + q G G^T`` and the Joseph form
-  ``(I - K H) P (I - K H)^T + r K K^T`` with ``K = P H^T (H P H^T + r I)^-1``.
+  ``(I - K H) P (I - K H)^T + r K K^T`` with ``K = P H^T (H P H^T + r I)^-1``;
+- the compiled edge-bias fixed point equals its vectorised numpy form, and the clipped-spot
+  sigma with its per-count cache equals the Bessel sums evaluated spot by spot.
 """
 from __future__ import annotations
 
@@ -121,3 +124,67 @@ def test_flip_gammas_equal_each_variants_own_gamma():
         own = (lam + sv) * (lam**2 - sv**2 + kv) - dv
         np.testing.assert_allclose(g[:, v], own, rtol=1e-9, atol=1e-12)
     assert (np.argmax(np.abs(g), axis=1) != 0).sum() >= 250  # the near-180 frames pick another variant
+
+
+def _edge_bias_numpy(x, y, flux, peak, shape, iterations):
+    """The edge-bias fixed point of :mod:`rollingstar.estimators.centroiders.edge` written as its
+    module docstring states it, vectorised over the spots, every spot iterated (no margin test)."""
+    from scipy.special import ndtr
+
+    H, W = shape
+    n = np.concatenate([np.full(x.size, float(W)), np.full(y.size, float(H))])
+    meas = np.concatenate([x, y])
+    width_sq = np.tile(flux / (2.0 * np.pi * peak), 2)
+
+    def shift(mu, s):
+        a, b = (-0.5 - mu) / s, (n - 0.5 - mu) / s
+        T = ndtr(b) - ndtr(a)
+        return s * (np.exp(-0.5 * a * a) - np.exp(-0.5 * b * b)) / (np.sqrt(2.0 * np.pi) * T), T
+
+    s = np.sqrt(width_sq)
+    mu = np.clip(meas, -0.5, n - 0.5)
+    k = x.size
+    for _ in range(iterations):
+        d, T = shift(mu, s)
+        mu = np.clip(meas - d, -0.5, n - 0.5)
+        s = np.sqrt(width_sq / np.tile(T[:k] * T[k:], 2))
+    return shift(mu, s)
+
+
+@pytest.mark.parametrize("iterations", [0, 1, 20, 200])
+def test_compiled_edge_fixed_point_matches_the_numpy_form(iterations):
+    from rollingstar.estimators.centroiders.edge import _fixed_point
+
+    rng = np.random.default_rng(iterations)
+    k = 300
+    x, y = rng.uniform(-1.0, 12.0, k), rng.uniform(-1.0, 1030.0, k)
+    flux = rng.uniform(100.0, 1e5, k)
+    peak = flux / (2.0 * np.pi * rng.uniform(0.5, 3.0, k) ** 2)
+    d, T = _fixed_point(np.concatenate([x, y]), flux / (2.0 * np.pi * peak), 1024.0, 1024.0, iterations)
+    d_ref, T_ref = _edge_bias_numpy(x, y, flux, peak, (1024, 1024), iterations)
+    np.testing.assert_allclose(d, d_ref, rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(T, T_ref, rtol=1e-12)
+
+
+def test_cached_plateau_sums_match_the_bessel_sums_spot_by_spot():
+    """:func:`clipped_cog_sigma_px` with its per-count cache equals the module docstring's sum
+    evaluated for every spot (including counts that are not whole numbers)."""
+    from scipy.special import j0, j1
+
+    from rollingstar.estimators.centroiders import saturation as sat
+
+    rng = np.random.default_rng(3)
+    F, n_sat, S = rng.uniform(1e3, 1e6, 400), rng.integers(0, 300, 400).astype(float), rng.uniform(100.0, 4000.0, 400)
+    n_sat[:20] += rng.uniform(0.1, 0.9, 20)
+    got = sat.clipped_cog_sigma_px(F, n_sat, S)
+    ok = n_sat > 0
+    Fs, n, Ss = F[ok], n_sat[ok], S[ok]
+    r0 = np.sqrt(n / np.pi)
+    slope = 2.0 * (n * Ss / np.maximum(Fs - n * Ss, Ss)) * Ss / r0
+    r = np.maximum(r0[:, None] + sat._RADIUS_OFFSETS[None], 0.05)[:, :, None]
+    kk = 2.0 * np.pi * sat._RHO[None, None]
+    z = kk * r
+    dC = 4.0 * np.pi**2 * slope[:, None, None] * r * (r * j1(z) / kk**2 - 4.0 * (2.0 * j1(z) / z - j0(z)) / kk**3)
+    ref = np.sqrt(np.mean(np.sum(sat._AXIS_WEIGHT * dC**2, axis=2), axis=1)) / (2.0 * np.pi * Fs)
+    np.testing.assert_allclose(got[ok], ref, rtol=1e-12)
+    assert np.all(got[~ok] == 0.0)

@@ -39,7 +39,8 @@ def test_the_width_of_exactly_integrated_gaussian_spots(sigma):
     got = measure_psf_sigma(image, pv, exposure_s=0.05, line_delay_s=0.0, saturation=65535.0, noise2=noise2,
                             inv_gain=1.0)
     print(f"\nsigma {sigma} px measured as {got:.3f} px")  # pytest -s
-    assert abs(got / sigma - 1) < 0.03, got
+    # 25 stars on 256 x 256 px: the windows of the widest PSF take in some of their neighbours' wings
+    assert abs(got / sigma - 1) < 0.04, got
 
 
 def test_too_few_stars_give_no_width():
