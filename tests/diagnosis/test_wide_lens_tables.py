@@ -60,19 +60,24 @@ def write_table(folder, lens_mm: float, k1: float, noise_px: float, wrong: int, 
         "center": {"ra_degrees": c_ra, "dec_degrees": c_dec}, "timestamp": {"date": "7/09/2023", "time": "9:30 PM"}}))
 
 
-@pytest.mark.parametrize("lens_mm, k1, noise_px, wrong", [
-    (3.6, -0.35, 1.0, 3),  # corners 85 px in: beyond the gate of the pinhole as declared
-    (6.0, -0.10, 0.7, 4),  # a narrow enough field for no projection search: the gate alone
-])
-def test_a_wide_lens_table_with_wrong_identifications_closes_the_fit(tmp_path, lens_mm, k1, noise_px, wrong):
-    write_table(tmp_path / "sky" / "image", lens_mm, k1, noise_px, wrong, seed=1)
+def _import_and_diagnose(tmp_path) -> dict:
+    """``rollingstar import corr`` of ``tmp_path/sky`` and ``rollingstar diagnose --json`` of it."""
     runner = CliRunner()
     res = runner.invoke(app, ["import", "corr", str(tmp_path / "sky"), "-o", str(tmp_path / "rec.mcap")])
     assert res.exit_code == 0, res.output
     res = runner.invoke(app, ["diagnose", "--recording", str(tmp_path / "rec.mcap"), "-o", str(tmp_path / "report"),
                               "--json", "-q"])
     assert res.exit_code == 0, res.output
-    out = json.loads(res.output)
+    return json.loads(res.output)
+
+
+@pytest.mark.parametrize("lens_mm, k1, noise_px, wrong", [
+    (3.6, -0.35, 1.0, 3),  # corners 85 px in: beyond the gate of the pinhole as declared
+    (6.0, -0.10, 0.7, 4),  # a narrow enough field for no projection search: the gate alone
+])
+def test_a_wide_lens_table_with_wrong_identifications_closes_the_fit(tmp_path, lens_mm, k1, noise_px, wrong):
+    write_table(tmp_path / "sky" / "image", lens_mm, k1, noise_px, wrong, seed=1)
+    out = _import_and_diagnose(tmp_path)
     assert out["rejected_outliers"] == wrong, out["outlier_rounds"]
     named = {e["name"]: e for e in out["effects"]}
     assert "radial_distortion" in named, out["verdict"]
@@ -94,13 +99,7 @@ def test_a_nominal_field_far_off_the_lens_is_fitted_and_stated(tmp_path, lens_mm
     focal-length effect's 10 % tolerance: the focal length is fitted before any effect, stated
     in the verdict and in the updated scenario, and the fit closes."""
     write_table(tmp_path / "sky" / "image", lens_mm, k1, 0.6, 2, seed=3, nominal_mm=nominal_mm)
-    runner = CliRunner()
-    res = runner.invoke(app, ["import", "corr", str(tmp_path / "sky"), "-o", str(tmp_path / "rec.mcap")])
-    assert res.exit_code == 0, res.output
-    res = runner.invoke(app, ["diagnose", "--recording", str(tmp_path / "rec.mcap"), "-o", str(tmp_path / "report"),
-                              "--json", "-q"])
-    assert res.exit_code == 0, res.output
-    out = json.loads(res.output)
+    out = _import_and_diagnose(tmp_path)
     proj = out["projection"]
     assert proj["refocused"] and proj["named"] == "perspective", proj
     focal = proj["candidates"]["perspective"]["focal_px"]
