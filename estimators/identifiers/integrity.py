@@ -4,7 +4,7 @@ A frame's identified stars are checked against the catalogue with no knowledge o
 found (pattern search, tracking from a prior, a third-party identifier):
 
 1. Fit. The attitude that best fits the ``k`` identified stars, each weighted by its own
-   covariance (Wahba's problem, ``Rotation.align_vectors``); with at least
+   covariance (Wahba's problem, :func:`rollingstar.sensors.so3.wahba`); with at least
    :data:`RATE_FIT_MIN_MATCHES` stars whose times differ (raw rolling-shutter centroids, each at
    its own row time) also a constant body rate, ``R(t) = R0 Exp(omega (t - t_mid))``, by two
    linearised weighted least-squares steps (the rolling shutter's row-to-row motion would
@@ -50,7 +50,7 @@ from scipy.special import bdtrc, chdtrc
 
 from rollingstar.estimators.data import DEFAULT_CENTROID_SIGMA_PX, FrameData, IdentificationCheck, StarTable
 from rollingstar.sensors.conventions import S_PER_NS
-from rollingstar.sensors.so3 import rotate_by_rotvec, skew
+from rollingstar.sensors.so3 import rotate_by_rotvec, skew, wahba
 
 #: Largest accepted chance probability of a frame's matches (one frame's hypothesis; a pattern
 #: search that tests ~1e4 hypotheses still leaves ~1e-5 per frame).
@@ -151,7 +151,7 @@ def fit_residuals(ident: StarTable, camera, omega_rad_s=None, cov=None) -> tuple
     cov = ident.position_covariance(DEFAULT_CENTROID_SIGMA_PX) if cov is None else cov
     weights = 2.0 / np.trace(cov, axis1=1, axis2=2) if ident.n else np.zeros(0)
     # R^T r_i = Exp(phi_i) b_i: the stars referred to the middle time, then Wahba's problem
-    R, _ = Rotation.align_vectors(ref, rotate_by_rotvec(phi, body), weights=weights)
+    R = Rotation.from_matrix(wahba(ref, rotate_by_rotvec(phi, body), weights))
     if rate_fitted(ident):
         phi, _ = fit_rate(R, body, ref, dt, np.sqrt(weights))
     # predicted camera vectors: w_i = (R Exp(phi_i))^T r_i

@@ -14,7 +14,7 @@ from rollingstar.estimators.centroiders.window_gyro import FastGyroIntegrator
 from rollingstar.estimators.data import FrameData, default_sigma_px
 from rollingstar.estimators.identifiers.base import Identifier
 from rollingstar.sensors.conventions import S_PER_NS, attitude_from_radec_roll
-from rollingstar.sensors.so3 import cross, skew
+from rollingstar.sensors.so3 import cross, skew, wahba
 
 ARCSEC = np.pi / (180.0 * 3600.0)
 #: Extra radius (rad) of the catalogue cone the tracker caches and reuses between frames.
@@ -149,14 +149,6 @@ def prediction_covariance(camera, w: np.ndarray, dt: np.ndarray, att_cov: np.nda
     d2 = (dt * dt)[:, None, None]
     p = att_cov[None] + rate_cov[None] * d2 + 0.25 * accel_cov[None] * d2 * d2
     return jac @ p @ np.swapaxes(jac, 1, 2)
-
-
-def wahba(ref: np.ndarray, body: np.ndarray) -> np.ndarray:
-    """The rotation matrix ``R`` minimising ``sum |ref_i - R body_i|^2`` (Wahba's problem by SVD,
-    Markley 1988; ``Rotation.align_vectors`` without its per-call overhead, tens of microseconds here)."""
-    u, _, vt = np.linalg.svd(ref.T @ body)
-    d = np.sign(np.linalg.det(u @ vt))
-    return (u * np.array([1.0, 1.0, d])) @ vt
 
 
 def match_mahalanobis(dpos: np.ndarray, dcov: np.ndarray, ppos: np.ndarray, pcov: np.ndarray, chi2_gate: float,

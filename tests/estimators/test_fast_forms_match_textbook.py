@@ -188,3 +188,24 @@ def test_cached_plateau_sums_match_the_bessel_sums_spot_by_spot():
     ref = np.sqrt(np.mean(np.sum(sat._AXIS_WEIGHT * dC**2, axis=2), axis=1)) / (2.0 * np.pi * Fs)
     np.testing.assert_allclose(got[ok], ref, rtol=1e-12)
     assert np.all(got[~ok] == 0.0)
+
+
+def test_wahba_by_svd_matches_scipy_align_vectors():
+    """:func:`rollingstar.sensors.so3.wahba` equals ``Rotation.align_vectors`` (weighted), for
+    noisy pairs and for pairs whose best orthogonal fit is a reflection (the sign correction)."""
+    from rollingstar.sensors.so3 import wahba
+
+    rng = np.random.default_rng(7)
+    for k in range(50):
+        n = int(rng.integers(3, 60))
+        body = rng.normal(size=(n, 3))
+        body /= np.linalg.norm(body, axis=1, keepdims=True)
+        R = Rotation.random(random_state=k)
+        ref = R.apply(body) + 10 ** rng.uniform(-8, -1) * rng.normal(size=(n, 3))
+        if k % 5 == 0:
+            ref[:, 2] *= -1.0  # a mirrored sky: no rotation maps it, the fit must stay a rotation
+        w = rng.uniform(0.1, 5.0, n)
+        expected, _ = Rotation.align_vectors(ref, body, weights=w)
+        got = wahba(ref, body, w)
+        np.testing.assert_allclose(got, expected.as_matrix(), atol=1e-10)
+        assert np.isclose(np.linalg.det(got), 1.0)
