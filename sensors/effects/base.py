@@ -221,14 +221,13 @@ class EffectContext:
             if v is None:
                 continue
             if k in ("t_ns", *self._INTS):
-                v = np.array(np.broadcast_to(np.asarray(v, dtype=np.int64).reshape(-1), (n,)))
+                v = _broadcast_copy(v, np.int64, (n,))
             elif k in self._SCALARS:
-                v = np.array(np.broadcast_to(np.asarray(v, dtype=float).reshape(-1), (n,)))
+                v = _broadcast_copy(v, float, (n,))
             elif k in self._VECTORS:
-                v = np.array(np.broadcast_to(np.asarray(v, dtype=float).reshape(-1, 3), (n, 3)))
+                v = _broadcast_copy(v, float, (n, 3))
             elif k == "covariates":
-                v = {str(name): np.array(np.broadcast_to(np.asarray(c, dtype=float).reshape(-1), (n,)))
-                     for name, c in dict(v).items()}
+                v = {str(name): _broadcast_copy(c, float, (n,)) for name, c in dict(v).items()}
             elif k == "attitude":
                 if not v.single and len(v) not in (n,):
                     raise ValueError(f"EffectContext.attitude: expected {n} rotations, got {len(v)}")
@@ -450,9 +449,21 @@ class Effect:
         return hash((type(self), tuple(self._values.items())))
 
 
+def _broadcast_copy(value, dtype, shape: tuple[int, ...]) -> np.ndarray:
+    """``value`` as a new array of ``dtype`` and ``shape`` (flattened to ``shape``'s last axis first,
+    then broadcast): a copy, so that a context never shares an array its caller may change."""
+    a = np.asarray(value, dtype=dtype)
+    if a.shape == shape:
+        return a.copy()
+    return np.array(np.broadcast_to(a.reshape((-1,) + shape[1:]), shape))
+
+
 def as_positions(x, y) -> tuple[np.ndarray, np.ndarray]:
     """Broadcast ``x, y`` to 1-D float arrays of a common length (helper for effect implementations)."""
-    x, y = np.broadcast_arrays(np.asarray(x, dtype=float).reshape(-1), np.asarray(y, dtype=float).reshape(-1))
+    x, y = np.asarray(x, dtype=float).reshape(-1), np.asarray(y, dtype=float).reshape(-1)
+    if x.shape == y.shape:  # the usual case, without broadcast_arrays' per-call cost
+        return x, y
+    x, y = np.broadcast_arrays(x, y)
     return x, y
 
 

@@ -79,12 +79,12 @@ def predict(effects: Sequence[Effect], ctx: EffectContext) -> tuple[np.ndarray, 
     """
     ctx.check(effects)
     x, y = ctx.x, ctx.y
-    later = ctx
+    later = None  # the shifted context, made once when the first later effect needs it
     for e in ordered(effects):
         if e.stage == STAGE_TIME:
             x, y = e.apply(x, y, ctx)
         elif e.stage < STAGE_GYRO:
-            if later is ctx:
+            if later is None:
                 later = shifted_context(effects, ctx)
             x, y = e.apply(x, y, later)
     return np.asarray(x, dtype=float), np.asarray(y, dtype=float)
