@@ -26,7 +26,10 @@ A window cut by the detector's edge keeps the pixels it has. A star with fewer t
 ``MIN_LIVE_PIXELS`` live pixels, or one the model does not explain (non-positive flux, or a
 reduced chi-square above ``MAX_STAR_CHI2`` at the current step, above ``START_STAR_CHI2`` at the
 start: a wrong identification, a blend), is left out of that step; those left out of the last are
-counted in the frame flag ``pixel_outliers:N``.
+counted in the frame flag ``pixel_outliers:N``. When the model explains fewer than
+``MIN_EXPLAINED_FRACTION`` of the usable stars (a PSF the Gaussian model does not draw, as on an
+undersampled real camera), the frame keeps the position solution, flagged
+``pixel_step_skipped:model_misfit(...)``.
 """
 from __future__ import annotations
 
@@ -53,6 +56,7 @@ MAX_STAR_CHI2 = 2.0  # reduced chi-square above which a star's pixels contradict
 CONVERGED_SIGMAS = 0.5
 MIN_LIVE_PIXELS = 12  # fewest live pixels of a star's window for it to take part
 START_STAR_CHI2 = 100.0  # the same at the starting point, where the positions may still be off by a pixel
+MIN_EXPLAINED_FRACTION = 0.5  # of the usable stars the model must explain, else the position solution stands
 BACKGROUND_STRIDE = 16  # pixel stride of the frame's background-noise sample
 
 
@@ -228,7 +232,9 @@ def refine_on_pixels(frame, context, camera, stars, R: Rotation, omega, info, fi
         # comes back once the fit explains it)
         strict = (nuis[:, 0] > 0) & (b.chi2 / b.dof <= MAX_STAR_CHI2)
         keep = (nuis[:, 0] > 0) & (b.chi2 / b.dof <= START_STAR_CHI2) if it == 0 else strict
-        if np.count_nonzero(keep) < 2:  # the model explains too few stars' pixels to fit anything
+        if np.count_nonzero(keep) < max(2, MIN_EXPLAINED_FRACTION * np.count_nonzero(usable)):
+            # the model explains too few stars' pixels: a fit to them alone would throw away what
+            # the positions of all the others say (a PSF the Gaussian model does not draw)
             return (*start, info, frame.flags + (f"pixel_step_skipped:model_misfit({int(keep.sum())} of "
                                                  f"{int(usable.sum())} stars explained)",))
         normal = np.sum(b.normal[keep][:, :k, :k], axis=0)

@@ -43,6 +43,7 @@ from rollingstar.estimators.data import AttitudeEstimate, FrameData, RateEstimat
 from rollingstar.sensors.so3 import rotate_at_rate, wahba
 
 DEFAULT_PSF_SIGMA_PX = 1.0  # the pixel model's PSF sigma on frames before one is measured
+MAX_PSF_REMEASURES = 2  # measurements after a misfit frame (a camera whose PSF the model cannot draw misfits on)
 HUBER_K = 3.0  # Huber threshold (Mahalanobis sigmas) of the position step that starts the pixel step
 
 
@@ -60,8 +61,8 @@ class RsBundleParams(RobustParams):
     pixel_iterations: int = Field(default=8, ge=1, le=30, description="Most Gauss-Newton iterations of the pixel "
                                   "step (it stops earlier once a step moves no parameter by 5 % of its sigma).")
     psf_sigma_px: float | None = Field(default=None, gt=0, description="Gaussian PSF sigma of the pixel model "
-                                       "(px); None: measured from the first frame's stars, and again after a "
-                                       "frame whose stars the model does not explain.")
+                                       "(px); None: measured from the first frame's stars, and again (twice at "
+                                       "most) after a frame whose stars the model does not explain.")
     window_sigmas: float = Field(default=3.0, gt=1, description="Half width of each star's pixel window beyond "
                                  "its streak, in PSF sigmas.")
 
@@ -77,6 +78,7 @@ class RsBundleSolver(AttitudeSolver):
         super().setup(context)
         self._sigma_px = default_sigma_px(self.params.sigma_px, context)
         self._psf_sigma_px = self.params.psf_sigma_px  # None until measured
+        self._psf_remeasures = 0
 
     def process(self, frame: FrameData) -> FrameData:
         p = self.params
@@ -119,8 +121,10 @@ class RsBundleSolver(AttitudeSolver):
         psf = DEFAULT_PSF_SIGMA_PX if self._psf_sigma_px is None else self._psf_sigma_px
         R, omega, info, flags = refine_on_pixels(frame, self.context, camera, stars, R, omega, info, fit_rate, t_ref,
                                                  self.params, psf)
-        if self.params.psf_sigma_px is None and any(f.startswith("pixel_step_skipped:model_misfit") for f in flags):
+        misfit = any(f.startswith("pixel_step_skipped:model_misfit") for f in flags)
+        if self.params.psf_sigma_px is None and misfit and self._psf_remeasures < MAX_PSF_REMEASURES:
             self._psf_sigma_px = None  # measured again on the next frame
+            self._psf_remeasures += 1
         return R, omega, info, flags
 
     @property

@@ -93,6 +93,37 @@ def test_pipeline_over_imported_tetra3_recording(real_data_dir, tmp_path):
     assert sum("track_lost" in s["flags"] for s in status) == 7
 
 
+@pytest.mark.long_study
+def test_high_dynamic_on_the_real_tetra3_camera_keeps_the_positions_where_its_pixel_model_misfits(real_data_dir, tmp_path):
+    """The high-dynamic pipeline on the real tetra3 camera: its stars are undersampled (PSF about
+    0.6 px) and not the Gaussian the pixel step draws, so that step explains fewer than half of
+    them. Every frame must still get a valid attitude, from the stars' positions, flagged with
+    the reason, not a pixel fit to the few stars the model happens to explain."""
+    from rollingstar.logs.importers import import_images
+    from rollingstar.logs.reader import LogReader
+    from rollingstar.pipelines.config import load_pipeline
+    from rollingstar.pipelines.runner import run_pipeline
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rec = import_images(real_data_dir / "tetra3", tmp_path / "t.mcap", sidecar=rd.ROOT / "configs" / "cameras" / "tetra3_recording.yaml")
+    out = tmp_path / "t.out.mcap"
+    summary = run_pipeline(rec, load_pipeline(rd.ROOT / "configs" / "pipelines" / "high_dynamic.yaml"), out,
+                           show_progress=False)
+    assert summary.frames == 8 and summary.valid_estimates == 8
+    status = [m.data for m in LogReader(out).messages("/estimate/frame")]
+    pixel_flags = [[f for f in s["flags"] if f.startswith(("pixel_step_skipped", "pixel_outliers"))] for s in status]
+    print("\n" + "\n".join(f"frame {k}: {', '.join(f) or 'pixel step applied'}" for k, f in enumerate(pixel_flags)))
+    for s, flags in zip(status, pixel_flags):
+        skipped = [f for f in flags if f.startswith("pixel_step_skipped:model_misfit")]
+        if skipped:  # "(k of n stars explained)": fewer than half, or the step would have run
+            k, n = (int(v) for v in skipped[0].split("(")[1].split(" stars")[0].split(" of "))
+            assert k < 0.5 * n, skipped
+        else:
+            outliers = [int(f.split(":")[1]) for f in flags if f.startswith("pixel_outliers")]
+            assert not outliers or outliers[0] <= 0.5 * s["n_identified"], flags
+
+
 @pytest.fixture(scope="module")
 def full_run(real_data_dir):
     """The whole three-pass measurement of docs/real-data.md (about 25 s)."""
