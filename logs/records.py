@@ -28,7 +28,7 @@ from .topics import (
     TOPIC_TRUTH_STARS,
 )
 
-FORMAT_VERSION = "1.1"
+FORMAT_VERSION = "1.2"
 """The version of the whole format (all topics and records); written in the ``rollingstar``
 metadata record. A reader rejects a major version it does not know."""
 
@@ -317,6 +317,9 @@ class FrameStatusRecord(_Record):
     camera: FittedCamera | None = Field(
         None, description="the camera model an identifier fitted on this frame, used by every later stage; "
         "null: the recording's declared camera")
+    psf_sigma_px: float | None = Field(
+        None, gt=0, description="the Gaussian PSF sigma (px) a stage measured from the camera's pixels and "
+        "worked with on this frame (rs-bundle); null: none did")
 
     def default_log_time_ns(self) -> int:
         return self.t0_ns

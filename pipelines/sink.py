@@ -194,4 +194,4 @@ def write_frame(writer: LogWriter, frame: FrameData) -> None:
     n_det = (stars.n + (frame.unmatched.n if frame.unmatched is not None else 0))
     writer.write_json(TOPIC_EST_FRAME, FrameStatus(frame=frame.index, t0_ns=t0, flags=list(frame.flags),
                                                    n_detected=int(n_det), n_identified=int(stars.identified.sum()),
-                                                   camera=_fitted_camera(frame)), t0)
+                                                   camera=_fitted_camera(frame), psf_sigma_px=frame.psf_sigma_px), t0)

@@ -103,8 +103,8 @@ class RsBundleSolver(AttitudeSolver):
         R, omega, info = fit_positions(R0, omega0, ref, dt, d, p.iterations + (2 if huber else 0), fit_rate, huber)
         flags = frame.flags
         if p.pixels and frame.image is not None:
-            R, omega, info, flags = self._refine_on_pixels(frame, camera, stars, R, omega, info, fit_rate, t_ref)
-            frame = frame.evolve(psf_sigma_px=self._psf_sigma_px)  # None until measured
+            R, omega, info, flags, used = self._refine_on_pixels(frame, camera, stars, R, omega, info, fit_rate, t_ref)
+            frame = frame.evolve(psf_sigma_px=used)  # the stated or measured width this frame used; None: the default
         return self._estimates(frame.evolve(flags=flags), t_ref, n, R, omega, info, fit_rate)
 
     def _initial_rate(self, frame: FrameData, camera, stars) -> np.ndarray:
@@ -118,14 +118,14 @@ class RsBundleSolver(AttitudeSolver):
             self._psf_sigma_px = measure_psf(frame, self.context, camera, stars, R, omega, t_ref,
                                              self.params.window_sigmas)
         # too few stars to measure the width on: the default for this frame, measured on the next
-        psf = DEFAULT_PSF_SIGMA_PX if self._psf_sigma_px is None else self._psf_sigma_px
+        used = self._psf_sigma_px
         R, omega, info, flags = refine_on_pixels(frame, self.context, camera, stars, R, omega, info, fit_rate, t_ref,
-                                                 self.params, psf)
+                                                 self.params, DEFAULT_PSF_SIGMA_PX if used is None else used)
         misfit = any(f.startswith("pixel_step_skipped:model_misfit") for f in flags)
         if self.params.psf_sigma_px is None and misfit and self._psf_remeasures < MAX_PSF_REMEASURES:
             self._psf_sigma_px = None  # measured again on the next frame
             self._psf_remeasures += 1
-        return R, omega, info, flags
+        return R, omega, info, flags, used
 
     @property
     def psf_sigma_px(self) -> float | None:

@@ -135,5 +135,5 @@ def test_killed_writer_keeps_finished_chunks(tmp_path):
     times = [m.log_time_ns for m in reader.messages()]
     assert 100 < len(times) < 200
     assert times == list(range(len(times)))
-    assert reader.metadata()["rollingstar"]["format_version"] == "1.1"
+    assert reader.metadata()["rollingstar"]["format_version"] == "1.2"
     assert reader.summary_info().truncated

@@ -31,7 +31,7 @@ def test_round_trip_of_every_topic(tmp_path):
         warnings.simplefilter("error")
         reader = LogReader(path)
     meta = reader.metadata()
-    assert meta["rollingstar"]["format_version"] == "1.1"
+    assert meta["rollingstar"]["format_version"] == "1.2"
     assert meta["rollingstar"]["kind"] == "simulation"
     assert meta["rollingstar"]["software_version"]
     assert meta["scenario"] == {"yaml": "name: test\n"}

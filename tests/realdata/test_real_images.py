@@ -150,7 +150,9 @@ def test_high_dynamic_on_the_real_tetra3_camera_keeps_the_positions_where_its_pi
         print(f"\nhigh_dynamic, {label}: boresight against tetra3rs {np.round(e, 1)} arcsec, median {np.median(e):.1f}")
     assert np.median(errors["fit_distortion: auto"]) < 5.0
     pixel_flags = [[f for f in s["flags"] if f.startswith(("pixel_step_skipped", "pixel_outliers"))] for s in status]
-    print("\n".join(f"frame {k}: {', '.join(f) or 'pixel step applied'}" for k, f in enumerate(pixel_flags)))
+    print("\n".join(f"frame {k}: {', '.join(f) or 'pixel step applied'}; PSF sigma "
+                    f"{'not measured' if s['psf_sigma_px'] is None else format(s['psf_sigma_px'], '.2f') + ' px'}"
+                    for k, (f, s) in enumerate(zip(pixel_flags, status))))
     for s, flags in zip(status, pixel_flags):
         skipped = [f for f in flags if f.startswith("pixel_step_skipped:model_misfit")]
         if skipped:  # "(k of n stars explained)": fewer than half, or the step would have run
