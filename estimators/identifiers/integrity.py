@@ -135,9 +135,10 @@ def rate_fitted(ident: StarTable) -> bool:
     return ident.n >= RATE_FIT_MIN_MATCHES and np.ptp(ident.t_ns) > 0
 
 
-def fit_residuals(ident: StarTable, camera, omega_rad_s=None, cov=None) -> tuple[np.ndarray, Rotation, np.ndarray]:
+def fit_residuals(ident: StarTable, camera, omega_rad_s=None, cov=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pixel residual distances of the identified stars under the best-fit attitude (and body rate,
-    see the module docstring), the attitude at the stars' middle time, and the residual vectors (n, 2).
+    see the module docstring), the attitude at the stars' middle time (camera -> ICRS rotation
+    matrix: no scipy ``Rotation`` is built in the check), and the residual vectors (n, 2).
     ``cov``: the stars' position covariances (n, 2, 2) the fit is weighted by (default: their own)."""
     body = camera.unproject(ident.x, ident.y)
     ref = ident.ref_icrs / np.linalg.norm(ident.ref_icrs, axis=1, keepdims=True)
@@ -151,7 +152,7 @@ def fit_residuals(ident: StarTable, camera, omega_rad_s=None, cov=None) -> tuple
     cov = ident.position_covariance(DEFAULT_CENTROID_SIGMA_PX) if cov is None else cov
     weights = 2.0 / np.trace(cov, axis1=1, axis2=2) if ident.n else np.zeros(0)
     # R^T r_i = Exp(phi_i) b_i: the stars referred to the middle time, then Wahba's problem
-    R = Rotation.from_matrix(wahba(ref, rotate_by_rotvec(phi, body), weights))
+    R = wahba(ref, rotate_by_rotvec(phi, body), weights)
     if rate_fitted(ident):
         phi, _ = fit_rate(R, body, ref, dt, np.sqrt(weights))
     # predicted camera vectors: w_i = (R Exp(phi_i))^T r_i
@@ -162,7 +163,7 @@ def fit_residuals(ident: StarTable, camera, omega_rad_s=None, cov=None) -> tuple
     return resid, R, dx
 
 
-def fit_rate(R: Rotation, body: np.ndarray, ref: np.ndarray, dt: np.ndarray, root_weights: np.ndarray,
+def fit_rate(R: Rotation | np.ndarray, body: np.ndarray, ref: np.ndarray, dt: np.ndarray, root_weights: np.ndarray,
              steps: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """The attitude-and-rate fit ``R(t_i) = R Exp(delta + omega dt_i)`` to camera directions
     ``body`` of catalogue vectors ``ref`` seen ``dt`` seconds from the reference time, from ``R``:
@@ -191,19 +192,25 @@ def _rate_step(R: Rotation, body: np.ndarray, ref: np.ndarray, dt: np.ndarray, p
     return phi + sol[:3][None, :] + dt[:, None] * sol[3:][None, :], sol[3:]
 
 
-def _predicted(R: Rotation, phi: np.ndarray, ref: np.ndarray) -> np.ndarray:
+def _matrix(R: Rotation | np.ndarray) -> np.ndarray:
+    """The rotation matrix of a scipy ``Rotation`` or of a 3 x 3 matrix (itself)."""
+    return R.as_matrix() if isinstance(R, Rotation) else np.asarray(R, dtype=float)
+
+
+def _predicted(R: Rotation | np.ndarray, phi: np.ndarray, ref: np.ndarray) -> np.ndarray:
     """``w_i = (R Exp(phi_i))^T r_i = Exp(-phi_i) R^T r_i``, written with the rotation matrix and
     Rodrigues' formula (scipy's per-star ``Rotation`` compositions cost more than the rest of the
     check on a tracked frame)."""
-    return rotate_by_rotvec(-phi, ref @ R.as_matrix())
+    return rotate_by_rotvec(-phi, ref @ _matrix(R))
 
 
-def predicted_count(attitude: Rotation, camera, catalog) -> int:
-    """Catalogue stars the camera sees on its detector at ``attitude``."""
-    idx = np.asarray(catalog.cone(attitude.apply([0.0, 0.0, 1.0]), camera.half_diagonal_rad), dtype=np.intp)
+def predicted_count(attitude: Rotation | np.ndarray, camera, catalog) -> int:
+    """Catalogue stars the camera sees on its detector at ``attitude`` (camera -> ICRS)."""
+    m = _matrix(attitude)
+    idx = np.asarray(catalog.cone(m[:, 2], camera.half_diagonal_rad), dtype=np.intp)
     if idx.size == 0:
         return 0
-    x, y, front = camera.project(catalog.unit_icrs[idx] @ attitude.as_matrix())
+    x, y, front = camera.project(catalog.unit_icrs[idx] @ m)
     return int(np.count_nonzero(front & camera.contains(x, y)))
 
 
