@@ -45,6 +45,11 @@ def spread(values: list[float | None]) -> dict:
             "min": float(v.min()), "max": float(v.max()), "n": int(v.size)}
 
 
+#: Metrics a run writes only when non-zero (a seed without a flag has no key for it): a seed that ran
+#: and lacks one counted zero, so that every seed enters the mean.
+COUNTS = ("outcomes.flag_reasons.", "outcomes.invalid_reasons.")
+
+
 def aggregate(comp: Comparison, pipeline_runs: list[dict], run_info: dict) -> dict:
     by_key: dict[tuple[str, str], list[dict]] = {}
     for r in pipeline_runs:
@@ -54,8 +59,9 @@ def aggregate(comp: Comparison, pipeline_runs: list[dict], run_info: dict) -> di
         for p in v.pipelines:
             runs = sorted(by_key.get((v.label, p), []), key=lambda r: r["seed"])
             flat = [flatten(r["metrics"]) if "metrics" in r else None for r in runs]
-            keys = sorted({k for f in flat if f for k in f})
-            metrics = {k: spread([f.get(k) if f else None for f in flat]) for k in keys}
+            keys = sorted({k for f in flat if f is not None for k in f})
+            metrics = {k: spread([f.get(k, 0 if k.startswith(COUNTS) else None) if f is not None else None
+                                  for f in flat]) for k in keys}
             per_seed = [{"seed": r["seed"], "metrics": f} if f is not None else {"seed": r["seed"], "error": r["error"]}
                         for r, f in zip(runs, flat)]
             timed = [r["timing"] for r in runs if "timing" in r]

@@ -49,9 +49,7 @@ def _flagged_percent(row: dict) -> str:
     if flagged is None or not frames:
         return "n/a"
     prefix = "outcomes.flag_reasons."
-    seeds = max(len(row.get("seeds") or ()), 1)
-    # a seed without a flag has no key for it: the mean per seed counts it as zero frames
-    reasons = sorted(((s["mean"] * s.get("n", seeds) / seeds, k[len(prefix):]) for k, s in row["metrics"].items()
+    reasons = sorted(((s["mean"], k[len(prefix):]) for k, s in row["metrics"].items()
                       if k.startswith(prefix) and s["mean"]), reverse=True)
     top = ", ".join(f"{name} {n:.3g}" for n, name in reasons[:2]) + (", ..." if len(reasons) > 2 else "")
     return f"{100.0 * flagged / frames:.3g}" + (f" ({top})" if top else "")

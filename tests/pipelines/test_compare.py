@@ -274,3 +274,23 @@ def test_flagged_percent_names_the_commonest_flags():
     row = {"metrics": {k: {"mean": v, "std": 0.0} for k, v in means.items()}}
     assert _flagged_percent(row) == "75 (saturated_stars 15, edge_truncated_stars 4.5, ...)"
     assert _flagged_percent({"metrics": {}}) == "n/a"
+
+
+def test_a_seed_without_a_flag_counts_zero_in_the_flag_means():
+    """A run writes a flag's count only when some frame carries it: the aggregate counts a seed
+    that ran without it as zero (every seed in the mean), and a seed that failed not at all."""
+    from types import SimpleNamespace
+
+    from rollingstar.pipelines.compare.aggregate import aggregate
+
+    variant = SimpleNamespace(label="v", pipelines=["p"], scenario="s", params={}, rate_deg_s=(0.0, 0.0, 0.0),
+                              config=SimpleNamespace(frames=10))
+    comp = SimpleNamespace(variants=[variant], source="x", pipeline_paths={"p": "p.yaml"},
+                           config=SimpleNamespace(name="n", description="", seed_list=lambda: [1, 2, 3, 4], plot_x="rate"))
+    runs = [{"variant": "v", "pipeline": "p", "seed": 1, "metrics": {"outcomes": {"flag_reasons": {"saturated_stars": 6}}}},
+            {"variant": "v", "pipeline": "p", "seed": 2, "metrics": {"outcomes": {"flag_reasons": {}}}},
+            {"variant": "v", "pipeline": "p", "seed": 3, "metrics": {"outcomes": {"flag_reasons": {"saturated_stars": 3}}}},
+            {"variant": "v", "pipeline": "p", "seed": 4, "error": "simulation failed"}]
+    row = aggregate(comp, runs, {})["results"][0]
+    stats = row["metrics"]["outcomes.flag_reasons.saturated_stars"]
+    assert stats["mean"] == 3.0 and stats["n"] == 3 and stats["min"] == 0.0
