@@ -118,7 +118,7 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
     with threadpool_limits(limits=1, user_api="blas"):
         sensor = sensor_model(scenario)
         moves = sensor.moving or sequence_moves(observations, attitudes, sensor.camera, sensor.timing)
-        sensor = sensor_model(scenario, moves)
+        sensor = replace(sensor, moving=moves)
         choice = choose_projection(observations, attitudes, sensor, options)
         if choice is not None and choice.restated:
             sensor = sensor_model(with_projection(scenario, choice), moves)

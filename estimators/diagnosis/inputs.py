@@ -12,6 +12,7 @@ import numpy as np
 from rollingstar.estimators.diagnosis.selection import MIN_DELTA_BIC
 from rollingstar.sensors import build
 from rollingstar.sensors.camera import PinholeCamera
+from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.scenario import ScenarioConfig
 from rollingstar.sensors.timing import DetectorTiming
 
@@ -73,16 +74,17 @@ def sequence_moves(obs, attitudes, camera, timing) -> bool:
     (unrelated images share none), and the body rate their attitudes imply moves a star across one
     readout by more than ``MOVING_NOISE_FRACTION`` of the centroid noise (median over frames; a
     still sensor's rate from differenced attitudes is noise, and fitting it would only add noise)."""
+    from rollingstar.estimators.diagnosis.noise import consecutive_pairs
     from rollingstar.estimators.diagnosis.observations import rates_from_attitudes
 
     if obs.n_frames < 2 or len(attitudes) != obs.n_frames:
         return False
-    ids = [set(obs.catalog_id[(obs.frame == k) & (obs.catalog_id >= 0)].tolist()) for k in range(obs.n_frames)]
-    shared = np.mean([len(a & b) >= MIN_SHARED_STARS for a, b in zip(ids[:-1], ids[1:])])
-    if shared < SHARED_FRACTION:
+    first, _ = consecutive_pairs(obs, np.ones(obs.n, dtype=bool))  # a star in frame k and in k + 1
+    per_pair = np.bincount(obs.frame[first], minlength=obs.n_frames)[: obs.n_frames - 1]
+    if np.mean(per_pair >= MIN_SHARED_STARS) < SHARED_FRACTION:
         return False
     _, _, rate = rates_from_attitudes(attitudes, obs.t_ref_ns)
-    readout_s = timing.effective_line_delay_ns * 1e-9 * camera.height
+    readout_s = timing.effective_line_delay_ns * S_PER_NS * camera.height
     shift_px = np.linalg.norm(rate, axis=1) * readout_s * camera.focal_px
     known = np.isfinite(obs.sigma)
     noise = float(np.median(obs.sigma[known])) if known.any() else UNSTATED_NOISE_PX

@@ -17,8 +17,8 @@ def test_diagnosis_of_an_outside_recording_measures_its_noise_and_locates_a_stit
     outsider: ``rollingstar diagnose`` against the model the recording declares names no library
     physics for either, measures the noise factor and describes the stitch where it is. The
     recording's scenario declares no motion although the camera turns: the diagnosis finds the
-    motion in the frames themselves (``inputs.sequence_moves``); taking the declaration at its word
-    named three effects on the same recording without the stitch."""
+    motion in the frames themselves (``inputs.sequence_moves``): fitted as a still sensor, the
+    frames' rolling-shutter skew would look like library physics."""
     def stitched_and_noisier(record, rng):
         x = np.asarray(record["x"])
         y = np.asarray(record["y"]) + np.where(x >= 512.0, 0.3, 0.0)

@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from rollingstar.logs.importers.sidecar import load_camera
 from rollingstar.studies import real_data as rd
 
 pytestmark = pytest.mark.realdata
 ROOT = Path(__file__).resolve().parents[2]
-NOMINAL_FOCAL_PX = 35.0e-3 / 6.9e-6  # configs/cameras/tetra3_blackfly_s.yaml
 
 
 def cli(*args, cwd=None):
@@ -28,9 +28,10 @@ def cli(*args, cwd=None):
 def test_the_diagnosis_names_the_real_lens_focal_length(real_data_dir, tmp_path):
     rows = [rd.process_image(job, repeats=1) for job in rd.tetra3_jobs(real_data_dir)]
     fitted = np.median([r["focal_px"] for r in rows if r["accepted"]])
-    implied_ppm = (fitted / NOMINAL_FOCAL_PX - 1.0) * 1e6  # about +8,900 ppm: the lens is not a nominal 35 mm
+    nominal_focal_px = load_camera(rd.TETRA3_CAMERA).focal_px  # the camera the images ship with
+    implied_ppm = (fitted / nominal_focal_px - 1.0) * 1e6  # about +8,900 ppm: the lens is not a nominal 35 mm
     rec = tmp_path / "tetra3.mcap"
-    proc = cli("import", "images", real_data_dir / "tetra3", "-o", rec, "--camera", "tetra3_blackfly_s", "-q")
+    proc = cli("import", "images", real_data_dir / "tetra3", "-o", rec, "--camera", rd.TETRA3_CAMERA, "-q")
     assert proc.returncode == 0, proc.stderr
     proc = cli("diagnose", "--recording", rec, "--json", "-q")
     assert proc.returncode == 0, proc.stderr
