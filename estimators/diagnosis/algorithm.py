@@ -40,7 +40,7 @@ from rollingstar.estimators.diagnosis.modelling import EffectModel, known_noise,
 from rollingstar.estimators.diagnosis.naming import Naming, name_effects
 from rollingstar.estimators.diagnosis.noise import NoiseCheck, combined, scaled
 from rollingstar.estimators.diagnosis.noise import measure as measure_noise
-from rollingstar.estimators.diagnosis.observations import Observations, fit_nuisance
+from rollingstar.estimators.diagnosis.observations import Observations, fit_nuisance, star_chi2
 from rollingstar.estimators.diagnosis.projection import (
     ProjectionChoice,
     choose_projection,
@@ -271,13 +271,10 @@ def _outlier_rounds(observations: Observations, attitudes: Rotation, sensor: Sen
     return location, naming, model, verification, tuple(rounds)
 
 
-def _isolated(obs: Observations, pred, heldout: np.ndarray) -> list[dict]:
-    """The held-out stars the final model misses alone, which the held-out test leaves out
-    (:func:`.verifying.isolated_misfits`), with where they are and by how many sigma."""
-    from rollingstar.estimators.diagnosis.observations import star_chi2
-    from rollingstar.estimators.diagnosis.verifying import isolated_misfits
-
-    idx = np.flatnonzero(isolated_misfits(obs, pred, heldout))
+def _isolated(obs: Observations, pred, isolated: np.ndarray) -> list[dict]:
+    """The held-out stars the final model misses alone, which the held-out test left out
+    (``Verification.isolated``), with where they are and by how many sigma."""
+    idx = np.flatnonzero(isolated)
     c = star_chi2(obs, pred)
     return [{"frame": int(obs.frame_index[obs.frame[i]]), "catalog_id": int(obs.catalog_id[i]), "x": float(obs.x[i]),
              "y": float(obs.y[i]), "sigmas": float(np.sqrt(c[i]))} for i in idx]
@@ -299,7 +296,7 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
         "noise": {"sigma_px_median": float(np.median(data.obs.sigma)), "source": data.obs.sigma_source},
         "noise_check": d.noise.as_json() if d.noise is not None else None,
         "rejected_outliers": data.n_rejected,
-        "isolated_misfits": _isolated(data.obs, d.model.prediction, data.heldout),
+        "isolated_misfits": _isolated(data.obs, d.model.prediction, v.isolated),
         "outlier_rounds": list(d.outlier_rounds),
         "split": {"unit": data.unit, "frames": data.obs.n_frames, "train_frames": data.n_train_frames,
                   "heldout_frames": data.n_heldout_frames, "train_observations": int(data.train.sum()),

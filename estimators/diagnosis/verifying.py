@@ -63,6 +63,7 @@ class Verification:
     named: list[Candidate]  # the effects the updated scenario enables
     thetas: list[np.ndarray]  # their parameters
     verdict: str
+    isolated: np.ndarray  # held-out stars the final model misses alone, left out of the held-out test
 
     @property
     def unexplained(self) -> bool:
@@ -73,7 +74,8 @@ def verify(location: Location, naming: Naming, model: EffectModel, sensor: Senso
            options: DiagnoseOptions) -> Verification:
     """Held-out checks, the named effects' report rows, rejection without held-out improvement, verdict."""
     data = location.data
-    evidence = [*model.leftover_evidence, *heldout_evidence(data, model.prediction)]
+    isolated = isolated_misfits(data.obs, model.prediction, data.heldout)
+    evidence = [*model.leftover_evidence, *heldout_evidence(data, model.prediction, isolated)]
     unexplained = bool(evidence)
     quality = fit_quality(location, model, sensor, options)
     confirms = heldout_confirms(data, quality)
@@ -95,7 +97,7 @@ def verify(location: Location, naming: Naming, model: EffectModel, sensor: Senso
     text = verdict(mismatch, [e["name"] for e in effects], ambiguous, evidence, rejected,
                    location.residuals["chi2_dof"], int(data.train.sum()))
     return Verification(quality, evidence, confirms, mismatch, effects, ambiguous, absorbed, weak, rejected,
-                        named, thetas, text)
+                        named, thetas, text, isolated)
 
 
 ISOLATED_P = 0.01  # family-wise chance that a noise draw among a set's stars is taken for an isolated misfit
@@ -116,13 +118,13 @@ def isolated_misfits(obs: Observations, pred: Prediction, mask: np.ndarray) -> n
     return out if out.sum() <= max(1, int(MAX_ISOLATED_FRACTION * n)) else np.zeros(obs.n, dtype=bool)
 
 
-def heldout_evidence(data: Dataset, pred: Prediction) -> list[dict]:
+def heldout_evidence(data: Dataset, pred: Prediction, isolated: np.ndarray) -> list[dict]:
     """Held-out data the final model leaves far outside a known noise: a mismatch even when the
     training data show nothing (e.g. the only frames that could show an effect were held out).
-    Isolated misfits (:func:`isolated_misfits`) are left out of the test: one star is not a
-    systematic (the report lists them)."""
+    ``isolated``: the held-out stars :func:`isolated_misfits` finds, left out of the test (one star
+    is not a systematic; the report lists them)."""
     out = []
-    heldout = data.heldout & ~isolated_misfits(data.obs, pred, data.heldout)
+    heldout = data.heldout & ~isolated
     for label, chi2, dof in heldout_chi2(data.obs, pred, heldout, data.heldout_frames_fitted, data.channel_heldout):
         scale = data.obs.noise_sigma_ln if label == "image" else 0.0  # the gyro rows' noise is the gyro's
         z = residuals.chi2_z(chi2, dof, scale) if dof > 0 else 0.0
