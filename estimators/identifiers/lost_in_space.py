@@ -87,6 +87,11 @@ class LostInSpaceParams(BaseModel):
                                "matches (see the class docstring).")
     motion_threshold_px: float = Field(default=1.0, ge=0, description="A rate fitted to the matches is used when the "
                                        "motion it implies between the matched stars' times exceeds this (px).")
+    fit_max_motion_px: float = Field(default=1.0, ge=0, description="With fit_distortion, the intrinsics are fitted "
+                                     "only on a frame whose body rate moves the matched stars by at most this (px) "
+                                     "between their row times; a faster frame keeps the camera fitted last (or the "
+                                     "known one): its fit would trade the focal length and k1 against the rolling "
+                                     "shutter's stretch (see the class docstring, 5).")
 
 
 @dataclass(frozen=True)
@@ -166,7 +171,13 @@ class LostInSpaceIdentifier(Identifier):
        stage (correction, attitude, smoother) projects with it. A published focal length is often
        0.5-1 % off the lens' (tetra3 images: 11.53 deg nominal, 11.43 deg fitted); with stars off the
        image centre a scale error tilts the attitude a solver fits, so ``auto`` fits the focal
-       length on every field and the radial terms on wide ones.
+       length on every field and the radial terms on wide ones. The fit needs stars that hold
+       still: on a rolling-shutter frame of a turning camera the rate stretches the pattern along
+       the columns by ``omega x (row time)``, and a focal length and ``k1`` fitted with an imperfect
+       rate take up part of that stretch (several-fold worse attitudes at 6-10 deg/s on he2021a).
+       So the intrinsics are fitted only on frames whose rate moves the matched stars by at most
+       ``fit_max_motion_px`` between their row times; a faster frame keeps the camera fitted last
+       (the known one before any fit).
 
     6. Motion (``refer_motion``). A rolling-shutter frame of a turning camera images its stars at
        different times (up to ``rows x line delay``, 45 ms on he2021a: 34 px at 10 deg/s), which
@@ -414,7 +425,8 @@ class LostInSpaceIdentifier(Identifier):
         finite = np.flatnonzero(np.isfinite(det.x) & np.isfinite(det.y))
         if finite.size < self.params.min_matches:
             return self._reject(frame, f"too_few_detections({finite.size}<{self.params.min_matches})")
-        model = RadialCamera.from_pinhole(cam, *self._known_distortion())
+        # the camera fitted last on a frame that held still, else the known one
+        model = self._track_model if self._fitting else RadialCamera.from_pinhole(cam, *self._known_distortion())
         t_ref = int(self.context.timing.frame_reference_ns(frame.t0_ns))
         motion = self._velocity_motion(det, model, t_ref)
         # a streak's pixels tell its direction of travel only through the rolling shutter: when the
@@ -475,6 +487,7 @@ class LostInSpaceIdentifier(Identifier):
         fitting = self._fitting
         sigma: dict = {}
         previous = None
+        fitted = False  # whether ``model`` was fitted to the final matches (else the known camera is handed on)
         for _ in range(6 if fitting else 1):
             d, c, R, _ = self._rematch(det, R, model, motion, t0_ns)
             key = (tuple(d), tuple(c))
@@ -482,27 +495,41 @@ class LostInSpaceIdentifier(Identifier):
                 break
             previous = key
             ref = self.context.catalog.unit_icrs[c]
-            if fitting and d.size >= self.params.distortion_min_matches:
+            if self._may_fit(det, d, model, motion):
                 x, y = (det.x[d], det.y[d]) if motion.static else model.project(self._referred(det, d, model, motion))[:2]
                 cf = fit_camera([(x, y, ref)], [R], model, fit=self._fit_names)
-                model, R, sigma = cf.camera, cf.attitudes[0], cf.sigma
+                model, R, sigma, fitted = cf.camera, cf.attitudes[0], cf.sigma, True
             else:
                 R, _ = Rotation.align_vectors(ref, self._referred(det, d, model, motion))
         if motion.static:
             # the field of view solved on (or the intrinsics fitted to) a frame stretched by the rolling
-            # shutter hold part of the stretch: a rate is fitted with the nominal camera instead
-            nominal = RadialCamera.from_pinhole(self.context.camera, self.params.k1, self.params.k2)
+            # shutter hold part of the stretch: a rate is fitted with the known camera instead (the one
+            # fitted last on a frame that held still, or the declared one)
+            known = self._track_model if fitting else RadialCamera.from_pinhole(self.context.camera, self.params.k1,
+                                                                                self.params.k2)
             for _ in range(2):  # the second pass fits the rate to the stars the first one added
-                got = self._matched_motion(det, d, c, nominal, t_ref)
+                got = self._matched_motion(det, d, c, known, t_ref)
                 if got is None:
                     break
-                (R, motion), model, sigma = got, nominal, {}
+                (R, motion), model, sigma, fitted = got, known, {}, False
                 d, c, R, _ = self._rematch(det, R, model, motion, t0_ns)
-            if not motion.static and fitting and d.size >= self.params.distortion_min_matches:
+            if not motion.static and self._may_fit(det, d, model, motion):
                 x, y = model.project(self._referred(det, d, model, motion))[:2]
                 cf = fit_camera([(x, y, self.context.catalog.unit_icrs[c])], [R], model, fit=self._fit_names)
-                model, sigma = cf.camera, cf.sigma
+                model, sigma, fitted = cf.camera, cf.sigma, True
+        if fitting and not fitted:  # too few matches or too fast to fit: the known camera, not the solved scale
+            model, sigma = self._track_model, {}
         return d, c, R, model, motion, sigma
+
+    def _may_fit(self, det, d: np.ndarray, model: RadialCamera, motion: BodyMotion) -> bool:
+        """Whether the intrinsics are fitted to matches ``d``: with ``fit_distortion``, enough of them,
+        and a motion that moves them by at most ``fit_max_motion_px`` between their row times."""
+        if not self._fitting or d.size < self.params.distortion_min_matches:
+            return False
+        if motion.static:
+            return True
+        span_s = np.ptp(det.t_ns[d].astype(np.int64)) * S_PER_NS
+        return float(np.linalg.norm(motion.omega)) * span_s * model.focal_px <= self.params.fit_max_motion_px
 
     def _verify(self, frame: FrameData, d: np.ndarray, c: np.ndarray, model: RadialCamera, motion: BodyMotion,
                 sigma: dict, diag: dict) -> tuple[FrameData, LostInSpaceSolution]:
