@@ -177,7 +177,8 @@ class LostInSpaceIdentifier(Identifier):
        rate take up part of that stretch (several-fold worse attitudes at 6-10 deg/s on he2021a).
        So the intrinsics are fitted only on frames whose rate moves the matched stars by at most
        ``fit_max_motion_px`` between their row times; a faster frame keeps the camera fitted last
-       (the known one before any fit).
+       (the known one before any fit), unless that camera fails the verification's residual
+       bound on it: then the camera is fitted on the moving frame after all.
 
     6. Motion (``refer_motion``). A rolling-shutter frame of a turning camera images its stars at
        different times (up to ``rows x line delay``, 45 ms on he2021a: 34 px at 10 deg/s), which
@@ -425,8 +426,7 @@ class LostInSpaceIdentifier(Identifier):
         finite = np.flatnonzero(np.isfinite(det.x) & np.isfinite(det.y))
         if finite.size < self.params.min_matches:
             return self._reject(frame, f"too_few_detections({finite.size}<{self.params.min_matches})")
-        # the camera fitted last on a frame that held still, else the known one
-        model = self._track_model if self._fitting else RadialCamera.from_pinhole(cam, *self._known_distortion())
+        model = RadialCamera.from_pinhole(cam, *self._known_distortion())
         t_ref = int(self.context.timing.frame_reference_ns(frame.t0_ns))
         motion = self._velocity_motion(det, model, t_ref)
         # a streak's pixels tell its direction of travel only through the rolling shutter: when the
@@ -456,8 +456,14 @@ class LostInSpaceIdentifier(Identifier):
         if ok.sum() < 3:
             return self._reject(frame, "solver_ids_not_in_catalogue", **diag)
         R, _ = Rotation.align_vectors(self._catalog.unit_icrs[cat_idx[ok]], self._referred(det, det_idx[ok], model, motion))
-        d, c, R, model, motion, sigma = self._match_all(det, R, model, motion, frame.t0_ns, t_ref)
-        return self._verify(frame, d, c, model, motion, sigma, diag)
+        d, c, _, fit, moved, sigma = self._match_all(det, R, model, motion, frame.t0_ns, t_ref)
+        out, sol = self._verify(frame, d, c, fit, moved, sigma, dict(diag))
+        if self._fitting and not sigma and not sol.accepted and sol.reason.startswith("residual"):
+            # the known camera misses this moving frame's stars (class docstring, 5): the camera is
+            # fitted on it after all, which may take up part of the stretch but is closer than one that fails
+            d, c, _, fit, moved, sigma = self._match_all(det, R, model, motion, frame.t0_ns, t_ref, fit_moving=True)
+            out, sol = self._verify(frame, d, c, fit, moved, sigma, diag)
+        return out, sol
 
     def _pattern_solve(self, det, finite: np.ndarray, model: RadialCamera, motion: BodyMotion):
         """tetra3rs' pattern search on the detections (brightest first; referred to the motion's
@@ -479,11 +485,14 @@ class LostInSpaceIdentifier(Identifier):
             pattern_checking_stars=self.params.pattern_checking_stars, match_max_error=self.params.pattern_match_max_error)
         return res, order, time.perf_counter() - start
 
-    def _match_all(self, det, R: Rotation, model: RadialCamera, motion: BodyMotion, t0_ns: int, t_ref: int):
+    def _match_all(self, det, R: Rotation, model: RadialCamera, motion: BodyMotion, t0_ns: int, t_ref: int,
+                   fit_moving: bool = False):
         """Re-match every detection against our catalogue and camera model; with fit_distortion the
-        intrinsics are refitted to the matches and the matching repeated until the set is stable;
+        intrinsics are refitted to the matches (on a frame that holds still, or any with
+        ``fit_moving``: :meth:`_may_fit`) and the matching repeated until the set is stable;
         without a known motion, then with the rate fitted to the matches (:meth:`_matched_motion`).
-        Returns (detections, catalogue indices, attitude, camera model, motion, camera sigmas)."""
+        Returns (detections, catalogue indices, attitude, camera model, motion, camera sigmas: empty
+        when the camera was not fitted to these matches)."""
         fitting = self._fitting
         sigma: dict = {}
         previous = None
@@ -495,7 +504,7 @@ class LostInSpaceIdentifier(Identifier):
                 break
             previous = key
             ref = self.context.catalog.unit_icrs[c]
-            if self._may_fit(det, d, model, motion):
+            if self._may_fit(det, d, model, motion, fit_moving):
                 x, y = (det.x[d], det.y[d]) if motion.static else model.project(self._referred(det, d, model, motion))[:2]
                 cf = fit_camera([(x, y, ref)], [R], model, fit=self._fit_names)
                 model, R, sigma, fitted = cf.camera, cf.attitudes[0], cf.sigma, True
@@ -505,28 +514,32 @@ class LostInSpaceIdentifier(Identifier):
             # the field of view solved on (or the intrinsics fitted to) a frame stretched by the rolling
             # shutter hold part of the stretch: a rate is fitted with the known camera instead (the one
             # fitted last on a frame that held still, or the declared one)
-            known = self._track_model if fitting else RadialCamera.from_pinhole(self.context.camera, self.params.k1,
-                                                                                self.params.k2)
+            known = self._track_model if fitting else RadialCamera.from_pinhole(self.context.camera,
+                                                                                *self._known_distortion())
             for _ in range(2):  # the second pass fits the rate to the stars the first one added
                 got = self._matched_motion(det, d, c, known, t_ref)
                 if got is None:
                     break
                 (R, motion), model, sigma, fitted = got, known, {}, False
                 d, c, R, _ = self._rematch(det, R, model, motion, t0_ns)
-            if not motion.static and self._may_fit(det, d, model, motion):
+            if not motion.static and self._may_fit(det, d, model, motion, fit_moving):
                 x, y = model.project(self._referred(det, d, model, motion))[:2]
                 cf = fit_camera([(x, y, self.context.catalog.unit_icrs[c])], [R], model, fit=self._fit_names)
                 model, sigma, fitted = cf.camera, cf.sigma, True
-        if fitting and not fitted:  # too few matches or too fast to fit: the known camera, not the solved scale
+        if fitting and not fitted and model != self._track_model:
+            # too few matches or too fast to fit: matched again with the known camera (the one fitted
+            # last, or the declared one), not the solved field's scale
             model, sigma = self._track_model, {}
+            d, c, R, _ = self._rematch(det, R, model, motion, t0_ns)
         return d, c, R, model, motion, sigma
 
-    def _may_fit(self, det, d: np.ndarray, model: RadialCamera, motion: BodyMotion) -> bool:
+    def _may_fit(self, det, d: np.ndarray, model: RadialCamera, motion: BodyMotion, fit_moving: bool = False) -> bool:
         """Whether the intrinsics are fitted to matches ``d``: with ``fit_distortion``, enough of them,
-        and a motion that moves them by at most ``fit_max_motion_px`` between their row times."""
+        and a motion that moves them by at most ``fit_max_motion_px`` between their row times (any
+        motion with ``fit_moving``)."""
         if not self._fitting or d.size < self.params.distortion_min_matches:
             return False
-        if motion.static:
+        if motion.static or fit_moving:
             return True
         span_s = np.ptp(det.t_ns[d].astype(np.int64)) * S_PER_NS
         return float(np.linalg.norm(motion.omega)) * span_s * model.focal_px <= self.params.fit_max_motion_px

@@ -3,6 +3,8 @@ to one time with the body rate fitted to their image velocities, each star re-ma
 row time, and re-acquisition in the frame where tracking loses the stars."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -176,3 +178,47 @@ def test_a_tracked_frame_carries_the_check_the_stage_mechanics_would_compute(con
     forged = out.evolve(identification=replace(fresh, passed=False, reason="forged"))
     assert verify_identification(forged, context, bound, own=False).identification == fresh
     assert verify_identification(forged, context, bound * 10, own=True).identification.bound == bound * 10
+
+
+def test_the_camera_is_fitted_on_a_still_frame_and_kept_on_a_fast_one():
+    """``fit_distortion: focal`` with a declared focal length 1 % off the lens's (the simulator's
+    camera). A motionless frame fits it back within 0.1 %. A frame turning at 6 deg/s about x (its
+    stars moved ~18 px between their row times, far beyond ``fit_max_motion_px``) keeps the camera
+    fitted last (the still frame's), as a fit there would trade the focal length against the
+    rolling shutter's stretch; with the right camera declared it keeps the declared one. Only when
+    the known camera fails the verification on the moving frame (the 1 % error: 2.7 px residuals)
+    is the camera fitted there, closer to the lens than the declared one."""
+    true_focal = CAM.focal_px
+    exact = he2021a_context()
+    off = replace(exact, camera=replace(CAM, focal_length_m=1.01 * CAM.focal_length_m))
+    rng = np.random.default_rng(7)
+
+    def frame(rate, seed):  # a field with 20 stars or more
+        while (f := motion_frames(exact, pointing(rng), rate, 1, seed=seed)[0][0]).stars.n < 20:
+            pass
+        return f
+
+    still, fast = frame([0.0, 0.0, 0.0], 71), frame([6.0 * DEG, 0.0, 0.0], 72)
+
+    def identifier(context):
+        lis = LostInSpaceIdentifier(track=False, fit_distortion="focal", pattern_match_max_error=0.005)
+        lis.setup(context)
+        return lis
+
+    lis = identifier(exact)
+    out = lis.process(fast)
+    assert lis.last_solution.accepted and lis.last_solution.rate_rad_s is not None
+    assert out.camera.focal_px == true_focal and lis.last_solution.camera_sigma == {}
+
+    lis = identifier(off)
+    out = lis.process(still)
+    assert lis.last_solution.accepted
+    fitted = out.camera.focal_px
+    assert abs(fitted / true_focal - 1.0) < 1e-3, (fitted, true_focal)
+    out = lis.process(fast)
+    assert lis.last_solution.accepted and out.camera.focal_px == fitted
+
+    lis = identifier(off)
+    out = lis.process(fast)
+    assert lis.last_solution.accepted and lis.last_solution.camera_sigma
+    assert abs(out.camera.focal_px / true_focal - 1.0) < 0.005, (out.camera.focal_px, true_focal)
