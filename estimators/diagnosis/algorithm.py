@@ -35,7 +35,7 @@ from rollingstar.estimators.diagnosis.describe import Description, describe, ref
 from rollingstar.estimators.diagnosis.gyro_channel import GyroData
 from rollingstar.estimators.diagnosis.inputs import DiagnoseOptions, SensorModel, sensor_model, sequence_moves
 from rollingstar.estimators.diagnosis.library import Candidate, library
-from rollingstar.estimators.diagnosis.locating import Location, locate
+from rollingstar.estimators.diagnosis.locating import Location, check_parity, locate
 from rollingstar.estimators.diagnosis.modelling import EffectModel, known_noise, model_effects, updated_scenario
 from rollingstar.estimators.diagnosis.naming import Naming, name_effects
 from rollingstar.estimators.diagnosis.noise import NoiseCheck, combined, scaled
@@ -119,6 +119,7 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
         sensor = sensor_model(scenario)
         moves = sensor.moving or sequence_moves(observations, attitudes, sensor.camera, sensor.timing)
         sensor = replace(sensor, moving=moves)
+        check_parity(observations, attitudes, sensor)
         choice = choose_projection(observations, attitudes, sensor, options)
         if choice is not None and choice.restated:
             sensor = sensor_model(with_projection(scenario, choice), moves)

@@ -29,6 +29,7 @@ from rollingstar.estimators.diagnosis.observations import (
 )
 from rollingstar.estimators.diagnosis.selection import LinearProblem
 from rollingstar.estimators.diagnosis.signatures import linear_problem
+from rollingstar.sensors.so3 import wahba
 
 MIN_STARS_PER_FRAME = 4  # an attitude from fewer stars says little: frames keep at least this many
 OUTLIER_SIGMA = 30.0  # far beyond noise, below the identifier's refine gate: a wrong match, not physics
@@ -159,6 +160,50 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
         obs = replace(obs, channel=chan)
         nuis0, pred0 = fit_nuisance(obs, nuis0, *fit, att_mask, sensor.moving)
     return Dataset(obs, unit, frame_has_train, att_mask, n_rejected, chan_out), nuis0, pred0
+
+
+def check_parity(obs: Observations, attitudes, model: SensorModel) -> None:
+    """Refuse a recording whose stars are a mirror image of the sky ``model`` draws: no projection,
+    focal length or distortion turns one into the other, so every later fit would only report that
+    it misses. Checked when the model as given misses most stars beyond the gross-outlier gate,
+    against :func:`mirrored_miss` with the camera as declared; both fits hold every frame still
+    (one attitude fit each: a mirror moves stars by hundreds of pixels, motion by far less)."""
+    every = np.ones(obs.n, dtype=bool)
+    still = replace(model, moving=False)
+    _, pred = fit_nuisance(obs, attitudes, model.camera, model.timing, model.effects, every, moving=False)
+    if np.count_nonzero(beyond_gate(obs, pred)) <= 0.5 * obs.n:
+        return
+    miss = float(np.nanmedian(np.hypot(obs.x - pred.x, obs.y - pred.y)))
+    mirrored = mirrored_miss(obs, still, every)
+    if mirrored is None or mirrored >= min(OUTLIER_SIGMA * float(np.median(obs.sigma)), 0.1 * miss):
+        return
+    raise UserError(
+        f"the recording's stars are a mirror image of the sky the simulation draws: as given its camera misses them "
+        f"by {miss:.3g} px (median), and with x -> {2 * model.camera.cx:g} - x by {mirrored:.3g} px. The recording's "
+        f"pixel axes run the other way than docs/conventions.md states ((x, y) = (column, row), row 0 the first row "
+        f"of the image data, the sky as seen through the lens): flip one axis where the recording is made or "
+        f"imported (x -> W - 1 - x, or y -> H - 1 - y; x and y swapped is the same mirror turned about the boresight)")
+
+
+def mirrored_miss(obs: Observations, model: SensorModel, att_mask: np.ndarray) -> float | None:
+    """Median miss (px) of ``model`` on the stars mirrored about the principal point's column
+    (``x -> 2 cx - x``), every frame's attitude fitted anew (from Wahba's solution on the mirrored
+    directions): a recording whose pixel axes run the other way than the conventions state (one
+    axis flipped; x and y swapped, which is the same mirror turned about the boresight) fits
+    there. None when a frame has fewer than 3 stars to start its attitude from."""
+    cam = model.camera
+    cov = None if obs.cov is None else obs.cov * np.array([[1.0, -1.0], [-1.0, 1.0]])
+    mirrored = replace(obs, x=2.0 * cam.cx - obs.x, cov=cov)
+    body = cam.unproject(mirrored.x, mirrored.y).reshape(-1, 3)
+    starts = []
+    for f in range(obs.n_frames):
+        mine = (obs.frame == f) & att_mask & np.all(np.isfinite(body), axis=1)
+        if np.count_nonzero(mine) < 3:
+            return None
+        starts.append(wahba(obs.u_icrs[mine], body[mine]))
+    _, pred = fit_nuisance(mirrored, Rotation.from_matrix(np.stack(starts)), model.camera, model.timing,
+                           model.effects, att_mask, model.moving)
+    return float(np.nanmedian(np.hypot(mirrored.x - pred.x, mirrored.y - pred.y)))
 
 
 def gross_outliers(obs: Observations, attitudes, model: SensorModel, att_mask: np.ndarray,

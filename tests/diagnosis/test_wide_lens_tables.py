@@ -114,3 +114,28 @@ def test_a_nominal_field_far_off_the_lens_is_fitted_and_stated(tmp_path, lens_mm
     assert ("radial_distortion" in named) == (k1 != 0.0), named
     print(f"\n{lens_mm} mm declared as {nominal_mm} mm: focal {focal:.1f} px (truth {truth:.1f}); named {sorted(named)}; "
           f"held-out RMS {out['heldout_rms_after_px']:.3g} px against a noise of {out['noise']['sigma_px_median']:.3g} px")
+
+
+@pytest.mark.parametrize("axis, size", [("x", W), ("y", H)])
+def test_a_mirrored_table_is_refused_with_the_mirror_named(tmp_path, axis, size):
+    """A corr table whose pixel axis runs the other way (an image flipped left-right or upside down
+    before astrometry.net solved it: its solution, with the parity flipped, fits the table) is not
+    diagnosed as a lens far from the declared one: exit 2 with the mirror named and both misses
+    stated, the one mirrored at the noise."""
+    from astropy.io import fits
+
+    write_table(tmp_path / "sky" / "image", 12.0, 0.0, 0.3, 0, seed=3)
+    path = tmp_path / "sky" / "image" / "corr.fits"
+    with fits.open(path, mode="update") as hdul:
+        for col in (f"field_{axis}", f"index_{axis}"):  # 1-based pixel centres: x -> W + 1 - x
+            hdul[1].data[col] = size + 1 - hdul[1].data[col]
+    runner = CliRunner()
+    res = runner.invoke(app, ["import", "corr", str(tmp_path / "sky"), "-o", str(tmp_path / "rec.mcap")])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, ["diagnose", "--recording", str(tmp_path / "rec.mcap"), "-o", str(tmp_path / "report"), "-q"])
+    assert res.exit_code == 2, res.output
+    text = " ".join(res.output.split())
+    assert "mirror image" in text and "Traceback" not in text, text
+    miss = float(text.split("with x -> ")[1].split(" by ")[1].split(" px")[0])
+    assert miss < 1.0, text  # 0.3 px noise per axis
+    assert not (tmp_path / "report").exists()
