@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from rollingstar.sensors.conventions import S_PER_NS
+from rollingstar.sensors.conventions import S_PER_NS, attitude_from_opencv
 from rollingstar.sensors.effects.chain import predict
 from rollingstar.sensors.effects.context import context_from_attitude
 from rollingstar.sensors.pixel_crb import FrameDetector, frame_crb
@@ -39,6 +39,20 @@ class TruthTrajectory:
     def attitude(self, t_ns) -> Rotation:
         """Truth at ``t_ns`` (must be covered: check with :meth:`covers`)."""
         return self._slerp(self._rel(t_ns))
+
+    def other_readings(self) -> dict[str, "TruthTrajectory"]:
+        """The same samples read in the conventions a log written elsewhere may have used instead of
+        ours (docs/conventions.md), each described in words: the inverse rotation (ICRS to
+        camera), the OpenCV camera frame, both, and the quaternion's scalar written first."""
+        R = Rotation.from_quat(self.q)
+        readings = {
+            "as the ICRS-to-camera rotation (the inverse of ours)": R.inv(),
+            "in the OpenCV camera frame (+x towards increasing column, +y towards increasing row)": attitude_from_opencv(R),
+            "as the ICRS-to-camera rotation in the OpenCV camera frame": attitude_from_opencv(R.inv()),
+            "with the quaternion's scalar first (w, x, y, z written into the fields x, y, z, w)":
+                Rotation.from_quat(np.roll(self.q, -1, axis=1)),
+        }
+        return {k: TruthTrajectory(self.t_ns, r.as_quat(), self.omega) for k, r in readings.items()}
 
     def angular_velocity(self, t_ns) -> np.ndarray:
         s = self._rel(t_ns)

@@ -261,6 +261,8 @@ def print_metrics(m: dict, title: str = "") -> None:
     out.print(summary)
     for key, why in (m.get("notes") or {}).items():
         out.print(f"n/a {key}: {why}", highlight=False)
+    if m.get("truth_convention"):
+        out.print(f"[bold yellow]warning[/]: {m['truth_convention']}", highlight=False)
 
 
 @command()

@@ -106,6 +106,13 @@ def attitude_error_body_arcsec(truth: Rotation, estimate: Rotation) -> np.ndarra
     return (truth.inv() * estimate).as_rotvec() * RAD_TO_ARCSEC
 
 
+def attitude_from_opencv(attitude_opencv: Rotation) -> Rotation:
+    """Our camera-to-ICRS attitude of a camera whose attitude is stated in the OpenCV camera frame
+    (+x towards increasing column, +y towards increasing row): ``R = R_opencv * Rz(180 deg)``
+    (docs/conventions.md)."""
+    return attitude_opencv * Rotation.from_rotvec([0.0, 0.0, np.pi])
+
+
 def quat_to_fields(q_xyzw) -> dict[str, float]:
     """Scalar-last array quaternion to the named fields used in logs."""
     x, y, z, w = (float(v) for v in np.asarray(q_xyzw, dtype=float))

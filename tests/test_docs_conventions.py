@@ -17,7 +17,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from rollingstar.sensors.camera import PinholeCamera
-from rollingstar.sensors.conventions import attitude_from_radec_roll, radec_to_unit
+from rollingstar.sensors.conventions import attitude_from_opencv, attitude_from_radec_roll, radec_to_unit
 
 ROOT = Path(__file__).resolve().parents[1]
 CONVENTIONS = ROOT / "docs" / "conventions.md"
@@ -32,13 +32,13 @@ def _flat(text: str) -> str:
     return re.sub(r"\s+", " ", re.sub(r"\*(\w[^*\s]*)\*", r"\1", text))
 
 
-def _table() -> dict[str, str]:
-    """conventions.md's table: quantity -> convention (code quotes kept)."""
+def _table(column: int = 1) -> dict[str, str]:
+    """conventions.md's table: quantity -> convention (``column`` 1) or helper (2), code quotes kept."""
     rows = {}
     for line in CONVENTIONS.read_text().splitlines():
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
         if line.startswith("|") and len(cells) == 3 and not set(cells[0]) <= {"-"}:
-            rows[cells[0]] = cells[1]
+            rows[cells[0]] = cells[column]
     return rows
 
 
@@ -152,6 +152,9 @@ def test_opencv_rule_maps_the_opencv_pinhole_onto_ours():
     later = (r_cv * Rotation.from_rotvec(omega_cv * dt)) * fix
     ours = (r_cv * fix) * Rotation.from_rotvec(signs * omega_cv * dt)
     assert (later.inv() * ours).magnitude() < 1e-12
+    helper = re.match(r"`(\w+)`", _table(column=2)["OpenCV camera frame to ours"])
+    assert helper and helper.group(1) == "attitude_from_opencv", "conventions.md: the OpenCV row names its helper"
+    assert (attitude_from_opencv(r_cv).inv() * (r_cv * fix)).magnitude() < 1e-12
 
 
 def test_roll_row_is_attitude_from_radec_roll():
