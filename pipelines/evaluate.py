@@ -124,7 +124,9 @@ def evaluate_log(path: str | Path, skip_first: int = 0, skip_first_s: float = 0.
         "axes": dict(CAMERA_AXES),
     }
     result["attitude_error_arcsec"] = _attitude_errors(valid, truth)
-    result["truth_convention"] = _truth_convention(valid, truth)
+    hint = _truth_convention(valid, truth)
+    if hint:  # present only when it says something: compare's metric tables flatten every None into a column
+        result["truth_convention"] = hint
     env = _EffectEnvironment(scenario, timing, effects) if effects else None
     result["centroid_error_px"] = _centroid_errors(est_stars, truth_stars, truth, camera, effects, env)
     result["star_pair_distance_error_px"] = _pair_errors(est_stars, truth_stars, truth, camera, effects, env)
