@@ -9,12 +9,15 @@ the reports share.
   ``saturated_stars:7`` counts as ``saturated_stars``). A flag is a note about the frame, not a
   verdict: a flagged frame can be valid.
 
-Reasons are counted by their key, the text before the first ``:`` or `` (`` (so
-``identification_rejected:3e-05`` and ``fewer than 2 identified stars (1)`` each group with
-their kind).
+Reasons are counted by their key: the text before the first ``:`` or `` (``, and after a ``:`` the
+word that names a kind (letters and underscores up to the next ``(``), not a count or a value. So
+``identification_rejected:3e-05``, ``saturated_stars:7`` and ``fewer than 2 identified stars (1)``
+each group with their kind, while ``lost_in_space_rejected:mirrored_image`` and
+``lost_in_space_rejected:residual(2.7px>2.0px)`` are counted apart: the reason is in that word.
 """
 from __future__ import annotations
 
+import re
 from collections import Counter
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -24,7 +27,11 @@ NO_ESTIMATE = "no attitude estimate"
 
 def reason_key(text: str) -> str:
     """The group a reason or flag is counted under (module docstring)."""
-    key = text.split(":", 1)[0].split(" (", 1)[0].strip()
+    head, _, detail = text.partition(":")
+    key = head.split(" (", 1)[0].strip()
+    kind = re.match(r"[A-Za-z_]+", detail.strip())
+    if key and kind:
+        key = f"{key}:{kind.group(0)}"
     return key or "unspecified"
 
 

@@ -31,6 +31,10 @@ def test_reasons_group_by_kind_not_by_their_numbers():
     assert reason_key("fewer than 2 identified stars with finite positions (1)") == \
         "fewer than 2 identified stars with finite positions"
     assert reason_key("identification_rejected:3.1e-05") == "identification_rejected"
+    # a named kind after the colon is the reason itself, and is kept; its values are not
+    assert reason_key("lost_in_space_rejected:mirrored_image") == "lost_in_space_rejected:mirrored_image"
+    assert reason_key("lost_in_space_rejected:residual(2.68px>2.00px)") == "lost_in_space_rejected:residual"
+    assert reason_key("pixel_step_skipped:model_misfit(6 of 15 stars explained)") == "pixel_step_skipped:model_misfit"
     o = Outcomes()
     o.add(["saturated_stars:3", "edge_truncated_stars:1"], [(True, "")])
     o.add(["saturated_stars:9"], [(False, "too few stars (1)")])
