@@ -274,6 +274,7 @@ class StreakCentroider(Centroider):
         self._tracked_frames = 0
         self._inflow = {}
         self._background = None
+        self._sample_grid = None  # (map, stride, the map on the tracked frames' sample grid)
         self.last_mode = ""  # how the last frame was centroided: tracked, full, cold or cog (diagnostics)
         self._kernels = {}
         p = self.params
@@ -506,11 +507,20 @@ class StreakCentroider(Centroider):
         raw = self._raw(frame)
         step = max(1, int(np.sqrt(raw.size / TRACKED_SAMPLE_PX)))
         sub = raw[::step, ::step].astype(float)
-        resid = sub - self._background.grid(np.arange(0, raw.shape[0], step), np.arange(0, raw.shape[1], step))
+        resid = sub - self._background_on_sample(raw.shape, step)
         level = float(np.median(resid))
         noise = max(robust_sigma(resid - level), self.params.noise_floor_adu)
         background = self._background._replace(tiles=self._background.tiles + level)
         return _Frame(raw, background, noise, self._saturation(raw), 1.0 / self._gain if self._gain else 0.0)
+
+    def _background_on_sample(self, shape: tuple[int, int], step: int) -> np.ndarray:
+        """The last full search's background map on every ``step``-th row and column (computed once
+        per map: the tracked frames all sample the same grid)."""
+        cached = self._sample_grid
+        if cached is None or cached[0] is not self._background or cached[1] != step:
+            grid = self._background.grid(np.arange(0, shape[0], step), np.arange(0, shape[1], step))
+            self._sample_grid = cached = (self._background, step, grid)
+        return cached[2]
 
     def _new_sky(self, f: _Frame, camera, omega, dt: float):
         """Stars in the sky that entered the detector since an edge was last searched: the matched
@@ -521,28 +531,33 @@ class StreakCentroider(Centroider):
         H, W = self._shape
         t = self.params.detect_tile_px
         xs, ys = [], []
+        edges = []  # (axis, size, across, edge, segment starts, segment centres on the edge)
         for axis, size, across in ((1, W, H), (0, H, W)):  # left/right edges (columns), then top/bottom (rows)
             starts = np.arange(0, across, t)
             centres = np.minimum(starts + t / 2.0, across - 1.0)
             for edge in (0.0, size - 1.0):
                 px, py = (np.full(starts.size, edge), centres) if axis == 1 else (centres, np.full(starts.size, edge))
-                vx, vy = image_velocity(camera, px, py, omega)
-                inward = (vx if axis == 1 else vy) * dt * (1.0 if edge == 0.0 else -1.0)
-                reach = 0.5 * np.hypot(vx, vy) * self._exposure + MARGIN_SIGMAS * self._se + self.params.track_margin_px
-                entered = self._inflow.get((axis, edge), 0.0) + max(float(np.max(inward)), 0.0)
-                if entered <= SLOW_STREAK_PX:
-                    self._inflow[(axis, edge)] = entered
-                    continue
-                self._inflow[(axis, edge)] = 0.0
-                depth = int(np.ceil(entered + np.max(reach)))
-                lo, hi = (0, min(depth, size)) if edge == 0.0 else (max(size - depth, 0), size)
-                keys = [self._kernel_key(a, b, self._bin(a, b)) for a, b in zip(vx, vy)]
-                for i, j in _runs(keys):  # neighbouring segments with one kernel searched as one
-                    a0, a1 = starts[i], min(starts[j - 1] + t, across)
-                    r0, r1, c0, c1 = (a0, a1, lo, hi) if axis == 1 else (lo, hi, a0, a1)
-                    x, y = self._tile_candidates(f, vx[i], vy[i], r0, r1, c0, c1)
-                    xs.append(x)
-                    ys.append(y)
+                edges.append((axis, size, across, edge, starts, px, py))
+        # the image velocity of every edge segment in one call (four would cost four times the overhead)
+        v = image_velocity(camera, np.concatenate([e[5] for e in edges]), np.concatenate([e[6] for e in edges]), omega)
+        cuts = np.cumsum([e[4].size for e in edges])[:-1]
+        for (axis, size, across, edge, starts, _, _), vx, vy in zip(edges, np.split(v[0], cuts), np.split(v[1], cuts)):
+            inward = (vx if axis == 1 else vy) * dt * (1.0 if edge == 0.0 else -1.0)
+            reach = 0.5 * np.hypot(vx, vy) * self._exposure + MARGIN_SIGMAS * self._se + self.params.track_margin_px
+            entered = self._inflow.get((axis, edge), 0.0) + max(float(np.max(inward)), 0.0)
+            if entered <= SLOW_STREAK_PX:
+                self._inflow[(axis, edge)] = entered
+                continue
+            self._inflow[(axis, edge)] = 0.0
+            depth = int(np.ceil(entered + np.max(reach)))
+            lo, hi = (0, min(depth, size)) if edge == 0.0 else (max(size - depth, 0), size)
+            keys = [self._kernel_key(a, b, self._bin(a, b)) for a, b in zip(vx, vy)]
+            for i, j in _runs(keys):  # neighbouring segments with one kernel searched as one
+                a0, a1 = starts[i], min(starts[j - 1] + t, across)
+                r0, r1, c0, c1 = (a0, a1, lo, hi) if axis == 1 else (lo, hi, a0, a1)
+                x, y = self._tile_candidates(f, vx[i], vy[i], r0, r1, c0, c1)
+                xs.append(x)
+                ys.append(y)
         return (np.concatenate(xs), np.concatenate(ys)) if xs else (np.zeros(0), np.zeros(0))
 
     def _bin(self, vx: float, vy: float) -> int:
