@@ -50,6 +50,8 @@ MAGIC = b"\x89MCAP0\r\n"
 STANDARD_SCHEMAS = {**{topic: model.SCHEMA_NAME for topic, model in TOPIC_RECORDS.items()},
                     TOPIC_IMAGE: "foxglove.RawImage", TOPIC_EST_POSE: "foxglove.PoseInFrame",
                     TOPIC_EST_SPOTS: "foxglove.ImageAnnotations"}
+# The message encoding of every standard topic: its schema can only be decoded from this one.
+STANDARD_ENCODINGS = {topic: "json" if topic in TOPIC_RECORDS else "protobuf" for topic in STANDARD_SCHEMAS}
 _KNOWN_MAJOR, _KNOWN_MINOR = (int(p) for p in FORMAT_VERSION.split("."))
 
 
@@ -491,11 +493,7 @@ class LogReader:
         channel, msg = raw.channel, raw.message
         schema_name = raw.schema.name if raw.schema is not None else ""
         where = f"{self.path}: topic {channel.topic} at log time {msg.log_time} ns"
-        expected = STANDARD_SCHEMAS.get(channel.topic)
-        if expected is not None and schema_name != expected:
-            raise LogFormatError(f"{where}: schema {schema_name!r} is not the format's {expected!r} for this topic "
-                                 f"(an unknown schema version?); this reader understands format {FORMAT_VERSION} "
-                                 "(docs/log-format.md)")
+        _check_standard_channel(channel, schema_name, where)
         record = None
         if channel.message_encoding == "json":
             try:
@@ -529,6 +527,22 @@ class LogReader:
             data = msg.data
         return Message(topic=channel.topic, log_time_ns=msg.log_time, schema_name=schema_name,
                        data=data, record=record)
+
+
+def _check_standard_channel(channel: Channel, schema_name: str, where: str) -> None:
+    """A standard topic must carry the format's schema in the format's message encoding; anything else
+    cannot be decoded as the format says (``where`` names the file, topic and log time)."""
+    expected = STANDARD_SCHEMAS.get(channel.topic)
+    if expected is None:
+        return
+    if schema_name != expected:
+        raise LogFormatError(f"{where}: schema {schema_name!r} is not the format's {expected!r} for this topic "
+                             f"(an unknown schema version?); this reader understands format {FORMAT_VERSION} "
+                             "(docs/log-format.md)")
+    encoding = STANDARD_ENCODINGS[channel.topic]
+    if channel.message_encoding != encoding:
+        raise LogFormatError(f"{where}: message encoding {channel.message_encoding!r} is not the format's "
+                             f"{encoding!r} for this topic (docs/log-format.md)")
 
 
 def _errors(exc: ValidationError) -> str:

@@ -33,6 +33,11 @@ FORMAT_VERSION = "1.2"
 metadata record. A reader rejects a major version it does not know."""
 
 _FloatCol = list[float | None]
+# Every integer of a log is read into numpy int64; a frame time is also a log time, so it is >= 0.
+_Int = Annotated[int, Field(ge=-(2**63), le=2**63 - 1)]
+_TimeNs = Annotated[int, Field(ge=0, le=2**63 - 1)]
+UNIT_TOLERANCE = 1e-6
+"""Largest departure from norm 1 of a unit quaternion or a unit direction in a log."""
 _Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 _Cov9 = Annotated[list[float], Field(min_length=9, max_length=9)]
 
@@ -72,7 +77,7 @@ class Quaternion(BaseModel):
     @model_validator(mode="after")
     def _unit(self) -> "Quaternion":
         norm = math.sqrt(self.x**2 + self.y**2 + self.z**2 + self.w**2)
-        if abs(norm - 1.0) > 1e-6:
+        if abs(norm - 1.0) > UNIT_TOLERANCE:
             raise ValueError(f"quaternion must have unit norm (|q| = {norm:.9g})")
         return self
 
@@ -98,15 +103,15 @@ class StarsRecord(_Record):
     SCHEMA_NAME: ClassVar[str] = "rollingstar.Stars"
     model_config = _config(SCHEMA_NAME)
 
-    frame: int = Field(description="frame index, 0-based, increasing")
-    t0_ns: int = Field(description="frame time: exposure start of row 0, ns")
+    frame: _Int = Field(description="frame index, 0-based, increasing")
+    t0_ns: _TimeNs = Field(description="frame time: exposure start of row 0, ns")
     x: _FloatCol = Field(description="column position, px (pixel centres at integers)")
     y: _FloatCol = Field(description="row position, px")
-    t_ns: list[int] = Field(description="time the position refers to, ns")
-    row_time_ns: list[int] | None = Field(None, description="exposure start of the star's row, ns")
+    t_ns: list[_Int] = Field(description="time the position refers to, ns")
+    row_time_ns: list[_Int] | None = Field(None, description="exposure start of the star's row, ns")
     flux: _FloatCol | None = Field(None, description="summed signal above background, ADU")
     peak: _FloatCol | None = Field(None, description="peak pixel value above background, ADU")
-    npix: list[int] | None = Field(None, description="pixels in the spot")
+    npix: list[_Int] | None = Field(None, description="pixels in the spot")
     saturated: list[bool] | None = Field(None, description="spot has a saturated pixel")
     snr: _FloatCol | None = Field(None, description="signal-to-noise ratio")
     sigma_px: _FloatCol | None = Field(None, description="1-sigma position uncertainty per axis, px")
@@ -115,7 +120,7 @@ class StarsRecord(_Record):
     cov_yy: _FloatCol | None = Field(None, description="position covariance, y y, px^2")
     vx: _FloatCol | None = Field(None, description="image velocity along x, px/s")
     vy: _FloatCol | None = Field(None, description="image velocity along y, px/s")
-    catalog_id: list[int] | None = Field(None, description="catalogue id, -1 when unidentified")
+    catalog_id: list[_Int] | None = Field(None, description="catalogue id, -1 when unidentified")
     ref_icrs: list[_Vec3 | None] | None = Field(
         None, description="ICRS unit vector [x, y, z] of the catalogue star, null when unidentified"
     )
@@ -124,7 +129,16 @@ class StarsRecord(_Record):
     @model_validator(mode="after")
     def _lengths(self) -> "StarsRecord":
         self._check_lengths("x", _STAR_COLUMNS[1:])
+        self._check_unit_directions()
         return self
+
+    def _check_unit_directions(self) -> None:
+        """Each known ``ref_icrs`` is a unit vector (an unknown one is null, never a placeholder)."""
+        for i, v in enumerate(self.ref_icrs or ()):
+            norm = math.sqrt(sum(c * c for c in v)) if v is not None else 1.0
+            if abs(norm - 1.0) > UNIT_TOLERANCE:
+                raise ValueError(f"{self.SCHEMA_NAME}: ref_icrs of star {i} is not a unit vector (|v| = {norm:.9g}); "
+                                 "an unknown direction is null")
 
     @property
     def n(self) -> int:
@@ -140,7 +154,7 @@ class GyroSamplesRecord(_Record):
     SCHEMA_NAME: ClassVar[str] = "rollingstar.GyroSamples"
     model_config = _config(SCHEMA_NAME)
 
-    t_ns: list[int] = Field(min_length=1, description="sample times, ns, non-decreasing")
+    t_ns: list[_Int] = Field(min_length=1, description="sample times, ns, non-decreasing")
     x: list[float] = Field(description="angular rate about camera x, rad/s")
     y: list[float] = Field(description="angular rate about camera y, rad/s")
     z: list[float] = Field(description="angular rate about camera z (boresight), rad/s")
@@ -161,7 +175,7 @@ class AttitudeSamplesRecord(_Record):
     SCHEMA_NAME: ClassVar[str] = "rollingstar.AttitudeSamples"
     model_config = _config(SCHEMA_NAME)
 
-    t_ns: list[int] = Field(min_length=1, description="sample times, ns, non-decreasing")
+    t_ns: list[_Int] = Field(min_length=1, description="sample times, ns, non-decreasing")
     qx: list[float] = Field(description="camera-to-ICRS quaternion, x component")
     qy: list[float] = Field(description="camera-to-ICRS quaternion, y component")
     qz: list[float] = Field(description="camera-to-ICRS quaternion, z component")
@@ -178,7 +192,7 @@ class AttitudeSamplesRecord(_Record):
         if any(rates) and not all(rates):
             raise ValueError(f"{self.SCHEMA_NAME}: give all of wx, wy, wz or none of them")
         norms = np.sqrt(np.square([self.qx, self.qy, self.qz, self.qw]).sum(axis=0))
-        bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-6)
+        bad = np.flatnonzero(np.abs(norms - 1.0) > UNIT_TOLERANCE)
         if bad.size:
             raise ValueError(
                 f"{self.SCHEMA_NAME}: quaternion {int(bad[0])} is not unit (|q| = {norms[bad[0]]:.9g})"
@@ -195,12 +209,12 @@ class AttitudeEstimateRecord(_Record):
     SCHEMA_NAME: ClassVar[str] = "rollingstar.AttitudeEstimate"
     model_config = _config(SCHEMA_NAME)
 
-    frame: int = Field(description="frame index the estimate belongs to")
-    t_ns: int = Field(description="time the attitude refers to, ns")
+    frame: _Int = Field(description="frame index the estimate belongs to")
+    t_ns: _Int = Field(description="time the attitude refers to, ns")
     q: Quaternion | None = Field(description="camera-to-ICRS quaternion; null when invalid")
     valid: bool
     reason: str = Field("", description="why the estimate is invalid (empty when valid)")
-    n_stars: int = Field(description="stars used")
+    n_stars: _Int = Field(description="stars used")
     covariance_rad2: _Cov9 | None = Field(
         None, description="3x3 attitude-error covariance in the camera frame, rad^2, row-major"
     )
@@ -244,8 +258,8 @@ class AttitudeErrorRecord(_Record):
     SCHEMA_NAME: ClassVar[str] = "rollingstar.AttitudeError"
     model_config = _config(SCHEMA_NAME)
 
-    frame: int = Field(description="frame index of the estimate")
-    t_ns: int = Field(description="time the estimate refers to, ns")
+    frame: _Int = Field(description="frame index of the estimate")
+    t_ns: _Int = Field(description="time the estimate refers to, ns")
     x_arcsec: float = Field(description="rotation from truth to estimate about camera x (cross-boresight), arcsec")
     y_arcsec: float = Field(description="rotation from truth to estimate about camera y (cross-boresight), arcsec")
     z_arcsec: float = Field(description="rotation from truth to estimate about camera z (roll), arcsec")
@@ -260,13 +274,13 @@ class RateEstimateRecord(_Record):
     SCHEMA_NAME: ClassVar[str] = "rollingstar.RateEstimate"
     model_config = _config(SCHEMA_NAME)
 
-    frame: int
-    t_ns: int = Field(description="time the rate refers to, ns")
+    frame: _Int
+    t_ns: _Int = Field(description="time the rate refers to, ns")
     omega: Vector3 | None = Field(description="angular velocity, rad/s, camera frame; null when invalid")
     valid: bool
     reason: str = ""
     covariance: _Cov9 | None = Field(None, description="3x3 covariance, (rad/s)^2, row-major")
-    iterations: int | None = Field(None, description="solver iterations, when iterative")
+    iterations: _Int | None = Field(None, description="solver iterations, when iterative")
 
     @model_validator(mode="after")
     def _valid_has_omega(self) -> "RateEstimateRecord":
@@ -309,11 +323,11 @@ class FrameStatusRecord(_Record):
     SCHEMA_NAME: ClassVar[str] = "rollingstar.FrameStatus"
     model_config = _config(SCHEMA_NAME)
 
-    frame: int
-    t0_ns: int = Field(description="frame time: exposure start of row 0, ns")
+    frame: _Int
+    t0_ns: _TimeNs = Field(description="frame time: exposure start of row 0, ns")
     flags: list[str] = Field(description="short machine-readable notes, e.g. 'too_few_stars'")
-    n_detected: int
-    n_identified: int
+    n_detected: _Int
+    n_identified: _Int
     camera: FittedCamera | None = Field(
         None, description="the camera model an identifier fitted on this frame, used by every later stage; "
         "null: the recording's declared camera")

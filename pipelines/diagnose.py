@@ -12,6 +12,7 @@ the JSON object (``--json``), the report directory (``index.html``, PNGs, ``resu
 from __future__ import annotations
 
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +34,7 @@ from rollingstar.estimators.diagnosis.observations import (
 from rollingstar.estimators.diagnosis.report import write_report
 from rollingstar.logs.reader import LogReader
 from rollingstar.logs.topics import TOPIC_EST_ATTITUDE, TOPIC_EST_STARS
-from rollingstar.outputs import safe_output
+from rollingstar.outputs import PartialOutputWarning, safe_output
 from rollingstar.pipelines.config import PipelineConfig, load_pipeline
 from rollingstar.pipelines.runner import run_pipeline
 from rollingstar.pipelines.truth import TruthTrajectory
@@ -72,7 +73,9 @@ def default_pipeline() -> PipelineConfig:
 
 def run_and_read(recording: Path, pipeline: PipelineConfig, source: str, show_progress: bool):
     """Run ``pipeline`` on the recording; per frame the identified stars and the first valid attitude."""
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
+        # the run's output is scratch, removed with its folder: a failed run keeps no partial worth naming
+        warnings.simplefilter("ignore", PartialOutputWarning)
         out = Path(tmp) / "diagnose_run.mcap"
         run_pipeline(recording, pipeline, out, pipeline_source=source, show_progress=show_progress)
         reader = LogReader(out)

@@ -7,6 +7,9 @@
 - a frame whose time ``t0`` does not increase: an exact repeat of the previous frame (same time,
   same content) is skipped with a warning; otherwise the recording is out of time order:
   :class:`~rollingstar.logs.errors.LogFormatError`;
+- a star whose time ``t_ns`` lies outside its frame's exposure by more than a frame period (times
+  in another unit, or copied from another frame): :class:`~rollingstar.logs.errors.LogFormatError`,
+  since every stage places the star at that time;
 - a gap between frames longer than 1.5 declared frame periods (frames lost or a clock jump): the
   frame is processed and flagged ``time_gap:<ms>`` with a warning, so stages and readers of the
   output know its predecessor is not the previous frame.
@@ -28,6 +31,10 @@ GAP_FACTOR = 1.5
 class FrameChecker:
     """Stateful per-recording checker; :meth:`check` returns the frame (maybe flagged) or None to skip it."""
 
+    # (earliest, latest) star time relative to t0, ns; None (a checker restored from a checkpoint
+    # that does not hold it) leaves star times unchecked
+    _star_span_ns: tuple[int, int] | None = None
+
     def __init__(self, recording, frame_topic: str, context) -> None:
         self.recording = recording
         self.topic = frame_topic
@@ -35,6 +42,8 @@ class FrameChecker:
         self.height = int(context.camera.height)
         self.bit_depth = getattr(context, "bit_depth", None)
         self.period_ns = getattr(context.timing, "frame_period_ns", None)
+        if self.period_ns:
+            self._star_span_ns = (-self.period_ns, context.timing.frame_end_ns(0) + self.period_ns)
         self._prev: tuple[int, int] | None = None  # (index, t0_ns) of the previous frame
         self._prev_payload = None  # its content (a digest after a checkpoint round trip, __getstate__)
         self.skipped = 0
@@ -54,6 +63,8 @@ class FrameChecker:
             raise LogFormatError(
                 f"{self._where(frame)}: frame time does not increase (previous frame {prev[0]} at t0 = "
                 f"{prev[1]} ns); frames must be in time order with distinct times")
+        if frame.stars is not None:
+            self._check_star_times(frame)
         if prev is not None and self.period_ns:
             gap = frame.t0_ns - prev[1]
             if gap > GAP_FACTOR * self.period_ns:
@@ -72,6 +83,21 @@ class FrameChecker:
         if state["_prev_payload"] is not None:
             state["_prev_payload"] = _digest(state["_prev_payload"])
         return state
+
+    def _check_star_times(self, frame: FrameData) -> None:
+        """Every star's time lies within a frame period of the frame's exposure (row 0's start to the
+        last row's end)."""
+        t = frame.stars.t_ns
+        if self._star_span_ns is None or t.size == 0:
+            return
+        lo = max(0, frame.t0_ns + self._star_span_ns[0])
+        hi = frame.t0_ns + self._star_span_ns[1]
+        outside = t[(t < lo) | (t > hi)]
+        if outside.size:
+            raise LogFormatError(
+                f"{self._where(frame)}: a star has t_ns = {int(outside[0])} ns ({outside.size} of {t.size} stars "
+                f"outside); expected a time from {lo} to {hi} ns: the frame's exposure, a frame period either side, "
+                "in nanoseconds on the frame's clock (docs/log-format.md, rollingstar.Stars)")
 
     def _check_image(self, frame: FrameData) -> None:
         img = frame.image

@@ -47,7 +47,7 @@ class Recording:
     scenario: dict  # the metadata record 'scenario' (its 'yaml' is the sensor model)
     context: SensorContext
     frame_topic: str  # images, or centroids when the recording holds no images
-    n_frame_messages: int | None  # for the progress bar; None when the summary does not say
+    n_frame_messages: int  # frame messages in the file (duplicates and unreadable ones included), for the progress bar
 
     @property
     def holds_centroids(self) -> bool:
@@ -79,17 +79,19 @@ class Recording:
 
 
 def open_recording(path: str | Path) -> Recording:
-    """Open ``path``; a :class:`UserError` when it declares no sensor model (or holds no frames)."""
+    """Open ``path``; a :class:`UserError` when it declares no sensor model, a
+    :class:`LogFormatError` when it holds no frame."""
     reader = LogReader(path)
     meta = reader.metadata()
     scenario = reader.scenario("import real data with `rollingstar import` so that it does")
     context = SensorContext.from_scenario(scenario)
-    info = reader.summary_info()
-    topics = set(info.topics) if hasattr(info, "topics") else set(info)
+    topics = reader.summary_info().topics
     frame_topic = TOPIC_IMAGE if TOPIC_IMAGE in topics else TOPIC_CENTROIDS
     reader.require_topics([frame_topic])
-    counts = getattr(info, "message_counts", None)
-    total = counts.get(frame_topic) if isinstance(counts, dict) else None
+    total = topics[frame_topic].message_count
+    if total == 0:
+        raise LogFormatError(f"{path}: the recording holds no frame: no message on {frame_topic} (a frame "
+                             f"is one message on {TOPIC_IMAGE} or {TOPIC_CENTROIDS}, docs/log-format.md)")
     return Recording(path, reader, meta["scenario"], context, frame_topic, total)
 
 

@@ -13,7 +13,7 @@ import typing
 from pathlib import Path
 
 import yaml
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, ValidationError, ValidationInfo, field_validator
 
 from rollingstar.errors import ConfigError
 
@@ -23,7 +23,45 @@ CONFIGS = Path(str(importlib.resources.files("rollingstar.configs")))
 CONFIG_KINDS = {"scenario": "scenarios", "pipeline": "pipelines", "camera": "cameras", "compare": "compare"}
 
 
-class Strict(BaseModel):
+def _types_in(annotation) -> list:
+    """``annotation`` and every type inside it (union members, list and tuple items, dict values)."""
+    return [annotation, *(t for arg in typing.get_args(annotation) for t in _types_in(arg))]
+
+
+def _number_only(annotation) -> bool:
+    """True for a field of numbers (``int``, ``float`` or containers of them) that no boolean fits: no
+    ``bool``, ``Any`` or nested model (which checks its own fields) anywhere in its type."""
+    types = _types_in(annotation)
+    takes_number = any(t is int or t is float for t in types)
+    takes_other = any(t is bool or t is typing.Any or (isinstance(t, type) and issubclass(t, BaseModel))
+                      for t in types)
+    return takes_number and not takes_other
+
+
+def _holds_bool(value) -> bool:
+    if isinstance(value, bool):
+        return True
+    if isinstance(value, (list, tuple)):
+        return any(_holds_bool(v) for v in value)
+    return isinstance(value, dict) and any(_holds_bool(v) for v in value.values())
+
+
+class NoBooleanNumbers(BaseModel):
+    """A model whose number fields refuse booleans, which pydantic would otherwise take as 1 and 0.
+
+    YAML reads ``true``, ``yes`` and ``on`` as booleans: ``focal_length_mm: yes`` is a typo, not a
+    1 mm lens.
+    """
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_boolean_for_a_number(cls, value, info: ValidationInfo):
+        if _holds_bool(value) and _number_only(cls.model_fields[info.field_name].annotation):
+            raise ValueError("expected a number, got a boolean (true/false; in YAML also yes/no and on/off)")
+        return value
+
+
+class Strict(NoBooleanNumbers):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
 

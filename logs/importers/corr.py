@@ -31,10 +31,10 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ConfigDict, Field, ValidationError
 from scipy.spatial.transform import Rotation
 
-from rollingstar.config import format_validation_error, to_yaml
+from rollingstar.config import NoBooleanNumbers, format_validation_error, to_yaml
 from rollingstar.logs.importers.common import (
     ImportDataError,
     WarningLog,
@@ -65,19 +65,19 @@ EPOCH_REASON = ("the scenario default: log.json's dates are not read (local wall
                 "day and month order not stated), and the stars carry astrometry.net's catalogue directions")
 
 
-class _Size(BaseModel):
+class _Size(NoBooleanNumbers):
     model_config = ConfigDict(extra="allow")
     x: int = Field(gt=0, description="image width, px")
     y: int = Field(gt=0, description="image height, px")
 
 
-class _Centre(BaseModel):
+class _Centre(NoBooleanNumbers):
     model_config = ConfigDict(extra="allow")
     ra_degrees: float = Field(ge=-360, le=360)
     dec_degrees: float = Field(ge=-90, le=90)
 
 
-class LogJson(BaseModel):
+class LogJson(NoBooleanNumbers):
     """The fields of a creusot/astrometry.net ``log.json`` that the importer uses (others are kept)."""
 
     model_config = ConfigDict(extra="allow", allow_inf_nan=False)
@@ -226,7 +226,8 @@ def read_corr_table(path: str | Path, log: WarningLog | None = None) -> dict[str
     """The columns of an astrometry.net corr table (first binary-table HDU), as float/int arrays.
 
     Required: ``field_x, field_y, index_ra, index_dec``; optional: ``index_id, FLUX, index_x,
-    index_y, match_weight``. Rows with a non-finite required value are dropped with a warning.
+    index_y, match_weight``. Rows with a non-finite required value, or a catalogue direction that is
+    none on the sky (``|index_dec| > 90`` or ``|index_ra| > 360`` deg), are dropped with a warning.
     """
     from astropy.io import fits  # here, not at the top: astropy takes ~0.3 s to import and only FITS tables need it
 
@@ -257,12 +258,19 @@ def read_corr_table(path: str | Path, log: WarningLog | None = None) -> dict[str
     except Exception as exc:  # astropy raises OSError/ValueError/TypeError for damaged files
         raise ImportDataError(f"{path}: cannot read FITS table ({type(exc).__name__}: {exc})") from None
     finite = np.all([np.isfinite(cols[c]) for c in REQUIRED_COLUMNS], axis=0)
-    if not finite.all():
-        rows = np.flatnonzero(~finite)
-        log(f"{path}: {rows.size} row(s) with a non-finite {'/'.join(REQUIRED_COLUMNS)} dropped "
-            f"(rows {', '.join(map(str, rows[:10]))})")
-        cols = {k: v[finite] for k, v in cols.items()}
-    return cols
+    cols = _drop_rows(cols, finite, f"a non-finite {'/'.join(REQUIRED_COLUMNS)}", path, log)
+    on_sky = (np.abs(cols["index_ra"]) <= 360.0) & (np.abs(cols["index_dec"]) <= 90.0)
+    return _drop_rows(cols, on_sky, "index_ra outside [-360, 360] deg or index_dec outside [-90, 90] deg", path, log)
+
+
+def _drop_rows(cols: dict[str, np.ndarray], keep: np.ndarray, what: str, path: Path, log: WarningLog
+               ) -> dict[str, np.ndarray]:
+    """The rows of ``cols`` where ``keep``; the others are a damaged table's, dropped with a warning."""
+    if keep.all():
+        return cols
+    rows = np.flatnonzero(~keep)
+    log(f"{path}: {rows.size} row(s) with {what} dropped (rows {', '.join(map(str, rows[:10]))})")
+    return {k: v[keep] for k, v in cols.items()}
 
 
 def _read_frame(folder: Path, log: WarningLog) -> CorrFrame:

@@ -16,7 +16,6 @@ from pathlib import Path
 from typing import Literal
 
 from pydantic import (
-    BaseModel,
     ConfigDict,
     Field,
     NonNegativeFloat,
@@ -28,7 +27,7 @@ from pydantic import (
     model_validator,
 )
 
-from rollingstar.config import format_validation_error, read_yaml
+from rollingstar.config import NoBooleanNumbers, format_validation_error, read_yaml
 from rollingstar.errors import ConfigError
 from rollingstar.logs.importers.common import ImportDataError
 from rollingstar.sensors.camera import Projection, projection_rho, projection_theta
@@ -58,7 +57,7 @@ MAX_MAGNITUDE_LIMIT = 12.0
 """Faintest catalogue limit accepted: 99.5 % of the Hipparcos-2 stars are brighter (it is complete to about Hp 9)."""
 
 
-class _Strict(BaseModel):
+class _Strict(NoBooleanNumbers):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
 
 

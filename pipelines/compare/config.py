@@ -165,7 +165,7 @@ def _set_dotted(data: dict, key: str, value, where: str) -> None:
 def _variant_config(base: ScenarioConfig, updates: dict, frames: int | None, source: str, where: str) -> ScenarioConfig:
     data = base.model_dump(mode="json")
     for key, value in updates.items():
-        _set_dotted(data, key, value, where)
+        _set_dotted(data, key, value, f"{source}: {where}")
     if frames is not None:
         data["frames"] = frames
     try:
@@ -190,6 +190,8 @@ def load_compare(path: str | Path) -> Comparison:
         shipped = CONFIGS / CONFIG_KINDS[kind] / f"{Path(p).stem}.yaml"
         if len(Path(p).parts) == 1 and Path(p).suffix in ("", ".yaml", ".yml") and shipped.is_file():
             return shipped
+        if full.is_dir():
+            raise ConfigError(f"{source}: {where}: {full} is a folder, not a config file")
         raise ConfigError(f"{source}: {where}: file not found: {p} (paths are relative to the config file, here "
                           f"{full}; a bare name is a shipped {kind}: {', '.join(shipped_configs(kind))})")
 

@@ -12,6 +12,7 @@ from rollingstar.logs import (
 )
 
 FRAME_PERIOD_NS = 100_000_000
+_UNIT_DIRECTIONS = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.6, 0.8, 0.0]])
 
 
 def write_recording(path, n_frames=5, chunk_size=256 * 1024, image_shape=(8, 10), **kwargs):
@@ -29,7 +30,7 @@ def write_recording(path, n_frames=5, chunk_size=256 * 1024, image_shape=(8, 10)
             w.write_image("/camera/image", image, t0)
             x, y = rng.uniform(0, 10, 4), rng.uniform(0, 8, 4)
             w.write_json("/truth/stars", arrays_to_stars(k, t0, x=x, y=y, t_ns=t0, catalog_id=[1, 2, 3, 4],
-                                                         ref_icrs=np.eye(4, 3), magnitude=[5.0, 6.0, np.nan, 7.0]))
+                                                         ref_icrs=_UNIT_DIRECTIONS, magnitude=[5.0, 6.0, np.nan, 7.0]))
             w.write_json("/estimate/stars", arrays_to_stars(k, t0, x=x, y=y, t_ns=t0))
             w.write_annotations("/estimate/spots", t0, x, y, ["1", "2", None, "4"])
             w.write_json("/estimate/attitude", AttitudeEstimateRecord.from_values(k, t0, [0, 0, 0, 1], n_stars=4))

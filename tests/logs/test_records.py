@@ -31,6 +31,8 @@ def star_columns(draw):
     n = draw(st.integers(0, 8))
     col = lambda: draw(hnp.arrays(float, n, elements=floats))  # noqa: E731
     ref = draw(hnp.arrays(float, (n, 3), elements=st.floats(-1, 1)))
+    norm = np.linalg.norm(ref, axis=1, keepdims=True)
+    ref = np.where(norm > 1e-3, ref / np.maximum(norm, 1e-3), [0.0, 0.0, 1.0])  # directions are unit vectors
     unidentified = draw(hnp.arrays(bool, n))
     ref[unidentified] = np.nan
     return dict(
@@ -131,3 +133,18 @@ def test_every_record_has_a_json_schema_named_after_it():
         schema = cls.model_json_schema()
         assert schema["title"] == name
         assert schema["additionalProperties"] is False
+
+
+def test_directions_are_unit_and_integers_fit_int64():
+    good = {"frame": 0, "t0_ns": 0, "x": [1.0, 2.0], "y": [2.0, 3.0], "t_ns": [0, 0], "catalog_id": [5, -1],
+            "ref_icrs": [[0.0, 0.6, 0.8], None]}
+    StarsRecord.model_validate(good)
+    for ref, norm in (([0.0, 0.0, 0.0], "0"), ([0.0, 1.2, 1.6], "2")):
+        with pytest.raises(ValidationError, match=rf"ref_icrs of star 0 is not a unit vector \(\|v\| = {norm}\)"):
+            StarsRecord.model_validate({**good, "ref_icrs": [ref, None]})
+    with pytest.raises(ValidationError, match="t0_ns"):
+        StarsRecord.model_validate({**good, "t0_ns": -1})
+    with pytest.raises(ValidationError, match="catalog_id.0"):
+        StarsRecord.model_validate({**good, "catalog_id": [2**63, -1]})
+    with pytest.raises(ValidationError, match="t_ns.0"):
+        GyroSamplesRecord.model_validate({"t_ns": [-(2**63) - 1], "x": [0.0], "y": [0.0], "z": [0.0]})
