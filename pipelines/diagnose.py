@@ -33,6 +33,7 @@ from rollingstar.estimators.diagnosis.observations import (
 )
 from rollingstar.estimators.diagnosis.report import write_report
 from rollingstar.logs.reader import LogReader
+from rollingstar.logs.records import stars_to_arrays
 from rollingstar.logs.topics import TOPIC_EST_ATTITUDE, TOPIC_EST_STARS
 from rollingstar.outputs import PartialOutputWarning, safe_output
 from rollingstar.pipelines.config import PipelineConfig, load_pipeline
@@ -72,20 +73,31 @@ def default_pipeline() -> PipelineConfig:
 
 
 def run_and_read(recording: Path, pipeline: PipelineConfig, source: str, show_progress: bool):
-    """Run ``pipeline`` on the recording; per frame the identified stars and the first valid attitude."""
+    """Run ``pipeline`` on the recording; per frame the identified stars and the first valid attitude.
+
+    Both are keyed by the frame's place in the run (0, 1, ... in time order), not by its ``frame``
+    field, which a recording may repeat (a counter that wraps or restarts): an attitude belongs to
+    the latest frame of its number that started before it (else the first of its number). Each star table keeps the recording's
+    number as ``"frame"``."""
     with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
         # the run's output is scratch, removed with its folder: a failed run keeps no partial worth naming
         warnings.simplefilter("ignore", PartialOutputWarning)
         out = Path(tmp) / "diagnose_run.mcap"
         run_pipeline(recording, pipeline, out, pipeline_source=source, show_progress=show_progress)
         reader = LogReader(out)
-        stars = {k: (s["t0_ns"], s) for k, s in reader.stars(TOPIC_EST_STARS).items()}
+        stars = {k: (m.record.t0_ns, {**stars_to_arrays(m.record), "t0_ns": m.record.t0_ns, "frame": m.record.frame})
+                 for k, m in enumerate(reader.messages([TOPIC_EST_STARS]))}
+        places: dict[int, list[tuple[int, int]]] = {}  # frame number -> (t0, place) in time order
+        for k, (t0, s) in stars.items():
+            places.setdefault(s["frame"], []).append((t0, k))
         att = {}
         for m in reader.messages([TOPIC_EST_ATTITUDE]):
             d = m.data
-            if d.get("valid") and d.get("q") is not None and int(d["frame"]) not in att:
+            same = places.get(int(d["frame"]), [])
+            started = [k for t0, k in same if t0 <= int(d["t_ns"])] or [k for _, k in same[:1]]
+            if d.get("valid") and d.get("q") is not None and started and started[-1] not in att:
                 q = d["q"]
-                att[int(d["frame"])] = np.array([q["x"], q["y"], q["z"], q["w"]], dtype=float)
+                att[started[-1]] = np.array([q["x"], q["y"], q["z"], q["w"]], dtype=float)
     return stars, att
 
 
@@ -138,7 +150,7 @@ def _frame_columns(stars: dict, att: dict, timing: DetectorTiming):
     A frame is kept when it has an attitude and at least ``MIN_STARS_PER_FRAME`` identified stars
     with finite positions and catalogue directions.
     """
-    frames = sorted(k for k in stars if k in att)
+    frames = sorted((k for k in stars if k in att), key=lambda k: stars[k][0])  # in time order
     cols = {k: [] for k in ("frame", "x", "y", "sigma", "t_ns", "u", "cat", "flux", "cov")}
     f_index, f_t0, f_q, f_exp = [], [], [], []
     for k in frames:
@@ -149,7 +161,7 @@ def _frame_columns(stars: dict, att: dict, timing: DetectorTiming):
         if ok.sum() < MIN_STARS_PER_FRAME:
             continue
         j = len(f_index)
-        f_index.append(k)
+        f_index.append(int(c.get("frame", k)))  # the recording's number, for the report
         f_t0.append(t0)
         f_q.append(att[k])
         # the exposure each frame was taken with: a star's t_ns (mid-exposure of its row) minus its
