@@ -74,7 +74,8 @@ class LostInSpaceParams(BaseModel):
         "with distortion_terms=2) jointly with the attitude to the matched stars, re-match with the fitted model and "
         "verify with it (see the class docstring); every later stage then uses the fitted camera. 'focal': the same "
         "with the focal length alone (the known k1, k2 kept). 'none': pinhole with the known focal length, k1, k2. "
-        "'auto': 'radial' for fields wider than auto_distortion_fov_deg, else 'focal'.")
+        "'auto': 'radial' for fields wider than auto_distortion_fov_deg, else 'focal'; 'none' on a camera that is "
+        "not a pinhole with k1, k2.")
     auto_distortion_fov_deg: float = Field(default=20.0, gt=0, description="Horizontal field (deg) above which "
                                            "fit_distortion='auto' fits the distortion (below, the focal length only).")
     distortion_terms: Literal[1, 2] = Field(default=2, description="Radial terms fitted: 1 (k1) or 2 (k1, k2).")
@@ -176,9 +177,10 @@ class LostInSpaceIdentifier(Identifier):
        the columns by ``omega x (row time)``, and a focal length and ``k1`` fitted with an imperfect
        rate take up part of that stretch (several-fold worse attitudes at 6-10 deg/s on he2021a).
        So the intrinsics are fitted only on frames whose rate moves the matched stars by at most
-       ``fit_max_motion_px`` between their row times; a faster frame keeps the camera fitted last
-       (the known one before any fit), unless that camera fails the verification's residual
-       bound on it: then the camera is fitted on the moving frame after all.
+       ``fit_max_motion_px`` between their row times. A faster frame is matched and verified as
+       without the fit (with the solved field's scale) and hands on the camera fitted last (the
+       known one before any fit). ``auto`` on a camera whose projection or ``k3`` the fit does not
+       model fits nothing.
 
     6. Motion (``refer_motion``). A rolling-shutter frame of a turning camera images its stars at
        different times (up to ``rows x line delay``, 45 ms on he2021a: 34 px at 10 deg/s), which
@@ -213,7 +215,7 @@ class LostInSpaceIdentifier(Identifier):
             raise ValueError("the 'lost-in-space' identifier needs a star catalogue in the sensor context")
         cam = context.camera
         self._pinhole = cam.projection == "perspective" and not cam.k3
-        if not self._pinhole and self.params.fit_distortion != "none":
+        if not self._pinhole and self.params.fit_distortion not in ("none", "auto"):
             raise ValueError(f"the 'lost-in-space' identifier fits a pinhole with radial terms k1, k2; the camera "
                              f"declares projection {cam.projection!r}, k3 = {cam.k3:g}: use fit_distortion 'none'")
         self._fov_deg = float(cam.fov_deg[0])
@@ -228,7 +230,9 @@ class LostInSpaceIdentifier(Identifier):
         self._tracker: TrackingIdentifier | None = None
         self._track_model = RadialCamera.from_pinhole(cam, *self._known_distortion())
         mode = self.params.fit_distortion
-        if mode == "auto":
+        if mode == "auto" and not self._pinhole:
+            mode = "none"  # a projection or k3 the fit does not model: the declared camera
+        elif mode == "auto":
             mode = "radial" if self._fov_deg > self.params.auto_distortion_fov_deg else "focal"
         self._fitting = mode != "none"
         self._fit_names = ("focal_px", *(("k1", "k2")[:self.params.distortion_terms] if mode == "radial" else ()),
@@ -294,7 +298,10 @@ class LostInSpaceIdentifier(Identifier):
         self.last_mode = "lost-in-space"
         out, sol = self._lost_in_space(frame.evolve(flags=flags))
         self.last_solution = sol
-        if sol.accepted:
+        if sol.accepted and (sol.camera_sigma or not self._fitting):
+            # with fit_distortion, only a camera fitted to this frame replaces the known one: a frame
+            # too fast (or with too few matches) to fit was matched with the solved field's scale,
+            # which is not handed on
             self._track_model = sol.camera
         if sol.accepted and self.params.track:
             self._tracker = self._tracking_identifier(sol.attitude, self.params.tracking, sol.camera.camera(self.context.camera))
@@ -456,14 +463,8 @@ class LostInSpaceIdentifier(Identifier):
         if ok.sum() < 3:
             return self._reject(frame, "solver_ids_not_in_catalogue", **diag)
         R, _ = Rotation.align_vectors(self._catalog.unit_icrs[cat_idx[ok]], self._referred(det, det_idx[ok], model, motion))
-        d, c, _, fit, moved, sigma = self._match_all(det, R, model, motion, frame.t0_ns, t_ref)
-        out, sol = self._verify(frame, d, c, fit, moved, sigma, dict(diag))
-        if self._fitting and not sigma and not sol.accepted and sol.reason.startswith("residual"):
-            # the known camera misses this moving frame's stars (class docstring, 5): the camera is
-            # fitted on it after all, which may take up part of the stretch but is closer than one that fails
-            d, c, _, fit, moved, sigma = self._match_all(det, R, model, motion, frame.t0_ns, t_ref, fit_moving=True)
-            out, sol = self._verify(frame, d, c, fit, moved, sigma, diag)
-        return out, sol
+        d, c, R, model, motion, sigma = self._match_all(det, R, model, motion, frame.t0_ns, t_ref)
+        return self._verify(frame, d, c, model, motion, sigma, diag)
 
     def _pattern_solve(self, det, finite: np.ndarray, model: RadialCamera, motion: BodyMotion):
         """tetra3rs' pattern search on the detections (brightest first; referred to the motion's
@@ -485,18 +486,16 @@ class LostInSpaceIdentifier(Identifier):
             pattern_checking_stars=self.params.pattern_checking_stars, match_max_error=self.params.pattern_match_max_error)
         return res, order, time.perf_counter() - start
 
-    def _match_all(self, det, R: Rotation, model: RadialCamera, motion: BodyMotion, t0_ns: int, t_ref: int,
-                   fit_moving: bool = False):
+    def _match_all(self, det, R: Rotation, model: RadialCamera, motion: BodyMotion, t0_ns: int, t_ref: int):
         """Re-match every detection against our catalogue and camera model; with fit_distortion the
-        intrinsics are refitted to the matches (on a frame that holds still, or any with
-        ``fit_moving``: :meth:`_may_fit`) and the matching repeated until the set is stable;
-        without a known motion, then with the rate fitted to the matches (:meth:`_matched_motion`).
-        Returns (detections, catalogue indices, attitude, camera model, motion, camera sigmas: empty
-        when the camera was not fitted to these matches)."""
+        intrinsics are refitted to the matches (on a frame that holds still: :meth:`_may_fit`) and
+        the matching repeated until the set is stable; without a known motion, then with the rate
+        fitted to the matches (:meth:`_matched_motion`). Returns (detections, catalogue indices,
+        attitude, camera model, motion, camera sigmas: empty when the camera was not fitted to these
+        matches, and ``model`` is then the one matched with, not one to hand on)."""
         fitting = self._fitting
         sigma: dict = {}
         previous = None
-        fitted = False  # whether ``model`` was fitted to the final matches (else the known camera is handed on)
         for _ in range(6 if fitting else 1):
             d, c, R, _ = self._rematch(det, R, model, motion, t0_ns)
             key = (tuple(d), tuple(c))
@@ -504,10 +503,10 @@ class LostInSpaceIdentifier(Identifier):
                 break
             previous = key
             ref = self.context.catalog.unit_icrs[c]
-            if self._may_fit(det, d, model, motion, fit_moving):
+            if self._may_fit(det, d, model, motion):
                 x, y = (det.x[d], det.y[d]) if motion.static else model.project(self._referred(det, d, model, motion))[:2]
                 cf = fit_camera([(x, y, ref)], [R], model, fit=self._fit_names)
-                model, R, sigma, fitted = cf.camera, cf.attitudes[0], cf.sigma, True
+                model, R, sigma = cf.camera, cf.attitudes[0], cf.sigma
             else:
                 R, _ = Rotation.align_vectors(ref, self._referred(det, d, model, motion))
         if motion.static:
@@ -520,26 +519,20 @@ class LostInSpaceIdentifier(Identifier):
                 got = self._matched_motion(det, d, c, known, t_ref)
                 if got is None:
                     break
-                (R, motion), model, sigma, fitted = got, known, {}, False
+                (R, motion), model, sigma = got, known, {}
                 d, c, R, _ = self._rematch(det, R, model, motion, t0_ns)
-            if not motion.static and self._may_fit(det, d, model, motion, fit_moving):
+            if not motion.static and self._may_fit(det, d, model, motion):
                 x, y = model.project(self._referred(det, d, model, motion))[:2]
                 cf = fit_camera([(x, y, self.context.catalog.unit_icrs[c])], [R], model, fit=self._fit_names)
-                model, sigma, fitted = cf.camera, cf.sigma, True
-        if fitting and not fitted and model != self._track_model:
-            # too few matches or too fast to fit: matched again with the known camera (the one fitted
-            # last, or the declared one), not the solved field's scale
-            model, sigma = self._track_model, {}
-            d, c, R, _ = self._rematch(det, R, model, motion, t0_ns)
+                model, sigma = cf.camera, cf.sigma
         return d, c, R, model, motion, sigma
 
-    def _may_fit(self, det, d: np.ndarray, model: RadialCamera, motion: BodyMotion, fit_moving: bool = False) -> bool:
+    def _may_fit(self, det, d: np.ndarray, model: RadialCamera, motion: BodyMotion) -> bool:
         """Whether the intrinsics are fitted to matches ``d``: with ``fit_distortion``, enough of them,
-        and a motion that moves them by at most ``fit_max_motion_px`` between their row times (any
-        motion with ``fit_moving``)."""
+        and a motion that moves them by at most ``fit_max_motion_px`` between their row times."""
         if not self._fitting or d.size < self.params.distortion_min_matches:
             return False
-        if motion.static or fit_moving:
+        if motion.static:
             return True
         span_s = np.ptp(det.t_ns[d].astype(np.int64)) * S_PER_NS
         return float(np.linalg.norm(motion.omega)) * span_s * model.focal_px <= self.params.fit_max_motion_px
