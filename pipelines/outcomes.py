@@ -9,8 +9,9 @@ the reports share.
   ``saturated_stars:7`` counts as ``saturated_stars``). A flag is a note about the frame, not a
   verdict: a flagged frame can be valid.
 
-Reasons are counted by their key: the text before the first ``:`` or `` (``, and after a ``:`` the
-word that names a kind (letters and underscores up to the next ``(``), not a count or a value. So
+Reasons are counted by their key: the text before the first ``:`` or `` (``, and after a ``:`` an
+identifier that names a kind (the whole detail, or what precedes its ``(``), not a count, a value
+or a sentence. So
 ``identification_rejected:3e-05``, ``saturated_stars:7`` and ``fewer than 2 identified stars (1)``
 each group with their kind, while ``lost_in_space_rejected:mirrored_image`` and
 ``lost_in_space_rejected:residual(2.7px>2.0px)`` are counted apart: the reason is in that word.
@@ -29,8 +30,8 @@ def reason_key(text: str) -> str:
     """The group a reason or flag is counted under (module docstring)."""
     head, _, detail = text.partition(":")
     key = head.split(" (", 1)[0].strip()
-    kind = re.match(r"[A-Za-z_]+", detail.strip())
-    if key and kind:
+    kind = re.match(r"[A-Za-z_][A-Za-z0-9_]*(?=\(|$)", detail.strip())
+    if key and kind and kind.group(0).lower() not in ("inf", "nan"):
         key = f"{key}:{kind.group(0)}"
     return key or "unspecified"
 

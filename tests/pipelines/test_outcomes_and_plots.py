@@ -35,6 +35,12 @@ def test_reasons_group_by_kind_not_by_their_numbers():
     assert reason_key("lost_in_space_rejected:mirrored_image") == "lost_in_space_rejected:mirrored_image"
     assert reason_key("lost_in_space_rejected:residual(2.68px>2.00px)") == "lost_in_space_rejected:residual"
     assert reason_key("pixel_step_skipped:model_misfit(6 of 15 stars explained)") == "pixel_step_skipped:model_misfit"
+    assert reason_key("identification_rejected:false_match_probability(2.0e-03>1e-09)") == \
+        "identification_rejected:false_match_probability"
+    # a sentence or a value after the colon is not a kind
+    assert reason_key("provisional: fewer than 2 identified stars or collinear") == "provisional"
+    assert reason_key("covariance_scaled:inf") == reason_key("covariance_scaled:nan") == "covariance_scaled"
+    assert reason_key("time_gap:120ms") == "time_gap"
     o = Outcomes()
     o.add(["saturated_stars:3", "edge_truncated_stars:1"], [(True, "")])
     o.add(["saturated_stars:9"], [(False, "too few stars (1)")])
