@@ -119,7 +119,7 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
         sensor = sensor_model(scenario)
         moves = sensor.moving or sequence_moves(observations, attitudes, sensor.camera, sensor.timing)
         sensor = replace(sensor, moving=moves)
-        check_parity(observations, attitudes, sensor)
+        check_parity(observations, sensor)
         choice = choose_projection(observations, attitudes, sensor, options)
         if choice is not None and choice.restated:
             sensor = sensor_model(with_projection(scenario, choice), moves)

@@ -29,7 +29,6 @@ from rollingstar.estimators.diagnosis.observations import (
 )
 from rollingstar.estimators.diagnosis.selection import LinearProblem
 from rollingstar.estimators.diagnosis.signatures import linear_problem
-from rollingstar.sensors.so3 import wahba
 
 MIN_STARS_PER_FRAME = 4  # an attitude from fewer stars says little: frames keep at least this many
 OUTLIER_SIGMA = 30.0  # far beyond noise, below the identifier's refine gate: a wrong match, not physics
@@ -162,48 +161,50 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
     return Dataset(obs, unit, frame_has_train, att_mask, n_rejected, chan_out), nuis0, pred0
 
 
-def check_parity(obs: Observations, attitudes, model: SensorModel) -> None:
+def check_parity(obs: Observations, model: SensorModel) -> None:
     """Refuse a recording whose stars are a mirror image of the sky ``model`` draws: no projection,
     focal length or distortion turns one into the other, so every later fit would only report that
-    it misses. Checked when the model as given misses most stars beyond the gross-outlier gate,
-    against :func:`mirrored_miss` with the camera as declared; both fits hold every frame still
-    (one attitude fit each: a mirror moves stars by hundreds of pixels, motion by far less)."""
-    every = np.ones(obs.n, dtype=bool)
-    still = replace(model, moving=False)
-    _, pred = fit_nuisance(obs, attitudes, model.camera, model.timing, model.effects, every, moving=False)
-    if np.count_nonzero(beyond_gate(obs, pred)) <= 0.5 * obs.n:
-        return
-    miss = float(np.nanmedian(np.hypot(obs.x - pred.x, obs.y - pred.y)))
-    mirrored = mirrored_miss(obs, still, every)
-    if mirrored is None or mirrored >= min(OUTLIER_SIGMA * float(np.median(obs.sigma)), 0.1 * miss):
+    it misses (:func:`mirrored_fraction`; at least ``PARITY_MIN_TRIANGLES`` triangles judged, and
+    ``MIRRORED_FRACTION`` of them turned over)."""
+    flipped, judged = mirrored_fraction(obs, model.camera)
+    if judged < PARITY_MIN_TRIANGLES or flipped < MIRRORED_FRACTION * judged:
         return
     raise UserError(
-        f"the recording's stars are a mirror image of the sky the simulation draws: as given its camera misses them "
-        f"by {miss:.3g} px (median), and with x -> {2 * model.camera.cx:g} - x by {mirrored:.3g} px. The recording's "
-        f"pixel axes run the other way than docs/conventions.md states ((x, y) = (column, row), row 0 the first row "
-        f"of the image data, the sky as seen through the lens): flip one axis where the recording is made or "
-        f"imported (x -> W - 1 - x, or y -> H - 1 - y; x and y swapped is the same mirror turned about the boresight)")
+        f"the recording's stars are a mirror image of the sky the simulation draws: {flipped} of {judged} triangles "
+        f"of stars run round the other way than their catalogue stars (a rotation, a focal length or a distortion "
+        f"keeps that order; only a mirror reverses it). The recording's pixel axes run the other way than "
+        f"docs/conventions.md states ((x, y) = (column, row), row 0 the first row of the image data, the sky as seen "
+        f"through the lens): flip one axis where the recording is made or imported (x -> W - 1 - x, or "
+        f"y -> H - 1 - y; x and y swapped is the same mirror turned about the boresight)")
 
 
-def mirrored_miss(obs: Observations, model: SensorModel, att_mask: np.ndarray) -> float | None:
-    """Median miss (px) of ``model`` on the stars mirrored about the principal point's column
-    (``x -> 2 cx - x``), every frame's attitude fitted anew (from Wahba's solution on the mirrored
-    directions): a recording whose pixel axes run the other way than the conventions state (one
-    axis flipped; x and y swapped, which is the same mirror turned about the boresight) fits
-    there. None when a frame has fewer than 3 stars to start its attitude from."""
-    cam = model.camera
-    cov = None if obs.cov is None else obs.cov * np.array([[1.0, -1.0], [-1.0, 1.0]])
-    mirrored = replace(obs, x=2.0 * cam.cx - obs.x, cov=cov)
-    body = cam.unproject(mirrored.x, mirrored.y).reshape(-1, 3)
-    starts = []
+PARITY_TRIANGLES = 30  # triangles drawn per frame
+PARITY_MIN_TRIANGLES = 10  # fewer judged over the recording: no verdict
+MIRRORED_FRACTION = 0.8  # a true recording's wrong stars turn some triangles over, never most of them
+
+
+def mirrored_fraction(obs: Observations, camera) -> tuple[int, int]:
+    """Of up to ``PARITY_TRIANGLES`` random triangles of each frame's stars, how many run round the
+    other way than their catalogue stars, and how many were judged: ``(turned over, judged)``.
+
+    The order round a triangle is the sign of ``det(w_i, w_j, w_k)`` of the camera directions and of
+    ``det(u_i, u_j, u_k)`` of the catalogue directions. An attitude is a rotation, which keeps it; a
+    focal length or a radial distortion only stretches the image about its centre, which keeps it
+    too; a mirror reverses it. Triangles thinner than a quarter of the frame's median (where noise
+    could turn one over) are not judged; frames with fewer than 3 stars have none."""
+    rng = np.random.default_rng(0)
+    w = camera.unproject(obs.x, obs.y).reshape(-1, 3)
+    flipped = judged = 0
     for f in range(obs.n_frames):
-        mine = (obs.frame == f) & att_mask & np.all(np.isfinite(body), axis=1)
-        if np.count_nonzero(mine) < 3:
-            return None
-        starts.append(wahba(obs.u_icrs[mine], body[mine]))
-    _, pred = fit_nuisance(mirrored, Rotation.from_matrix(np.stack(starts)), model.camera, model.timing,
-                           model.effects, att_mask, model.moving)
-    return float(np.nanmedian(np.hypot(mirrored.x - pred.x, mirrored.y - pred.y)))
+        idx = np.flatnonzero((obs.frame == f) & np.all(np.isfinite(w), axis=1))
+        if idx.size < 3:
+            continue
+        tri = idx[np.argsort(rng.random((PARITY_TRIANGLES, idx.size)), axis=1)[:, :3]]
+        du, dw = np.linalg.det(obs.u_icrs[tri]), np.linalg.det(w[tri])
+        thick = np.abs(du) >= 0.25 * np.median(np.abs(du))
+        flipped += int(np.count_nonzero(thick & (np.sign(du) != np.sign(dw))))
+        judged += int(np.count_nonzero(thick))
+    return flipped, judged
 
 
 def gross_outliers(obs: Observations, attitudes, model: SensorModel, att_mask: np.ndarray,
