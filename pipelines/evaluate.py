@@ -240,9 +240,10 @@ def _truth_convention(valid: list[dict], truth: TruthTrajectory | None) -> str |
         err = float(np.degrees(np.median((other.attitude(t).inv() * est).magnitude())))
         if err <= TRUTH_READING_DEG:
             return (f"the estimates miss /truth/attitude by {off:.3g} deg (median) but agree with it within "
-                    f"{err * 3600:.3g} arcsec when it is read {reading}: the log's truth looks written in another "
-                    f"convention than docs/conventions.md states (camera-to-ICRS, our camera frame, named "
-                    f"quaternion fields); the attitude errors above are against the truth as written")
+                    f"{err * 3600:.3g} arcsec when it is read {reading}: one of the two (the recording's truth, or "
+                    f"the estimator that wrote the estimates) follows another convention than docs/conventions.md "
+                    f"states (camera-to-ICRS, our camera frame, named quaternion fields); the attitude errors are "
+                    f"against the truth as written")
     return None
 
 

@@ -71,14 +71,18 @@ def aggregate(comp: Comparison, pipeline_runs: list[dict], run_info: dict) -> di
                 "wall_s_per_frame": spread([t["wall_s_per_frame"] for t in timed]),
                 "stage_s_per_frame": {s: spread([t["stage_s_per_frame"].get(s) for t in timed]) for s in stages},
             }
-            rows.append({
+            row = {
                 "scenario": v.scenario, "variant": v.label, "params": v.params, "rate_deg_s": v.rate_deg_s,
                 "rate_norm_deg_s": float(np.linalg.norm(v.rate_deg_s)),
                 "rate_xy_norm_deg_s": float(np.linalg.norm(v.rate_deg_s[:2])), "frames": v.config.frames,
                 "pipeline": p, "seeds": [r["seed"] for r in runs], "metrics": metrics, "per_seed": per_seed,
                 "errors": [f"seed {r['seed']}: {r['error']}" for r in runs if "error" in r],
                 "timing": timing,
-            })
+            }
+            # the sentences evaluate adds beside its numbers (flatten keeps numbers only)
+            said = [f"seed {r['seed']}: {r['metrics']['truth_convention']}" for r in runs
+                    if "truth_convention" in r.get("metrics", {})]
+            rows.append({**row, "warnings": said} if said else row)
     cfg = comp.config
     return {
         "comparison": {"name": cfg.name, "description": cfg.description, "source": comp.source,

@@ -278,6 +278,9 @@ def markdown(results: dict, images: list[tuple[str, str]], command: str) -> str:
     errors = [(r["pipeline"], r["variant"], e) for r in results["results"] for e in r["errors"]]
     if errors:
         lines += ["## Failed tasks", ""] + [f"- {p} on {v}: {e}" for p, v, e in errors] + [""]
+    said = [(r["pipeline"], r["variant"], w) for r in results["results"] for w in r.get("warnings", ())]
+    if said:
+        lines += ["## Warnings", ""] + [f"- {p} on {v}: {w}" for p, v, w in said] + [""]
     lines += ["## Figures", ""] + [f"![{cap}]({name})" for name, cap in images]
     return "\n".join(lines) + "\n"
 

@@ -294,3 +294,28 @@ def test_a_seed_without_a_flag_counts_zero_in_the_flag_means():
     row = aggregate(comp, runs, {})["results"][0]
     stats = row["metrics"]["outcomes.flag_reasons.saturated_stars"]
     assert stats["mean"] == 3.0 and stats["n"] == 3 and stats["min"] == 0.0
+
+
+def test_evaluates_sentence_on_a_convention_reaches_the_comparison_report():
+    """evaluate's ``truth_convention`` (a sentence, which the metric tables leave out) is kept on the
+    comparison row of the seeds that said it and listed under Warnings in results.md; a row whose
+    seeds said nothing has no warnings key."""
+    from types import SimpleNamespace
+
+    from rollingstar.pipelines.compare.aggregate import aggregate
+    from rollingstar.pipelines.compare.report import markdown
+
+    variants = [SimpleNamespace(label=v, pipelines=["p"], scenario="s", params={}, rate_deg_s=(0.0, 0.0, 0.0),
+                                config=SimpleNamespace(frames=10)) for v in ("a", "b")]
+    comp = SimpleNamespace(variants=variants, source="x", pipeline_paths={"p": "p.yaml"},
+                           config=SimpleNamespace(name="n", description="", seed_list=lambda: [1, 2], plot_x="rate"))
+    said = "the estimates miss /truth/attitude by 180 deg (median) but agree with it within 2 arcsec when it is read ..."
+    runs = [{"variant": "a", "pipeline": "p", "seed": 1, "metrics": {"frames": 10, "truth_convention": said}},
+            {"variant": "a", "pipeline": "p", "seed": 2, "metrics": {"frames": 10}},
+            {"variant": "b", "pipeline": "p", "seed": 1, "metrics": {"frames": 10}}]
+    results = aggregate(comp, runs, {})
+    a, b = results["results"]
+    assert a["warnings"] == [f"seed 1: {said}"] and "warnings" not in b
+    assert "truth_convention" not in a["metrics"]  # not a number: not a metric column
+    text = markdown(results, [], "rollingstar compare x")
+    assert "## Warnings" in text and f"- p on a: seed 1: {said}" in text

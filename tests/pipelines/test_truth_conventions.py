@@ -39,6 +39,8 @@ WRITTEN = {
     "inverse": (lambda q: Rotation.from_quat(q).inv().as_quat(), "ICRS-to-camera rotation (the inverse"),
     "opencv": (_opencv, "in the OpenCV camera frame"),
     "scalar first": (lambda q: np.roll(q, 1, axis=1), "scalar first"),
+    "inverse, OpenCV frame": (lambda q: Rotation.from_quat(_opencv(q)).inv().as_quat(),
+                              "ICRS-to-camera rotation in the OpenCV camera frame"),
 }
 
 
