@@ -10,7 +10,7 @@ from typing import Any
 
 from pydantic import Field
 
-from rollingstar.config import Strict, read_yaml, validate
+from rollingstar.config import Strict, read_yaml, register_kind, validate
 from rollingstar.estimators.identifiers.integrity import DEFAULT_MAX_FALSE_MATCH_PROB
 
 
@@ -30,6 +30,8 @@ class PipelineConfig(Strict):
         description="Largest probability that a frame's identified stars are chance coincidences; a frame above "
         "it keeps no identification and no valid attitude (estimators/identifiers/integrity.py).")
 
+
+register_kind("pipeline", PipelineConfig)
 
 
 def load_pipeline(path: str | Path) -> PipelineConfig:

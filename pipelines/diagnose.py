@@ -278,7 +278,10 @@ def diagnose_recording(recording: str | Path, scenario: ScenarioConfig | None = 
         except UserError:
             catalog = None
         pipeline, stars, att = identify_stars(recording, pipeline, pipeline_source, options.show_progress)
-        obs, att0 = build_observations(stars, att, scenario, catalog)
+        try:
+            obs, att0 = build_observations(stars, att, scenario, catalog)
+        except UserError as exc:
+            raise UserError(f"{recording}: {exc} (pipeline {pipeline.name})") from None
         reference = read_reference(recording, obs) if options.reference_sigma_arcsec is not None else None
         with progress_bar("diagnose", len(algorithm.PHASES), options.show_progress) as advance:
             d = algorithm.diagnose(obs, att0, scenario, read_gyro(recording, scenario), options, exclude_effects,

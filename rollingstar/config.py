@@ -238,11 +238,37 @@ def parse_yaml(text: str, source: str) -> dict:
     return data
 
 
+#: The top-level model of each kind of config file, registered by the module that defines it
+#: (:func:`register_kind`), so that a file of one kind given where another is expected is named.
+KIND_MODELS: dict[str, type] = {}
+
+
+def register_kind(kind: str, model: type[Strict]) -> type[Strict]:
+    """Record ``model`` as the top-level model of config files of ``kind`` (``CONFIG_KINDS``)."""
+    KIND_MODELS[kind] = model
+    return model
+
+
+def _other_kind(model: type[Strict], data) -> str | None:
+    """The kind of config ``data`` is when it is not ``model``'s: some of its top-level keys are
+    unknown to ``model`` and every one is a key of that kind's model."""
+    if not isinstance(data, dict) or not data or not set(data) - set(model.model_fields):
+        return None
+    return next((kind for kind, other in KIND_MODELS.items()
+                 if other is not model and set(data) <= set(other.model_fields)), None)
+
+
 def validate(model: type[Strict], data: dict, source: str):
     try:
         return model.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(format_validation_error(source, err, model=model)) from None
+        text = format_validation_error(source, err, model=model)
+        kind = _other_kind(model, data)
+        expected = next((k for k, m in KIND_MODELS.items() if m is model), None)
+        if kind is not None:
+            text += (f"\n{source}: its keys are those of a {kind} config, not of a "
+                     f"{expected or model.__name__} config: was it given in the wrong place?")
+        raise ConfigError(text) from None
 
 
 def to_yaml(config: Strict) -> str:

@@ -20,7 +20,7 @@ from pydantic import (
     model_validator,
 )
 
-from rollingstar.config import Strict, parse_yaml, read_yaml, validate
+from rollingstar.config import Strict, parse_yaml, read_yaml, register_kind, validate
 from rollingstar.sensors.camera import Projection
 from rollingstar.sensors.effects import UnknownEffectError, resolve
 
@@ -273,6 +273,8 @@ class ScenarioConfig(Strict):
                                  "hipparcos or give catalog.proper_motion_mas_yr")
         return self
 
+
+register_kind("scenario", ScenarioConfig)
 
 
 def load_scenario(path: str | Path) -> ScenarioConfig:

@@ -42,6 +42,7 @@ from rollingstar.config import (
     Strict,
     format_validation_error,
     read_yaml,
+    register_kind,
     shipped_configs,
     to_yaml,
     validate,
@@ -93,6 +94,9 @@ class CompareConfig(Strict):
 
     def seed_list(self) -> list[int]:
         return list(self.seeds) if self.seeds is not None else [self.seed + k for k in range(self.monte_carlo)]
+
+
+register_kind("compare", CompareConfig)
 
 
 @dataclass(frozen=True)

@@ -71,3 +71,12 @@ def test_a_folder_where_a_comparison_names_a_scenario_file_is_named_as_a_folder(
     path.write_text(f"name: x\npipelines: [{PIPELINE}]\nscenarios:\n  - path: scenario.yaml\n")
     assert_refused(cli("compare", path, "-o", tmp_path / "out", "-q"),
                    "cmp.yaml: scenarios[0].path:", "scenario.yaml is a folder, not a config file")
+
+
+def test_a_config_of_another_kind_is_named_as_such(tmp_path, small_recording):
+    """A scenario given where a pipeline is expected (and the other way round) is refused with its
+    unknown keys and the kind its keys belong to, not only a list of unknown keys."""
+    assert_refused(cli("run", ROOT / "configs" / "scenarios" / "he2021b.yaml", small_recording, "-o", tmp_path / "o.mcap"),
+                   "its keys are those of a scenario config, not of a pipeline config")
+    assert_refused(cli("simulate", PIPELINE, "-o", tmp_path / "r.mcap", "--frames", "2"),
+                   "its keys are those of a pipeline config, not of a scenario config")
