@@ -164,6 +164,13 @@ class FrameSource:
         frame = self.checker.check(frame, msg.data)
         if frame is None:
             return None
+        if frame.t0_ns != int(msg.log_time_ns):
+            # gyro and truth messages join the frame whose log time follows theirs: a frame logged at
+            # another time (a wall clock) would take the wrong ones, silently
+            raise LogFormatError(f"{self.recording.path}: {topic} frame {frame.index}: log time {int(msg.log_time_ns)} "
+                                 f"ns differs from its t0_ns {frame.t0_ns} ns; a frame message is logged at its t0 "
+                                 "(docs/log-format.md), since gyro and truth messages are grouped into frames by "
+                                 "log time")
         frame = frame.evolve(gyro=gyro_from_messages(group.side.get(TOPIC_GYRO, [])))
         for side_topic in sorted({t for t, _ in group.dropped}):  # undecodable side messages were skipped (warned)
             frame = frame.flagged(f"side_message_invalid:{side_topic}")

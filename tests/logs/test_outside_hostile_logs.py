@@ -180,3 +180,18 @@ def test_diagnose_refuses_a_hostile_log_without_pointing_at_its_own_temporary_fi
     squeezed = "".join(err.split())  # the console may wrap inside the long temporary path
     assert "bad.mcap:topic/camera/centroidsatlogtime2200000000ns" in squeezed and "x: Input should be" in err, err
     assert "diagnose_run" not in err and ".partial" not in err, err  # the run's output is diagnose's own scratch file
+
+
+def test_a_frame_logged_at_another_time_than_its_t0_is_refused(tmp_path):
+    """Frames logged by another clock than their sensor times, 5 s apart (``t0_ns`` and the stars'
+    times consistent with each other): gyro and truth messages join frames by log time, so the run
+    would pair them wrongly; it is refused naming the frame and both times."""
+    shift = 5_000_000_000
+    frames = []
+    for k in range(FRAMES):
+        r = stars_record(k)
+        frames.append({**r, "t0_ns": r["t0_ns"] + shift, "t_ns": [t + shift for t in r["t_ns"]],
+                       "row_time_ns": [t + shift for t in r["row_time_ns"]]})
+    rec = write_log(tmp_path / "clock.mcap", frames)
+    assert_refused(tmp_path, rec, "/camera/centroids frame 0", f"log time {T_FIRST} ns differs from its t0_ns "
+                   f"{T_FIRST + shift} ns")
