@@ -25,6 +25,21 @@ from dataclasses import dataclass, field
 
 NO_ESTIMATE = "no attitude estimate"
 
+#: What to do when a flag kind is on most frames of a run (:meth:`Outcomes.hints`).
+HINTS = {
+    "lost_in_space_rejected:mirrored_image": (
+        "the star patterns are mirror images of the sky: image rows stored bottom-up (as FITS stores them) "
+        "or a mirror in the light path; set `mirrored: true` in the camera file and import the images again "
+        "(docs/log-format.md)"),
+    "lost_in_space_rejected:solver_no_match": (
+        "no star pattern matched the catalogue: check the field of view the camera file gives (focal length "
+        "and pixel size, within the identifier's fov_tolerance) and that the catalogue reaches the stars' "
+        "magnitudes (docs/log-format.md, the reference catalogue)"),
+    "pixel_step_skipped:model_misfit": (
+        "the pixel model explains fewer than half of the stars: a focal length or PSF unlike the declared "
+        "ones; the frames keep their position solution (docs/high-dynamic.md)"),
+}
+
 
 def reason_key(text: str) -> str:
     """The group a reason or flag is counted under (module docstring)."""
@@ -97,6 +112,10 @@ class Outcomes:
         return cls(int(d["frames"]), int(d["valid_frames"]), int(d["flagged_frames"]), int(d["attitude_estimates"]),
                    int(d["valid_attitude_estimates"]), Counter(d.get("invalid_reasons") or {}),
                    Counter(d.get("flag_reasons") or {}))
+
+    def hints(self) -> list[str]:
+        """The advice of :data:`HINTS` for every flag kind on more than half of the frames."""
+        return [HINTS[k] for k, n in sorted(self.flag_reasons.items()) if k in HINTS and 2 * n > self.frames]
 
     def sentence(self) -> str:
         """``100 frames: 98 valid, 2 invalid (too_few_stars 2); 7 flagged (saturated_stars 7)``."""

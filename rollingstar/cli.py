@@ -171,6 +171,8 @@ def run(pipeline: str = typer.Argument(..., help="pipeline YAML, or a shipped pi
         out.print(f"resumed from a checkpoint after {s.resumed_after_frames} frames" if s.resumed_after_frames else
                   "resumed: no usable checkpoint, every frame re-run from the first")
     out.print(f"wrote {s.output}: {s.outcomes.sentence()}", highlight=False)
+    for hint in s.outcomes.hints():
+        out.print(f"[bold yellow]hint[/]: {hint}", highlight=False)
 
 
 @command()

@@ -200,3 +200,19 @@ def test_demo_shows_what_the_rolling_shutter_costs_and_writes_its_plot(tmp_path)
     row = next(line for line in text.splitlines() if line.lstrip("│ ").startswith("z (roll"))
     assert f"{base['attitude_error_arcsec']['z_rmse']:.3g}" in row  # the table prints what evaluate measures
     json.dumps(base)  # the metrics stay JSON
+
+
+def test_a_flag_on_most_frames_brings_its_hint():
+    """A run whose lost-in-space rejected most frames as mirror images says what to do (the camera
+    file's ``mirrored``); the same flag on a minority of frames, or a flag without advice, says nothing."""
+    from rollingstar.pipelines.outcomes import HINTS
+
+    o = Outcomes()
+    for k in range(10):
+        o.add(["lost_in_space_rejected:mirrored_image", "too_few_stars"] if k < 6 else [], [(k >= 6, "no stars")])
+    assert o.hints() == [HINTS["lost_in_space_rejected:mirrored_image"]]
+    assert "mirrored: true" in o.hints()[0]
+    few = Outcomes()
+    for k in range(10):
+        few.add(["lost_in_space_rejected:mirrored_image"] if k < 5 else ["saturated_stars:3"], [(True, "")])
+    assert few.hints() == []
