@@ -34,7 +34,7 @@ from rollingstar.estimators.diagnosis.observations import (
 from rollingstar.estimators.diagnosis.report import write_report
 from rollingstar.logs.reader import LogReader
 from rollingstar.logs.records import stars_to_arrays
-from rollingstar.logs.topics import TOPIC_EST_ATTITUDE, TOPIC_EST_STARS
+from rollingstar.logs.topics import TOPIC_EST_ATTITUDE, TOPIC_EST_STARS, TOPIC_TRUTH_ATTITUDE
 from rollingstar.outputs import PartialOutputWarning, safe_output
 from rollingstar.pipelines.config import PipelineConfig, load_pipeline
 from rollingstar.pipelines.runner import run_pipeline
@@ -286,7 +286,20 @@ def diagnose_recording(recording: str | Path, scenario: ScenarioConfig | None = 
         with progress_bar("diagnose", len(algorithm.PHASES), options.show_progress) as advance:
             d = algorithm.diagnose(obs, att0, scenario, read_gyro(recording, scenario), options, exclude_effects,
                                    reference, on_phase=lambda name: advance())
-    return algorithm.as_json(d, recording=str(recording), sim=sim_source or scenario.name, pipeline=pipeline.name), d
+    result = algorithm.as_json(d, recording=str(recording), sim=sim_source or scenario.name, pipeline=pipeline.name)
+    if reference is None and result["absorbed_by_attitude"] and _carries_truth(recording):
+        result["reference_available"] = (
+            "This recording carries a reference attitude (/truth/attitude): run again with "
+            "--reference-attitude-arcsec S, its accuracy per axis, to test the effects the attitude absorbs "
+            f"({', '.join(a['name'] for a in result['absorbed_by_attitude'])}) against it.")
+        result["summary"] += " " + result["reference_available"]
+    return result, d
+
+
+def _carries_truth(recording: Path) -> bool:
+    """Whether the recording has ``/truth/attitude`` samples to test against (two at least)."""
+    topic = LogReader(recording).summary_info().topics.get(TOPIC_TRUTH_ATTITUDE)
+    return topic is not None and topic.message_count > 0 and LogReader(recording).truth_attitude()["t_ns"].size >= 2
 
 
 def run_diagnose(recording: Path, sim: Path | None, pipeline: Path | None, out_dir: Path | None,

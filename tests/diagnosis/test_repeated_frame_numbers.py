@@ -37,3 +37,18 @@ def test_a_wrapping_frame_counter_diagnoses_every_frame_as_distinct_numbers_do(t
     np.testing.assert_allclose(d_wrap.location.nuisance.attitude.as_quat(), d_plain.location.nuisance.attitude.as_quat(),
                                atol=1e-12)
     assert [e["name"] for e in wrap["effects"]] == [e["name"] for e in plain["effects"]]
+
+
+def test_a_recording_with_a_reference_attitude_says_how_to_use_it(small_recording):
+    """Effects the attitude absorbs are untestable from the stars alone; when the recording carries
+    /truth/attitude and no accuracy was given for it, the report says how to test them against it,
+    and with the accuracy it tests them instead of saying so."""
+    options = DiagnoseOptions(seed=0, n_boot=10, resimulate=False)
+    res, _ = diagnose_recording(small_recording, options=options)
+    absorbed = [a["name"] for a in res["absorbed_by_attitude"]]
+    assert absorbed and "--reference-attitude-arcsec" in res["reference_available"]
+    assert all(name in res["reference_available"] for name in absorbed)
+    assert res["reference_available"] in res["summary"]
+    with_ref, _ = diagnose_recording(small_recording, options=DiagnoseOptions(seed=0, n_boot=10, resimulate=False,
+                                                                                reference_sigma_arcsec=1.0))
+    assert "reference_available" not in with_ref and with_ref["attitude_reference"] is not None
