@@ -1,6 +1,11 @@
-"""``rollingstar diagnose`` on a recording whose ``frame`` field repeats (a frame counter that wraps,
-as the log format allows: frames are ordered by time). Every frame must still be diagnosed, each
-with its own attitude, in time order: the same stars and the same fit as with distinct numbers."""
+"""``rollingstar diagnose`` on what a recording carries besides its stars.
+
+- A ``frame`` field that repeats (a frame counter that wraps, as the log format allows: frames are
+  ordered by time): every frame must still be diagnosed, each with its own attitude, in time
+  order, the same stars and the same fit as with distinct numbers.
+- A reference attitude (``/truth/attitude``): the report says how to use it when no accuracy was
+  given for it.
+"""
 from __future__ import annotations
 
 import numpy as np
