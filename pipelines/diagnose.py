@@ -285,15 +285,8 @@ def diagnose_recording(recording: str | Path, scenario: ScenarioConfig | None = 
         reference = read_reference(recording, obs) if options.reference_sigma_arcsec is not None else None
         with progress_bar("diagnose", len(algorithm.PHASES), options.show_progress) as advance:
             d = algorithm.diagnose(obs, att0, scenario, read_gyro(recording, scenario), options, exclude_effects,
-                                   reference, on_phase=lambda name: advance())
-    result = algorithm.as_json(d, recording=str(recording), sim=sim_source or scenario.name, pipeline=pipeline.name)
-    if reference is None and result["absorbed_by_attitude"] and _carries_truth(recording):
-        result["reference_available"] = (
-            "This recording carries a reference attitude (/truth/attitude): run again with "
-            "--reference-attitude-arcsec S, its accuracy per axis, to test the effects the attitude absorbs "
-            f"({', '.join(a['name'] for a in result['absorbed_by_attitude'])}) against it.")
-        result["summary"] += " " + result["reference_available"]
-    return result, d
+                                   reference, on_phase=lambda name: advance(), carries_reference=_carries_truth(recording))
+    return algorithm.as_json(d, recording=str(recording), sim=sim_source or scenario.name, pipeline=pipeline.name), d
 
 
 def _carries_truth(recording: Path) -> bool:

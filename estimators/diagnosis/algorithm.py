@@ -76,6 +76,7 @@ class Diagnosis:
     uncorrected_evidence: tuple = ()  # the systematic's evidence before its empirical correction joined the model
     as_given: dict | None = None  # with a correction: the model as given without it, on the final stars (:func:`_as_given`)
     reference: ReferenceCheck | None = None  # the absorbed effects tested against a reference attitude
+    carries_reference: bool = False  # the recording has a reference attitude (used or not)
 
     @property
     def obs(self) -> Observations:
@@ -104,7 +105,8 @@ PHASES = ("projection", "effects named", "noise", "shape outside the library", "
 
 def diagnose(observations: Observations, attitudes: Rotation, scenario: ScenarioConfig, gyro: GyroData | None = None,
              options: DiagnoseOptions = DiagnoseOptions(), exclude_effects=(),
-             reference: tuple[Rotation, np.ndarray] | None = None, on_phase=None) -> Diagnosis:
+             reference: tuple[Rotation, np.ndarray] | None = None, on_phase=None,
+             carries_reference: bool = False) -> Diagnosis:
     """Diagnose a recording's identified stars (with a first attitude per frame) against ``scenario``.
 
     ``gyro``: the recording's gyro samples (a second residual channel); ``exclude_effects``:
@@ -112,7 +114,8 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
     time) and the frames it covers, of accuracy ``options.reference_sigma_arcsec``. BLAS runs single-threaded here: the matrices are small (thousands
     x tens) and a threaded BLAS on a busy machine was measured 16x slower on them (80 ms vs 5 ms for
     a 1078 x 32 SVD on 2 loaded cores). ``on_phase(name)`` is called after each of the ``PHASES``
-    (a progress display), whether or not the recording needed it.
+    (a progress display), whether or not the recording needed it. ``carries_reference``: the
+    recording has a reference attitude; without ``reference`` the report says how to use it.
     """
     done = on_phase or (lambda name: None)
     with threadpool_limits(limits=1, user_api="blas"):
@@ -148,7 +151,7 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
             check = reference_check(steps[0].data, steps[2], cands, list(steps[1].problem.absorbed), *reference,
                                     options.reference_sigma_arcsec, options.min_delta_bic)
         done(PHASES[5])
-    return Diagnosis(sensor, *steps[:4], choice, steps[4], noise, shape, evidence, before, check)
+    return Diagnosis(sensor, *steps[:4], choice, steps[4], noise, shape, evidence, before, check, carries_reference)
 
 
 def _corrected(shape: Description, given: ScenarioConfig, obs: Observations, attitudes: Rotation,
@@ -281,6 +284,17 @@ def _isolated(obs: Observations, pred, isolated: np.ndarray) -> list[dict]:
              "y": float(obs.y[i]), "sigmas": float(np.sqrt(c[i]))} for i in idx]
 
 
+def _reference_available(d: Diagnosis) -> str | None:
+    """How to test the absorbed effects against the recording's reference attitude, when it has one
+    and the diagnosis did not use it (its accuracy is the user's to state, never assumed)."""
+    absorbed = [a["name"] for a in d.verification.absorbed]
+    if d.reference is not None or not d.carries_reference or not absorbed:
+        return None
+    return ("This recording carries a reference attitude (/truth/attitude): run again with "
+            "--reference-attitude-arcsec S, its accuracy per axis, to test the effects the attitude absorbs "
+            f"({', '.join(absorbed)}) against it.")
+
+
 def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
     """The report of ``d`` as one JSON-able dict; ``recording``, ``sim`` and ``pipeline`` name its inputs."""
     data, v, q = d.location.data, d.verification, d.verification.quality
@@ -311,6 +325,7 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
         "ambiguous": v.ambiguous,
         "absorbed_by_attitude": v.absorbed,
         "attitude_reference": d.reference.as_json() if d.reference is not None else None,
+        "reference_available": _reference_available(d),
         "not_testable": d.location.untestable,
         "unexplained_systematic": {"present": v.unexplained or d.description is not None,
                                    "evidence": list(d.uncorrected_evidence) if d.corrected else v.evidence,

@@ -10,7 +10,7 @@ from __future__ import annotations
 def paragraph(result: dict) -> str:
     """One paragraph summarising ``result`` (a :func:`.algorithm.as_json` object)."""
     parts = [_what_differs(result), _heldout(result), *_ambiguous(result), _unexplained(result), _isolated(result),
-             _reference(result), _untestable(result)]
+             _reference(result), _untestable(result), result.get("reference_available") or ""]
     return " ".join(p for p in parts if p)
 
 

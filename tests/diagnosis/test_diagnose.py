@@ -163,7 +163,8 @@ def radial_steps(recordings):
     options = DiagnoseOptions(n_boot=5, stability=False)
     _, stars, att = identify_stars(recordings["radial"], None, "<test>", False)
     obs, att0 = build_observations(stars, att, scenario, build.build_catalog(scenario, build.build_camera(scenario)))
-    d = diagnose(obs, att0, scenario, read_gyro(recordings["radial"], scenario), options)
+    d = diagnose(obs, att0, scenario, read_gyro(recordings["radial"], scenario), options,
+                 carries_reference=True)  # the simulated recording carries its truth attitude
     return d, diagnose_recording(recordings["radial"], scenario, options=options)[0]
 
 
