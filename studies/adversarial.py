@@ -58,17 +58,21 @@ class Frame:
 
 
 def identifier_configs() -> list[tuple[str, dict]]:
-    """``(label, stage config)`` of every distinct identifier stage shipped in configs/ and diagnose."""
+    """``(label, stage config)`` of every distinct identifier stage shipped in configs/ and diagnose;
+    the label names the pipelines that ship it (``high_dynamic / real_images``; past two, the first
+    and how many more)."""
     pipelines = [(p.stem, load_pipeline(p)) for p in sorted((CONFIGS / "pipelines").glob("*.yaml"))]
     pipelines.append(("diagnose", default_pipeline()))
-    seen, out = set(), []
+    shipped: dict[tuple, tuple[list[str], dict]] = {}  # insertion-ordered: the first pipeline's place
     for label, pipe in pipelines:
         for stage in pipe.stages:
-            key = (stage.kind, repr(sorted(stage.params.items())))
-            if issubclass(get_plugin_class(stage.kind), Identifier) and key not in seen:
-                seen.add(key)
-                out.append((label, {"kind": stage.kind, "params": dict(stage.params)}))
-    return out
+            if issubclass(get_plugin_class(stage.kind), Identifier):
+                key = (stage.kind, repr(sorted(stage.params.items())))
+                names, _ = shipped.setdefault(key, ([], {"kind": stage.kind, "params": dict(stage.params)}))
+                if label not in names:
+                    names.append(label)
+    return [(" / ".join(names) if len(names) <= 2 else f"{names[0]} and {len(names) - 1} more", config)
+            for names, config in shipped.values()]
 
 
 def sensor_context() -> SensorContext:
