@@ -290,9 +290,11 @@ def diagnose_recording(recording: str | Path, scenario: ScenarioConfig | None = 
 
 
 def _carries_truth(recording: Path) -> bool:
-    """Whether the recording has ``/truth/attitude`` samples to test against (two at least)."""
+    """Whether the recording has ``/truth/attitude`` messages a reference could be read from (a
+    damaged one, which the run skipped with a warning, does not stop the diagnosis here: the
+    option that reads them says what is wrong)."""
     topic = LogReader(recording).summary_info().topics.get(TOPIC_TRUTH_ATTITUDE)
-    return topic is not None and topic.message_count > 0 and LogReader(recording).truth_attitude()["t_ns"].size >= 2
+    return topic is not None and topic.message_count > 0
 
 
 def run_diagnose(recording: Path, sim: Path | None, pipeline: Path | None, out_dir: Path | None,

@@ -29,8 +29,9 @@ NO_ESTIMATE = "no attitude estimate"
 HINTS = {
     "lost_in_space_rejected:mirrored_image": (
         "the star patterns are mirror images of the sky: image rows stored bottom-up (as FITS stores them) "
-        "or a mirror in the light path; set `mirrored: true` in the camera file and import the images again "
-        "(docs/log-format.md)"),
+        "or a mirror in the light path. For images, set `mirrored: true` in the camera file and import them "
+        "again (a principal point the file states is then read in the flipped image); for centroids, flip x "
+        "(x -> W - 1 - x) where they are written (docs/log-format.md)"),
     "lost_in_space_rejected:solver_no_match": (
         "no star pattern matched the catalogue: check the field of view the camera file gives (focal length "
         "and pixel size, within the identifier's fov_tolerance) and that the catalogue reaches the stars' "

@@ -240,6 +240,8 @@ def parse_yaml(text: str, source: str) -> dict:
 
 #: The top-level model of each kind of config file, registered by the module that defines it
 #: (:func:`register_kind`), so that a file of one kind given where another is expected is named.
+#: Only the kinds whose modules the command has loaded are known (this layer imports none of them):
+#: a file of another kind is then reported by its unknown keys alone.
 KIND_MODELS: dict[str, type] = {}
 
 

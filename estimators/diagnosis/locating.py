@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from rollingstar.errors import UserError
@@ -178,33 +179,40 @@ def check_parity(obs: Observations, model: SensorModel) -> None:
         f"y -> H - 1 - y; x and y swapped is the same mirror turned about the boresight)")
 
 
-PARITY_TRIANGLES = 30  # triangles drawn per frame
-PARITY_MIN_TRIANGLES = 10  # fewer judged over the recording: no verdict
+PARITY_MIN_TRIANGLES = 10  # fewer distinct triangles judged over the recording: no verdict
 MIRRORED_FRACTION = 0.8  # a true recording's wrong stars turn some triangles over, never most of them
 
 
 def mirrored_fraction(obs: Observations, camera) -> tuple[int, int]:
-    """Of up to ``PARITY_TRIANGLES`` random triangles of each frame's stars, how many run round the
-    other way than their catalogue stars, and how many were judged: ``(turned over, judged)``.
+    """Of the local triangles of each frame's stars (each star with its two nearest neighbours in
+    the image, every distinct triangle once), how many run round the other way than their
+    catalogue stars, and how many were judged: ``(turned over, judged)``.
 
     The order round a triangle is the sign of ``det(w_i, w_j, w_k)`` of the camera directions and of
     ``det(u_i, u_j, u_k)`` of the catalogue directions. An attitude is a rotation, which keeps it; a
-    focal length or a radial distortion only stretches the image about its centre, which keeps it
-    too; a mirror reverses it. Triangles thinner than a quarter of the frame's median (where noise
-    could turn one over) are not judged; frames with fewer than 3 stars have none."""
-    rng = np.random.default_rng(0)
+    focal length, a radial distortion or another projection maps a small neighbourhood of the image
+    smoothly onto the sky without turning it over, which keeps it too, even far off the boresight
+    (a triangle spanning the field of a wide lens declared as a pinhole would not); a mirror
+    reverses it. Triangles thinner than a quarter of the frame's median, or degenerate (two stars
+    on one catalogue direction), are not judged; frames with fewer than 3 stars have none."""
     w = camera.unproject(obs.x, obs.y).reshape(-1, 3)
     flipped = judged = 0
     for f in range(obs.n_frames):
         idx = np.flatnonzero((obs.frame == f) & np.all(np.isfinite(w), axis=1))
         if idx.size < 3:
             continue
-        tri = idx[np.argsort(rng.random((PARITY_TRIANGLES, idx.size)), axis=1)[:, :3]]
+        tri = idx[_local_triangles(obs.x[idx], obs.y[idx])]
         du, dw = np.linalg.det(obs.u_icrs[tri]), np.linalg.det(w[tri])
-        thick = np.abs(du) >= 0.25 * np.median(np.abs(du))
-        flipped += int(np.count_nonzero(thick & (np.sign(du) != np.sign(dw))))
-        judged += int(np.count_nonzero(thick))
+        judge = (np.abs(du) >= 0.25 * np.median(np.abs(du))) & (du != 0) & (dw != 0)
+        flipped += int(np.count_nonzero(judge & (np.sign(du) != np.sign(dw))))
+        judged += int(np.count_nonzero(judge))
     return flipped, judged
+
+
+def _local_triangles(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Each point with its two nearest neighbours, as index triples (m, 3), each distinct triangle once."""
+    _, near = cKDTree(np.column_stack([x, y])).query(np.column_stack([x, y]), k=3)  # itself first
+    return np.unique(np.sort(near, axis=1), axis=0)
 
 
 def gross_outliers(obs: Observations, attitudes, model: SensorModel, att_mask: np.ndarray,
