@@ -1,4 +1,4 @@
-"""Import a folder of TIFF/PNG/JPEG frames (8 or 16 bit) as an image-level recording.
+"""Import a folder of TIFF/PNG/JPEG/FITS frames (8 or 16 bit) as an image-level recording.
 
 ``import_images(folder, out, camera=None)`` reads the folder's ``recording.yaml`` sidecar (see
 :mod:`rollingstar.logs.importers.sidecar`; optional when ``camera`` is given), writes every image as a
@@ -8,11 +8,15 @@
 camera's field, :mod:`rollingstar.logs.importers.observation`) so that ``rollingstar run`` works
 on the result like on a simulated recording.
 Images are read with Pillow (8-bit ``L``, 16-bit ``I;16``; colour images are converted to
-luminance with a warning). Pixel values are stored unchanged (raw ADU).
+luminance with a warning); FITS files with astropy, floating-point pixels as 16-bit counts
+(:func:`read_image`). Pixel values are stored as ADC counts: unchanged, except that counts a
+camera wrote left-justified in 16-bit words are shifted down to its ``bit_depth``
+(:func:`_value_shift`).
 """
 from __future__ import annotations
 
 import fnmatch
+import re
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +37,7 @@ from rollingstar.logs.importers.common import (
     time_column,
     warn,
 )
+from rollingstar.logs.importers.fits_images import fits_header, fits_holds_image, read_fits
 from rollingstar.logs.importers.observation import (
     Observation,
     catalog_for,
@@ -42,6 +47,7 @@ from rollingstar.logs.importers.observation import (
 )
 from rollingstar.logs.importers.sidecar import (
     DEFAULT_FRAME_RATE_HZ,
+    FITS_SUFFIXES,
     IMAGE_SUFFIXES,
     CameraSpec,
     RecordingSidecar,
@@ -59,6 +65,7 @@ from rollingstar.sensors.conventions import NS_PER_S
 SIDECAR_NAMES = ("recording.yaml", "recording.yml")
 
 _MODES_16 = ("I;16", "I;16L", "I;16B", "I;16N")
+_LAST_NUMBER = re.compile(r"(.*?)(\d+)(\D*)")  # a file name split around its last run of digits
 
 
 def read_image(path: str | Path) -> np.ndarray:
@@ -66,49 +73,81 @@ def read_image(path: str | Path) -> np.ndarray:
 
     8-bit greyscale stays uint8, 16-bit greyscale (``I;16*``, or ``I`` within 0..65535) becomes
     uint16; RGB(A) and palette images are converted to 8-bit luminance (ITU-R 601-2, Pillow's
-    ``convert("L")``) with a warning. Multi-page files and float images raise ImportDataError.
+    ``convert("L")``) with a warning. FITS files (:mod:`~rollingstar.logs.importers.fits_images`)
+    give integers like the 16-bit files. Floating-point pixels (32-bit float TIFF, FITS ``BITPIX
+    -32``) become uint16: values 0..1 are normalised (1.0 is 65535), values up to 65535 are counts
+    (rounded to integers). Multi-page files, NaN/inf and other values raise ImportDataError.
     """
     path = Path(path)
+    arr = read_fits(path) if path.suffix.lower() in FITS_SUFFIXES else _read_pillow(path)
+    if arr.size == 0:
+        raise ImportDataError(f"{path}: the image has no pixels ({arr.shape[-1]}x{arr.shape[0]} px)")
+    if arr.dtype == np.uint8:
+        return np.ascontiguousarray(arr)
+    if arr.dtype.kind == "f":
+        return _float_to_uint16(arr, path)
+    if arr.dtype.kind in "ui" and (arr.min() < 0 or arr.max() > 65535):
+        raise ImportDataError(f"{path}: pixel values {arr.min()}..{arr.max()} do not fit 16 bits (expected 0..65535)")
+    if arr.dtype.kind not in "ui":
+        raise ImportDataError(f"{path}: pixel type {arr.dtype} not supported (expected 8- or 16-bit integers)")
+    return np.ascontiguousarray(arr, dtype=np.uint16)
+
+
+def _read_pillow(path: Path) -> np.ndarray:
+    """A TIFF, PNG or JPEG file's pixels as Pillow decodes them (greyscale; colour converted to luminance)."""
     try:
         with Image.open(path) as im:
             if getattr(im, "n_frames", 1) > 1:
                 raise ImportDataError(f"{path}: has {im.n_frames} pages/frames; one image per file is expected")
             mode = im.mode
             if mode in ("L", "1") or mode in _MODES_16:
-                arr = np.asarray(im.convert("L") if mode == "1" else im)
-            elif mode == "I":
-                arr = np.asarray(im)
-            elif mode in ("RGB", "RGBA", "P", "LA", "CMYK", "YCbCr", "PA", "La"):
+                return np.asarray(im.convert("L") if mode == "1" else im)
+            if mode in ("I", "F"):
+                return np.asarray(im)
+            if mode in ("RGB", "RGBA", "P", "LA", "CMYK", "YCbCr", "PA", "La"):
                 warn(f"{path}: colour image (mode {mode}) converted to 8-bit luminance; "
                      "star trackers normally record raw greyscale")
-                arr = np.asarray(im.convert("L"))
-            else:
-                raise ImportDataError(f"{path}: image mode {mode!r} not supported (expected 8- or 16-bit greyscale)")
+                return np.asarray(im.convert("L"))
+            raise ImportDataError(f"{path}: image mode {mode!r} not supported (expected 8- or 16-bit greyscale)")
     except ImportDataError:
         raise
-    except FileNotFoundError:
-        raise ImportDataError(f"{path}: image file not found") from None
     except Exception as exc:  # Pillow raises many types for unreadable files
-        raise ImportDataError(f"{path}: cannot read image ({type(exc).__name__}: {exc})") from None
-    if arr.dtype == np.uint8:
-        return np.ascontiguousarray(arr)
-    if arr.dtype.kind in "ui" and arr.size and (arr.min() < 0 or arr.max() > 65535):
-        raise ImportDataError(f"{path}: pixel values {arr.min()}..{arr.max()} do not fit 16 bits")
-    if arr.dtype.kind not in "ui":
-        raise ImportDataError(f"{path}: pixel type {arr.dtype} not supported (expected 8- or 16-bit integers)")
-    return np.ascontiguousarray(arr, dtype=np.uint16)
+        raise _unreadable(path, exc) from None
+
+
+def _unreadable(path: Path, exc: Exception) -> ImportDataError:
+    """The error for an image file Pillow cannot open or decode."""
+    if isinstance(exc, FileNotFoundError):
+        return ImportDataError(f"{path}: image file not found")
+    what = "empty file (0 bytes)" if path.is_file() and path.stat().st_size == 0 else f"{type(exc).__name__}: {exc}"
+    return ImportDataError(f"{path}: cannot read image ({what}); expected a TIFF, PNG, JPEG or FITS image")
+
+
+def _float_to_uint16(arr: np.ndarray, path: Path) -> np.ndarray:
+    """Floating-point pixels as uint16: 0..1 scaled to 0..65535 (normalised), 0..65535 rounded (counts)."""
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        row, col = np.argwhere(bad)[0]
+        raise ImportDataError(f"{path}: {int(bad.sum())} pixels are NaN or infinite (the first at row {row}, "
+                              f"column {col}); expected finite values (0..1 normalised, or 0..65535)")
+    lo, hi = float(arr.min()), float(arr.max())
+    if lo < 0.0 or hi > 65535.0:
+        raise ImportDataError(f"{path}: floating-point pixel values {lo:g}..{hi:g}; expected 0..1 (normalised) "
+                              "or 0..65535 (counts)")
+    scale = 65535.0 if hi <= 1.0 else 1.0
+    return np.rint(arr * scale).astype(np.uint16)
 
 
 def _image_header(path: Path) -> tuple[int, int, int]:
-    """(width, height, bits) without decoding the pixels."""
+    """(width, height, bits) without decoding the pixels; bits is that of :func:`read_image`'s array."""
+    if path.suffix.lower() in FITS_SUFFIXES:
+        return fits_header(path)
     try:
         with Image.open(path) as im:
-            bits = 16 if (im.mode in _MODES_16 or im.mode == "I") else 8
+            bits = 16 if (im.mode in _MODES_16 or im.mode in ("I", "F")) else 8
             return im.size[0], im.size[1], bits
-    except FileNotFoundError:
-        raise ImportDataError(f"{path}: image file not found") from None
     except Exception as exc:
-        raise ImportDataError(f"{path}: cannot read image ({type(exc).__name__}: {exc})") from None
+        raise _unreadable(path, exc) from None
 
 
 def find_sidecar(folder: Path) -> Path | None:
@@ -118,7 +157,23 @@ def find_sidecar(folder: Path) -> Path | None:
     return None
 
 
-def _list_files(folder: Path, spec: str | list[str] | None, source: str) -> list[Path]:
+def _name_order(name: str) -> tuple:
+    """Sort key of image file names: by name, with the last number in it compared by value, so that
+    frames numbered without leading zeros keep their order (frame_9 before frame_10)."""
+    m = _LAST_NUMBER.fullmatch(name)
+    return (m[1], int(m[2]), m[3], name) if m else (name, -1, "", name)
+
+
+def _without_fits_tables(folder: Path, names: list[str], log: WarningLog) -> list[str]:
+    """``names`` less the FITS files that hold no image (tables, such as an astrometry.net corr.fits)."""
+    tables = [n for n in names if n.lower().endswith(FITS_SUFFIXES) and not fits_holds_image(folder / n)]
+    if tables:
+        log(f"{folder}: {', '.join(tables[:5])}{' ...' if len(tables) > 5 else ''}: FITS file(s) holding no "
+            "image (tables); not imported")
+    return [n for n in names if n not in tables]
+
+
+def _list_files(folder: Path, spec: str | list[str] | None, source: str, log: WarningLog) -> list[Path]:
     if isinstance(spec, list):
         files = [folder / f for f in spec]
         missing = [str(f) for f in files if not f.is_file()]
@@ -128,13 +183,15 @@ def _list_files(folder: Path, spec: str | list[str] | None, source: str) -> list
     def wanted(name: str) -> bool:
         return name.lower().endswith(IMAGE_SUFFIXES) if spec is None else fnmatch.fnmatch(name, spec)
 
-    entries = sorted(folder.iterdir())
+    entries = sorted(folder.iterdir(), key=lambda p: _name_order(p.name))
     odd = [p.name for p in entries if wanted(p.name) and not p.is_file()]
     if odd:
         raise ImportDataError(f"{folder}: {', '.join(odd[:5])} match the image files but are not readable regular "
                               "files (a folder, a pipe, or a symbolic link that loops or points nowhere); remove "
                               "them or list the files in the sidecar's files:")
     chosen = [p.name for p in entries if wanted(p.name)]
+    if spec is None:
+        chosen = _without_fits_tables(folder, chosen, log)
     if not chosen:
         what = (f"no image files ({', '.join('*' + s for s in IMAGE_SUFFIXES)})" if spec is None
                 else f"no files match files: {spec!r}")
@@ -266,8 +323,9 @@ def import_images(folder: str | Path, out: str | Path, camera: CameraSpec | str 
     base = sidecar_path.parent if sidecar_path else folder
     source = str(sidecar_path or folder)
     cam = resolve_camera(camera, side if sidecar_path else None, sidecar_path, log, folder)
-    files = _list_files(folder, side.files, source)
+    files = _list_files(folder, side.files, source, log)
     container_bits, bit_depth = _bit_depths(files, cam, folder)
+    shift = _value_shift(files[0], container_bits, cam, log)
     t0, timing = _frame_times(side, files, base, source, log)
     gyro = _read_gyro(base / side.gyro_csv, log) if side.gyro_csv else None
     truth = _read_truth(base / side.truth_csv, log) if side.truth_csv else None
@@ -280,7 +338,7 @@ def import_images(folder: str | Path, out: str | Path, camera: CameraSpec | str 
                             initial_attitude=side.initial_attitude, frame_period_ms=period, catalog=catalog)
     details = {
         "files": [f.name for f in files], "t0_ns": t0.tolist(), "timestamps": timing,
-        "container_bits": container_bits, "bit_depth": bit_depth,
+        "container_bits": container_bits, "bit_depth": bit_depth, "value_shift_bits": shift,
         "camera": cam.model_dump(mode="json"), "focal_px": cam.focal_px,
         "sidecar": str(sidecar_path) if sidecar_path else None,
         "gyro_csv": side.gyro_csv, "truth_csv": side.truth_csv, "catalog": catalog_details,
@@ -293,14 +351,71 @@ def import_images(folder: str | Path, out: str | Path, camera: CameraSpec | str 
             progress_bar(f"import {folder.name}", len(files), show_progress) as advance:
         _write_samples(writer, t0, gyro, truth)
         for f, t in zip(files, t0.tolist()):
-            image = read_image(f)
-            if image.itemsize * 8 != container_bits:  # header and pixels disagree (e.g. mode "I")
-                raise ImportDataError(f"{f}: decoded as {image.dtype}, expected {container_bits}-bit like the other images")
-            if cam.mirrored:
-                image = np.ascontiguousarray(image[:, ::-1])
-            writer.write_image(TOPIC_IMAGE, image, t)
+            writer.write_image(TOPIC_IMAGE, _frame_pixels(f, container_bits, bit_depth, shift, cam.mirrored), t)
             advance()
     return out
+
+
+def _frame_pixels(path: Path, container_bits: int, bit_depth: int, shift: int, mirrored: bool) -> np.ndarray:
+    """One file's pixels as the recording holds them: ADC counts, in the camera's unmirrored view."""
+    image = read_image(path)
+    if image.itemsize * 8 != container_bits:  # header and pixels disagree (e.g. mode "I")
+        raise ImportDataError(f"{path}: decoded as {image.dtype}, expected {container_bits}-bit like the other images")
+    if bit_depth < container_bits:
+        image = _to_counts(image, bit_depth, shift, path)
+    if mirrored:
+        image = np.ascontiguousarray(image[:, ::-1])
+    return image
+
+
+def _value_shift(first: Path, container_bits: int, cam: CameraSpec, log: WarningLog) -> int:
+    """How many bits the files' values sit above the camera's ADC counts, judged on the first image.
+
+    A camera whose ``bit_depth`` is less than the 16-bit container writes its counts either
+    right-justified (0 .. 2^bit_depth - 1) or left-justified (shifted up to the top of the word:
+    multiples of 2^(16 - bit_depth), as many 10- to 14-bit cameras write). Values above
+    2^bit_depth - 1 can only be left-justified; they are shifted down to counts, so that the
+    saturation level 2^bit_depth - 1 and the gain in e-/ADU refer to the camera's own counts.
+    """
+    if container_bits != 16 or cam.bit_depth == 16:
+        return 0
+    image = read_image(first)
+    if cam.bit_depth is None:
+        _hint_bit_depth(image, first, log)
+        return 0
+    return 16 - cam.bit_depth if int(image.max()) > (1 << cam.bit_depth) - 1 else 0
+
+
+def _hint_bit_depth(image: np.ndarray, path: Path, log: WarningLog) -> None:
+    """Warn when every value is a multiple of 4 or more: left-justified counts of a camera with fewer
+    bits, whose saturated pixels never reach the 65535 assumed without a bit_depth."""
+    ored = int(np.bitwise_or.reduce(image, axis=None))
+    zeros = (ored & -ored).bit_length() - 1 if ored else 0
+    if zeros >= 2:
+        log(f"{path}: every pixel value is a multiple of {1 << zeros}, as when a {16 - zeros}-bit camera's counts "
+            "fill the top bits of 16-bit words; the camera file states no bit_depth, so saturation is taken at "
+            f"65535, which such values never reach: state bit_depth: {16 - zeros} to have saturated stars recognised")
+
+
+def _to_counts(image: np.ndarray, bit_depth: int, shift: int, path: Path) -> np.ndarray:
+    """``image`` as counts 0 .. 2^bit_depth - 1: shifted down ``shift`` bits (left-justified), else checked."""
+    top = (1 << bit_depth) - 1
+    if shift:
+        # a saturated pixel may read all ones (65535) rather than the largest multiple
+        odd = ((image & ((1 << shift) - 1)) != 0) & (image != np.iinfo(image.dtype).max)
+        if odd.any():
+            row, col = np.argwhere(odd)[0]
+            raise ImportDataError(
+                f"{path}: pixel value {image[row, col]} at row {row}, column {col} is not a multiple of {1 << shift}; "
+                f"the first image's values exceed {top} (the largest count of the camera's bit_depth {bit_depth}), "
+                f"so every image is expected to hold the counts left-justified in 16-bit words")
+        return image >> shift
+    if int(image.max()) > top:
+        raise ImportDataError(
+            f"{path}: pixel values up to {image.max()} exceed {top}, the largest count of the camera's bit_depth "
+            f"{bit_depth}; expected 0..{top} like the first image (or counts left-justified in 16-bit words, "
+            f"multiples of {1 << (16 - bit_depth)}, in every image including the first), or a larger bit_depth")
+    return image
 
 
 def _bit_depths(files: list[Path], cam: CameraSpec, folder: Path) -> tuple[int, int]:

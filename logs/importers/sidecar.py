@@ -49,7 +49,8 @@ DEFAULT_FRAME_RATE_HZ = 1.0
 NOMINAL_PIXEL_SIZE_UM = 1.0
 """Pixel pitch written when only the field of view is known: only focal / pixel matters."""
 
-IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")
+FITS_SUFFIXES = (".fits", ".fit", ".fts")
+IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg", *FITS_SUFFIXES)
 EPOCH_YEARS = (1900.0, 2100.0)
 """Catalogue epochs and observation years accepted: a century either side of the Hipparcos epoch
 J1991.25, over which the catalogue's linear space motion is meant to be used (3000 is a typo)."""
@@ -217,8 +218,9 @@ class RecordingSidecar(ObservationSpec):
     camera: CameraSpec | None = Field(None, description="the camera, inline; None: camera_file or --camera")
     camera_file: str | None = Field(None, description="path of a camera.yaml instead of an inline camera")
     files: str | list[str] | None = Field(
-        None, description="a glob pattern or an explicit list of image files; default every "
-                          "*.tif, *.tiff, *.png, *.jpg, *.jpeg in the folder, sorted by name")
+        None, description="a glob pattern or an explicit list of image files; default every *.tif, *.tiff, "
+                          "*.png, *.jpg, *.jpeg, *.fits, *.fit, *.fts image in the folder, sorted by name (a number "
+                          "at the end of the name compared by value)")
     timestamps: TimestampsSpec = TimestampsSpec()
     gyro_csv: str | None = Field(None, description="CSV: t_ns (or time_s), wx, wy, wz (rad/s, camera frame)")
     truth_csv: str | None = Field(
@@ -235,7 +237,10 @@ class RecordingSidecar(ObservationSpec):
 
 def load_model(model: type[_Strict], path: str | Path):
     """Read and validate a YAML file; errors name the file and the key path."""
-    data = read_yaml(path)
+    return _validate(model, read_yaml(path), path)
+
+
+def _validate(model: type[_Strict], data, path: str | Path):
     try:
         return model.model_validate(data)
     except ValidationError as err:
@@ -243,8 +248,17 @@ def load_model(model: type[_Strict], path: str | Path):
 
 
 def load_camera(path: str | Path) -> CameraSpec:
-    """A :class:`CameraSpec` from a ``camera.yaml``."""
-    return load_model(CameraSpec, path)
+    """A :class:`CameraSpec` from a ``camera.yaml``; a recording sidecar given instead is named as such."""
+    data = read_yaml(path)
+    sidecar_keys = sorted(set(data) & _SIDECAR_ONLY_KEYS) if isinstance(data, dict) else []
+    if sidecar_keys and "width_px" not in data:
+        raise ConfigError(f"{path}: a recording sidecar (it has {', '.join(sidecar_keys)}), not a camera file "
+                          "(width_px, height_px and the optics, docs/log-format.md): give a sidecar with --sidecar, "
+                          "and as the camera the camera file it names (camera_file)")
+    return _validate(CameraSpec, data, path)
+
+
+_SIDECAR_ONLY_KEYS = set(RecordingSidecar.model_fields) - set(CameraSpec.model_fields)
 
 
 def load_sidecar(path: str | Path) -> RecordingSidecar:
