@@ -56,6 +56,7 @@ from rollingstar.logs.writer import LogWriter
 from rollingstar.outputs import safe_output
 from rollingstar.sensors.build import build_timing
 from rollingstar.sensors.conventions import radec_to_unit
+from rollingstar.sensors.scenario import MAX_TIME_MS
 
 REQUIRED = ("frame", "x", "y", "flux")
 COVARIANCE = ("cov_xx", "cov_xy", "cov_yy")
@@ -63,7 +64,8 @@ OPTIONAL = ("sigma_px", "snr", "peak", "npix", "saturated", "catalog_id", "ra_de
 
 
 def read_centroid_table(path: str | Path, camera: CameraSpec, log: WarningLog | None = None) -> dict[str, np.ndarray]:
-    """Validated columns of a centroid CSV (see module docstring); errors name file, line and column."""
+    """Validated columns of a centroid CSV (see module docstring), with ``lines``, the file line of
+    each row (for messages); errors name file, line and column."""
     log = log or WarningLog()
     table = read_csv(path, required=REQUIRED, optional=OPTIONAL, one_of=[TIME_COLUMNS + UNIX_TIME_COLUMNS], log=log)
     if table.n == 0:
@@ -88,7 +90,9 @@ def read_centroid_table(path: str | Path, camera: CameraSpec, log: WarningLog | 
             raise ImportDataError(f"{table.where(int(b), tname)}: frame {frame[b]} at {t[b]} ns is not after frame "
                                   f"{frame[a]} at {t[a]} ns (line {int(table.lines[a])}); frame times must increase "
                                   "strictly")
+    _check_frame_spacing(table, frame, t, starts, tname, camera)
     cols: dict[str, np.ndarray] = {"frame": frame, "t0_ns": t, "time_column": np.asarray(tname),
+                                   "lines": table.lines,
                                    "x": float_column(table, "x"), "y": float_column(table, "y"),
                                    "flux": float_column(table, "flux", required=False)}
     w, h = camera.width_px, camera.height_px
@@ -98,6 +102,7 @@ def read_centroid_table(path: str | Path, camera: CameraSpec, log: WarningLog | 
             i = int(out[0])
             raise ImportDataError(f"{table.where(i, name)}: {cols[name][i]} is outside the detector "
                                   f"[-0.5, {size - 0.5}] of the {w}x{h} camera")
+    _check_repeated_stars(table, frame, cols["x"], cols["y"])
     for name in ("sigma_px", "snr", "peak", "magnitude"):
         if name in table.columns:
             cols[name] = float_column(table, name, required=False)
@@ -164,9 +169,16 @@ def import_centroids(csv: str | Path, out: str | Path, camera: CameraSpec | str 
     frame = cols["frame"]
     starts = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]])
     ends = np.r_[starts[1:], frame.size]
+    counts = ends - starts
+    lonely = np.flatnonzero(counts < 2)
+    if lonely.size:
+        first = int(starts[lonely[0]])
+        log(f"{csv}: {lonely.size} of {counts.size} frames hold a single star (the first: frame {frame[first]}, "
+            f"line {int(cols['lines'][first])}); an attitude needs at least 2 stars, so those frames get no estimate")
     t0s = cols["t0_ns"][starts]
     period = float(np.median(np.diff(t0s))) * 1e-6 if t0s.size > 1 else None
     column = str(cols.pop("time_column"))
+    cols.pop("lines")
     observation = (Observation(spec.observation_time, "observation_time") if spec.observation_time is not None
                    else from_unix_ns(int(t0s[0]), column, str(csv)) if column in UNIX_TIME_COLUMNS else NO_OBSERVATION)
     catalog_cfg, catalog_details = catalog_for(
@@ -192,6 +204,58 @@ def import_centroids(csv: str | Path, out: str | Path, camera: CameraSpec | str 
                 int(frame[a]), t0, x=cols["x"][a:b], y=y, t_ns=timing.row_mid_exposure_ns(t0, y),
                 row_time_ns=timing.row_start_ns(t0, y), **{k: cols[k][a:b] for k in star_cols}), t0)
     return out
+
+
+def _check_frame_spacing(table, frame: np.ndarray, t: np.ndarray, starts: np.ndarray, tname: str,
+                         camera: CameraSpec) -> None:
+    """Refuse frame times closer together than the camera can take frames.
+
+    Every row's exposure (when the camera file states its shutter) and the readout of all rows of a
+    rolling shutter fit between consecutive frame times. Times written in another unit than the
+    column's name says (microseconds or milliseconds in ``t_ns``) come out hundreds of times too
+    close and fail here, instead of being read as a very fast camera; nanoseconds in ``time_s`` come
+    out more than the sensor model's hour apart. The median spacing must reach that minimum, as the
+    sensor model requires; a single spacing may fall short by up to half of it (timestamp jitter of
+    a camera that exposes for its whole frame period).
+    """
+    if starts.size < 2:
+        return
+    sh = camera.shutter
+    readout_ns = (camera.height_px - 1) * sh.line_delay_us * 1e3 if sh.mode == "rolling" else 0.0
+    exposure_ns = sh.exposure_ms * 1e6 if "shutter" in camera.model_fields_set else 0.0
+    need = max(readout_ns, exposure_ns)
+    gaps = np.diff(t[starts])
+    unit = "integer nanoseconds" if tname.endswith("_ns") else "seconds"
+    if np.median(gaps) > MAX_TIME_MS * 1e6:
+        raise ImportDataError(f"{table.where(int(starts[1]), tname)}: the frames are {np.median(gaps) * 1e-9:g} s "
+                              f"apart (median), more than the sensor model's limit of one hour; the column {tname} "
+                              f"is read as {unit}: check that the times are in that unit")
+    bad = np.flatnonzero(gaps < (need if np.median(gaps) < need else need / 2))
+    if not bad.size:
+        return
+    k = int(bad[0])
+    a, b = int(starts[k]), int(starts[k + 1])
+    what = (f"exposure (shutter.exposure_ms {sh.exposure_ms:g})" if exposure_ns >= readout_ns else
+            f"readout ((height_px - 1) x shutter.line_delay_us = {readout_ns * 1e-6:g} ms)")
+    raise ImportDataError(f"{table.where(b, tname)}: frame {frame[b]} is {gaps[k] * 1e-6:g} ms after frame "
+                          f"{frame[a]} (line {int(table.lines[a])}), less than the camera's {what}; the column "
+                          f"{tname} is read as {unit}: check that the times are in that unit")
+
+
+def _check_repeated_stars(table, frame: np.ndarray, x: np.ndarray, y: np.ndarray) -> None:
+    """Refuse two rows of one frame at the same position: one detection written twice would count
+    as two stars (double weight, and two stars for the identifier to match)."""
+    if frame.size < 2:
+        return
+    order = np.lexsort((y, x, frame))
+    same = np.flatnonzero((np.diff(frame[order]) == 0) & (np.diff(x[order]) == 0) & (np.diff(y[order]) == 0))
+    if not same.size:
+        return
+    pairs = np.sort(np.stack([order[same], order[same + 1]], axis=1), axis=1)
+    i, j = (int(v) for v in pairs[np.argmin(pairs[:, 1])])  # the repeat that comes first in the file
+    raise ImportDataError(f"{table.where(j, 'x')}: the star at ({x[j]:g}, {y[j]:g}) repeats line "
+                          f"{int(table.lines[i])} of the same frame {frame[j]}; each row is one detection "
+                          "(remove the repeated row)")
 
 
 def _observation_spec(observation_time, catalog) -> ObservationSpec:

@@ -73,28 +73,46 @@ def read_csv(path: str | Path, required: Iterable[str], optional: Iterable[str] 
     """
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8-sig")
+        raw = path.read_bytes()
     except FileNotFoundError:
         raise ImportDataError(f"{path}: CSV file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except OSError as exc:
         raise ImportDataError(f"{path}: cannot read CSV file ({exc})") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        raise ImportDataError(f"{path}: line {line}: byte 0x{raw[exc.start]:02x} is not UTF-8 text; a CSV file is "
+                              "expected, saved as UTF-8 (or plain ASCII)") from None
     rows: list[tuple[int, list[str]]] = []
-    for lineno, row in enumerate(csv.reader(text.splitlines()), start=1):
-        if not row or all(not c.strip() for c in row) or row[0].lstrip().startswith("#"):
-            continue
-        rows.append((lineno, [c.strip() for c in row]))
+    reader = enumerate(csv.reader(text.splitlines()), start=1)
+    lineno = 0
+    try:
+        for lineno, row in reader:
+            if not row or all(not c.strip() for c in row) or row[0].lstrip().startswith("#"):
+                continue
+            rows.append((lineno, [c.strip() for c in row]))
+    except csv.Error as exc:  # e.g. a field beyond the csv module's size limit
+        raise ImportDataError(f"{path}: line {lineno + 1}: not readable as CSV ({exc})") from None
     if not rows:
         raise ImportDataError(f"{path}: empty CSV file (expected a header line with columns "
                               f"{', '.join(required)})")
     header_line, header = rows[0]
+    if all(_is_number(h) for h in header):
+        raise ImportDataError(f"{path}: line {header_line}: {excerpt(','.join(header), 60)} holds numbers, not "
+                              f"column names; the first line must be a header naming the columns (required: "
+                              f"{', '.join(required)})")
     dup = sorted({h for h in header if header.count(h) > 1})
     if dup:
         raise ImportDataError(f"{path}: line {header_line}: duplicate column(s) {', '.join(dup)}")
     required, optional, groups = list(required), list(optional), [tuple(g) for g in one_of]
     missing = [c for c in required if c not in header]
     if missing:
+        sep = next((c for c in (";", "\t", "|") if any(c in h for h in header)), None)
+        hint = (f"; the header looks {sep!r}-separated, but the columns must be separated by commas (and decimals "
+                "written with '.')" if sep else "")
         raise ImportDataError(f"{path}: line {header_line}: missing column(s) {', '.join(missing)} "
-                              f"(found {', '.join(header)}; required: {', '.join(required)})")
+                              f"(found {', '.join(header)}; required: {', '.join(required)}){hint}")
     for group in groups:
         present = [c for c in group if c in header]
         if len(present) != 1:
@@ -111,6 +129,14 @@ def read_csv(path: str | Path, required: Iterable[str], optional: Iterable[str] 
             raise ImportDataError(f"{path}: line {lineno}: {len(row)} fields, the header has {len(header)}")
     columns = {h: [row[i] for _, row in data] for i, h in enumerate(header) if h in known}
     return CsvTable(path, tuple(header), columns, np.array([ln for ln, _ in data], dtype=np.int64))
+
+
+def _is_number(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
 
 
 def float_column(table: CsvTable, name: str, *, required: bool = True) -> np.ndarray:
@@ -185,7 +211,11 @@ def time_column(table: CsvTable) -> tuple[np.ndarray, str]:
     :data:`TIME_COLUMNS`, :data:`UNIX_TIME_COLUMNS`); negative times are rejected."""
     name = next(c for c in (*TIME_COLUMNS, *UNIX_TIME_COLUMNS) if c in table.columns)
     if name.endswith("_ns"):
-        t = int_column(table, name)
+        try:
+            t = int_column(table, name)
+        except ImportDataError as exc:
+            raise ImportDataError(f"{exc}; {name} holds integer nanoseconds (times in seconds go in a "
+                                  f"{'time_unix_s' if 'unix' in name else 'time_s'} column instead)") from None
     else:
         seconds = float_column(table, name)
         beyond = np.flatnonzero(np.abs(seconds) >= INT64_MAX / NS_PER_S)
