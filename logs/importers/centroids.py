@@ -75,21 +75,7 @@ def read_centroid_table(path: str | Path, camera: CameraSpec, log: WarningLog | 
     if bad.size:
         raise ImportDataError(f"{table.where(int(bad[0]), 'frame')}: {frame[bad[0]]} is negative; frames are 0-based")
     check_non_decreasing(table, frame, "frame")
-    t, tname = time_column(table)
-    new = np.r_[True, frame[1:] != frame[:-1]]
-    # the time is the frame's t0: equal within a frame, strictly increasing between frames
-    same = np.flatnonzero(~new & np.r_[False, t[1:] != t[:-1]])
-    if same.size:
-        i = int(same[0])
-        raise ImportDataError(f"{table.where(i, tname)}: {t[i]} differs from {t[i - 1]} on line "
-                              f"{int(table.lines[i - 1])} of the same frame {frame[i]}; the time column is the "
-                              "frame time t0 (exposure start of row 0), one value per frame")
-    starts = np.flatnonzero(new)
-    for a, b in zip(starts[:-1], starts[1:]):
-        if t[b] <= t[a]:
-            raise ImportDataError(f"{table.where(int(b), tname)}: frame {frame[b]} at {t[b]} ns is not after frame "
-                                  f"{frame[a]} at {t[a]} ns (line {int(table.lines[a])}); frame times must increase "
-                                  "strictly")
+    t, tname, starts = _frame_times(table, frame)
     _check_frame_spacing(table, frame, t, starts, tname, camera)
     cols: dict[str, np.ndarray] = {"frame": frame, "t0_ns": t, "time_column": np.asarray(tname),
                                    "lines": table.lines,
@@ -116,37 +102,63 @@ def read_centroid_table(path: str | Path, camera: CameraSpec, log: WarningLog | 
         cols["npix"] = int_column(table, "npix", default=0)
     if "saturated" in table.columns:
         cols["saturated"] = bool_column(table, "saturated")
+    cols.update(_catalogue_columns(table))
+    return cols
+
+
+def _frame_times(table, frame: np.ndarray) -> tuple[np.ndarray, str, np.ndarray]:
+    """The time column (ns), its name and each frame's first row: the time is the frame's t0, equal
+    within a frame and strictly increasing between frames."""
+    t, tname = time_column(table)
+    new = np.r_[True, frame[1:] != frame[:-1]]
+    same = np.flatnonzero(~new & np.r_[False, t[1:] != t[:-1]])
+    if same.size:
+        i = int(same[0])
+        raise ImportDataError(f"{table.where(i, tname)}: {t[i]} differs from {t[i - 1]} on line "
+                              f"{int(table.lines[i - 1])} of the same frame {frame[i]}; the time column is the "
+                              "frame time t0 (exposure start of row 0), one value per frame")
+    starts = np.flatnonzero(new)
+    for a, b in zip(starts[:-1], starts[1:]):
+        if t[b] <= t[a]:
+            raise ImportDataError(f"{table.where(int(b), tname)}: frame {frame[b]} at {t[b]} ns is not after frame "
+                                  f"{frame[a]} at {t[a]} ns (line {int(table.lines[a])}); frame times must increase "
+                                  "strictly")
+    return t, tname, starts
+
+
+def _catalogue_columns(table) -> dict[str, np.ndarray]:
+    """``catalog_id`` and ``ref_icrs`` (unit ICRS vectors from ``ra_deg``, ``dec_deg``) when the
+    table identifies its stars; empty when it has no ``catalog_id``."""
     has_id = "catalog_id" in table.columns
     has_dir = ("ra_deg" in table.columns, "dec_deg" in table.columns)
     if any(has_dir) and not (all(has_dir) and has_id):
         raise ImportDataError(f"{table.path}: ra_deg and dec_deg go together, with catalog_id")
-    if has_id:
-        ids = int_column(table, "catalog_id", default=-1)
-        if (ids < -1).any():
-            i = int(np.flatnonzero(ids < -1)[0])
-            raise ImportDataError(f"{table.where(i, 'catalog_id')}: {ids[i]}; ids are >= 0, or -1 for unidentified")
-        cols["catalog_id"] = ids
-        ref = np.full((table.n, 3), np.nan)
-        if all(has_dir):
-            ra = float_column(table, "ra_deg", required=False)
-            dec = float_column(table, "dec_deg", required=False)
-            known = np.isfinite(ra) & np.isfinite(dec)
-            need = np.flatnonzero((ids >= 0) & ~known)
-            if need.size:
-                i = int(need[0])
-                raise ImportDataError(f"{table.where(i, 'ra_deg')}: identified star (catalog_id {ids[i]}) without "
-                                      "ra_deg/dec_deg")
-            badd = np.flatnonzero(known & (np.abs(dec) > 90))
-            if badd.size:
-                i = int(badd[0])
-                raise ImportDataError(f"{table.where(i, 'dec_deg')}: {dec[i]} is not in [-90, 90]")
-            sel = (ids >= 0) & known
-            ref[sel] = radec_to_unit(np.radians(ra[sel]), np.radians(dec[sel]))
-        elif (ids >= 0).any():
-            raise ImportDataError(f"{table.path}: catalog_id given without ra_deg, dec_deg: the catalogue "
-                                  "direction of an identified star is needed")
-        cols["ref_icrs"] = ref
-    return cols
+    if not has_id:
+        return {}
+    ids = int_column(table, "catalog_id", default=-1)
+    if (ids < -1).any():
+        i = int(np.flatnonzero(ids < -1)[0])
+        raise ImportDataError(f"{table.where(i, 'catalog_id')}: {ids[i]}; ids are >= 0, or -1 for unidentified")
+    ref = np.full((table.n, 3), np.nan)
+    if all(has_dir):
+        ra = float_column(table, "ra_deg", required=False)
+        dec = float_column(table, "dec_deg", required=False)
+        known = np.isfinite(ra) & np.isfinite(dec)
+        need = np.flatnonzero((ids >= 0) & ~known)
+        if need.size:
+            i = int(need[0])
+            raise ImportDataError(f"{table.where(i, 'ra_deg')}: identified star (catalog_id {ids[i]}) without "
+                                  "ra_deg/dec_deg")
+        badd = np.flatnonzero(known & (np.abs(dec) > 90))
+        if badd.size:
+            i = int(badd[0])
+            raise ImportDataError(f"{table.where(i, 'dec_deg')}: {dec[i]} is not in [-90, 90]")
+        sel = (ids >= 0) & known
+        ref[sel] = radec_to_unit(np.radians(ra[sel]), np.radians(dec[sel]))
+    elif (ids >= 0).any():
+        raise ImportDataError(f"{table.path}: catalog_id given without ra_deg, dec_deg: the catalogue "
+                              "direction of an identified star is needed")
+    return {"catalog_id": ids, "ref_icrs": ref}
 
 
 def import_centroids(csv: str | Path, out: str | Path, camera: CameraSpec | str | Path,
