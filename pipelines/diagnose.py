@@ -32,6 +32,7 @@ from rollingstar.estimators.diagnosis.observations import (
     frame_reference_times,
 )
 from rollingstar.estimators.diagnosis.report import write_report
+from rollingstar.logs.errors import LogFormatError
 from rollingstar.logs.reader import LogReader
 from rollingstar.logs.records import stars_to_arrays
 from rollingstar.logs.topics import TOPIC_EST_ATTITUDE, TOPIC_EST_STARS, TOPIC_TRUTH_ATTITUDE
@@ -293,8 +294,13 @@ def _carries_truth(recording: Path) -> bool:
     """Whether the recording has ``/truth/attitude`` messages a reference could be read from (a
     damaged one, which the run skipped with a warning, does not stop the diagnosis here: the
     option that reads them says what is wrong)."""
-    topic = LogReader(recording).summary_info().topics.get(TOPIC_TRUTH_ATTITUDE)
-    return topic is not None and topic.message_count > 0
+    reader = LogReader(recording)
+    if TOPIC_TRUTH_ATTITUDE not in reader.topics():  # the channel table: no pass over the messages
+        return False
+    try:
+        return next(reader.messages(TOPIC_TRUTH_ATTITUDE), None) is not None
+    except LogFormatError:
+        return True
 
 
 def run_diagnose(recording: Path, sim: Path | None, pipeline: Path | None, out_dir: Path | None,

@@ -10,23 +10,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from rollingstar.logs.reader import LogReader
-from rollingstar.logs.writer import LogWriter
 from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose_recording
+from tests.reliability.helpers import rewrite
 
 WRAP = 4  # the counter: 0, 1, 2, 3, 0, 1, ...
 
 
 def _wrapped(src, dst) -> None:
     """A copy of the recording ``src`` with every frame number taken modulo ``WRAP``."""
-    reader = LogReader(src)
-    meta = reader.metadata()
-    with LogWriter(dst, kind="simulation", metadata={k: v for k, v in meta.items() if k != "rollingstar"}) as w:
-        for m in reader.messages():
-            data = m.data
-            if isinstance(data, dict) and "frame" in data:
-                data = {**data, "frame": int(data["frame"]) % WRAP}
-            w.write_json(m.topic, data, m.log_time_ns)
+    def edit(messages):
+        return [type(m)(m.topic, m.log_time_ns, m.schema_name, {**m.data, "frame": int(m.data["frame"]) % WRAP})
+                if isinstance(m.data, dict) and "frame" in m.data else m for m in messages]
+
+    rewrite(src, dst, edit)
 
 
 def test_a_wrapping_frame_counter_diagnoses_every_frame_as_distinct_numbers_do(tmp_path, small_recording):

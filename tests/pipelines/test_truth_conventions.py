@@ -10,25 +10,24 @@ from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
 from rollingstar.cli import app
-from rollingstar.logs.reader import LogReader
-from rollingstar.logs.writer import LogWriter
 from rollingstar.pipelines.evaluate import evaluate_log
+from tests.reliability.helpers import rewrite
 
 
-def _with_truth(src, dst, rewrite) -> None:
+def _with_truth(src, dst, rewrite_q) -> None:
     """A copy of the run ``src`` whose ``/truth/attitude`` quaternions (scalar-last rows) pass through
-    ``rewrite``, written back into the named fields."""
-    reader = LogReader(src)
-    meta = reader.metadata()
-    with LogWriter(dst, kind="simulation", metadata={k: v for k, v in meta.items() if k != "rollingstar"}) as w:
-        for m in reader.messages():
-            if not isinstance(m.data, dict):  # the Foxglove overlays (protobuf): evaluate reads none of them
-                continue
-            data = m.data
+    ``rewrite_q``, written back into the named fields."""
+    def edit(messages):
+        out = []
+        for m in messages:
             if m.topic == "/truth/attitude":
-                q = rewrite(np.column_stack([data[k] for k in ("qx", "qy", "qz", "qw")]))
-                data = {**data, **{k: q[:, i].tolist() for i, k in enumerate(("qx", "qy", "qz", "qw"))}}
-            w.write_json(m.topic, data, m.log_time_ns)
+                q = rewrite_q(np.column_stack([m.data[k] for k in ("qx", "qy", "qz", "qw")]))
+                data = {**m.data, **{k: q[:, i].tolist() for i, k in enumerate(("qx", "qy", "qz", "qw"))}}
+                m = type(m)(m.topic, m.log_time_ns, m.schema_name, data)
+            out.append(m)
+        return out
+
+    rewrite(src, dst, edit)
 
 
 def _opencv(q):  # our attitude R = R_opencv * Rz(180 deg), so R_opencv = R * Rz(180 deg)^-1
