@@ -1,6 +1,6 @@
 """``rollingstar diagnose`` on the real creusot recordings: per image and jointly per lens folder.
 
-    .venv/bin/python benchmarks/creusot_diagnosis.py [--json out.json] [--markdown out.md]
+    .venv/bin/python benchmarks/creusot_diagnosis.py [--json out.json] [--markdown out.md] [--markdown-image out.md]
 
 Each astrometry.net corr folder is imported with ``rollingstar import corr`` (a pinhole from
 ``log.json``'s field of view, nothing else; centroid sigma = the corr table's RMS residual) and
@@ -20,6 +20,11 @@ astrometry.net's model class (a TAN WCS with SIP distortion of order 2) fitted t
 own training stars and scored on the same held-out stars (``anet_class.py`` beside this script:
 the model, why it is fitted by hand, and how joint recordings share one lens). Both use the stars
 the diagnosis kept (after its gross-outlier rejection), whose held-out set it reports.
+
+Every recording is also imported with ``--centroids image`` (each star measured again on the PNG
+the table was made from, with its covariance: ``rollingstar.estimators.centroiders.remeasure``) and
+diagnosed the same way; its table (``--markdown-image``) sets the held-out RMS after against the
+same bar, astrometry.net's in-sample residual of its own positions.
 """
 from __future__ import annotations
 
@@ -33,7 +38,8 @@ from pathlib import Path
 import numpy as np
 from anet_class import fit_class  # beside this script (run as ``python benchmarks/creusot_diagnosis.py``)
 
-from rollingstar.logs.importers.corr import find_corr_folders, import_corr
+from rollingstar.estimators.centroiders.remeasure import remeasure_stars
+from rollingstar.logs.importers.corr import find_corr_folders, import_corr, pointing_centres
 from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose_recording
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -78,21 +84,34 @@ def timed(label: str, scope: str, rec: Path, opts: DiagnoseOptions) -> dict:
     return {**summarise(label, scope, res), **anet_class(d), "cpu_s": cpu}
 
 
-def run(seed: int = 0) -> list[dict]:
+def run(seed: int = 0) -> tuple[list[dict], list[dict]]:
+    """The rows of every recording with astrometry.net's positions, and with the stars measured
+    again on the images (``rollingstar import corr --centroids image``)."""
     base = creusot_dir()
-    rows = []
+    rows, image_rows = [], []
     opts = DiagnoseOptions(seed=seed)
     with tempfile.TemporaryDirectory() as tmp:
         for group in GROUPS:
             folder = base / group
-            for sub in find_corr_folders(folder):
-                rec = Path(tmp) / f"{group.replace('/', '_')}_{sub.name}.mcap"
-                import_corr(sub, rec)
-                rows.append(timed(f"{group}/{sub.relative_to(folder)}", "image", rec, opts))
-            rec = Path(tmp) / f"{group.replace('/', '_')}_joint.mcap"
-            import_corr(folder, rec)
-            rows.append(timed(group, "joint", rec, opts))
-    return rows
+            subs = [(f"{group}/{sub.relative_to(folder)}", "image", sub) for sub in find_corr_folders(folder)]
+            for label, scope, source in [*subs, (group, "joint", folder)]:
+                rec = Path(tmp) / f"{label.replace('/', '_')}.mcap"
+                import_corr(source, rec)
+                rows.append(timed(label, scope, rec, opts))
+                rec = rec.with_name(f"{rec.stem}_image.mcap")
+                import_corr(source, rec, remeasure_stars)
+                image_rows.append({**remeasured(rec), "anet_residual_px": rows[-1]["sigma_px"],
+                                   **timed(label, scope, rec, opts)})
+    return rows, image_rows
+
+
+def remeasured(rec: Path) -> dict:
+    """How many of the recording's stars were measured again on their images, and the PSF sigmas."""
+    frames = pointing_centres(rec).values()
+    done = [f["remeasured"] for f in frames]
+    return {"measured": sum(d["measured"] for d in done), "listed": sum(f["n_stars"] for f in frames),
+            "psf_sigma_px": [d.get("psf_sigma_px") for d in done if d["image"]],
+            "psf_measured": [d.get("psf_measured") for d in done if d["image"]]}
 
 
 def markdown(rows: list[dict]) -> str:
@@ -147,6 +166,31 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def markdown_image(rows: list[dict]) -> str:
+    """The recordings with the stars measured again on their images, against astrometry.net's own
+    in-sample residual of the same table."""
+    def f(v, fmt="{:.3g}"):
+        return "n/a" if v is None else fmt.format(v)
+
+    def psf(r):
+        return ", ".join(f"{s:.2f}" + ("" if m else " (default)") for s, m in zip(r["psf_sigma_px"], r["psf_measured"]))
+
+    lines = ["| recording | scope | stars measured again | PSF sigma (px) | stated sigma, median (px) | named | "
+             "held-out RMS after (px) | a.net residual (px) | after / a.net | CPU s |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        named = ", ".join(e["name"] for e in r["effects"]) or "none"
+        ratio = (f"{r['heldout_rms_after_px'] / r['anet_residual_px']:.2f}"
+                 if r["heldout_rms_after_px"] is not None and r["anet_residual_px"] else "n/a")
+        lines.append(f"| {r['recording']} | {r['scope']} | {r['measured']} of {r['listed']} | {psf(r)} | "
+                     f"{f(r['sigma_px'])} | {named} | {f(r['heldout_rms_after_px'], '{:.3f}')} | "
+                     f"{f(r['anet_residual_px'])} | {ratio} | {f(r['cpu_s'], '{:.2f}')} |")
+    cpu = [r["cpu_s"] for r in rows]
+    lines += ["", *against(rows, "anet_residual_px", "astrometry.net's in-sample residual, stars measured again"),
+              f"- CPU seconds per diagnosis: median {np.median(cpu):.2f}, maximum {np.max(cpu):.2f} ({len(rows)} recordings)"]
+    return "\n".join(lines)
+
+
 def against(rows: list[dict], key: str, what: str) -> list[str]:
     """Summary lines: on how many recordings the held-out RMS after is at or below ``row[key]``
     (described as ``what``), overall and per lens, with the median ratio per lens; rows without
@@ -172,17 +216,20 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", type=Path)
     ap.add_argument("--markdown", type=Path)
+    ap.add_argument("--markdown-image", type=Path, help="the table of the stars measured again on the images")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     if not creusot_dir().is_dir():
         raise SystemExit(f"real data not found at {creusot_dir()} (set ROLLINGSTAR_REAL_DATA)")
-    rows = run(args.seed)
+    rows, image_rows = run(args.seed)
     if args.json:
-        args.json.write_text(json.dumps(rows, indent=2))
-    md = markdown(rows)
+        args.json.write_text(json.dumps({"table": rows, "image": image_rows}, indent=2))
+    md, md_image = markdown(rows), markdown_image(image_rows)
     if args.markdown:
         args.markdown.write_text(md + "\n")
-    print(md)
+    if args.markdown_image:
+        args.markdown_image.write_text(md_image + "\n")
+    print(md, md_image, sep="\n\n")
 
 
 if __name__ == "__main__":

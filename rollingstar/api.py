@@ -12,7 +12,10 @@ from __future__ import annotations
 from pathlib import Path
 
 from rollingstar.config import find_config
-from rollingstar.logs.importers import import_centroids, import_corr, import_images
+from rollingstar.errors import UserError
+from rollingstar.estimators.centroiders.remeasure import remeasure_stars
+from rollingstar.logs.importers import import_centroids, import_images
+from rollingstar.logs.importers.corr import import_corr as _import_corr
 from rollingstar.logs.reader import LogReader
 from rollingstar.pipelines.compare import run_compare
 from rollingstar.pipelines.compare.run import CompareOutcome
@@ -36,6 +39,16 @@ def _pipeline(pipeline: str | Path | PipelineConfig) -> tuple[PipelineConfig, st
         return pipeline, f"<{pipeline.name}>"
     path = find_config(pipeline, "pipeline")
     return load_pipeline(path), str(path)
+
+
+def import_corr(folder: str | Path, output: str | Path, centroids: str = "table") -> Path:
+    """astrometry.net corr tables -> a recording (``rollingstar import corr``). ``centroids``:
+    ``"table"`` keeps astrometry.net's positions, ``"image"`` measures each star again on the
+    table's image (:func:`rollingstar.estimators.centroiders.remeasure.remeasure_stars`)."""
+    if centroids not in ("table", "image"):
+        raise UserError(f"--centroids {centroids!r}: expected 'table' (astrometry.net's positions) or 'image' "
+                        "(measured again on the table's image)")
+    return _import_corr(folder, output, remeasure_stars if centroids == "image" else None)
 
 
 def simulate(scenario: str | Path | ScenarioConfig, output: str | Path, frames: int | None = None,

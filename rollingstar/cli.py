@@ -559,11 +559,14 @@ def images(folder: Path = typer.Argument(..., help="folder of TIFF/PNG/JPEG fram
 @command(import_app, "corr")
 def corr(folder: Path = typer.Argument(..., help="folder with an astrometry.net corr *.fits and log.json, "
                                                  "or a folder of such folders"),
-         output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write")):
+         output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write"),
+         centroids: str = typer.Option("table", "--centroids", help="table: astrometry.net's field_x, field_y; "
+                                       "image: each star measured again on the table's image beside it (maximum "
+                                       "likelihood, with its covariance)")):
     """astrometry.net corr tables -> a centroid-level recording of identified stars (one frame per table)."""
-    from rollingstar.logs.importers.corr import import_corr
+    from rollingstar.api import import_corr
 
-    _done(import_corr(folder, output))
+    _done(import_corr(folder, output, centroids=centroids))
 
 
 @command(import_app, "centroids")

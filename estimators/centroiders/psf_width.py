@@ -48,18 +48,21 @@ def star_windows(pv: np.ndarray, exposure_s: float, psf_sigma_px: float, window_
 
 
 def measure_psf_sigma(image: np.ndarray, pv: np.ndarray, exposure_s: float, line_delay_s: float,
-                      saturation: float, noise2: float, inv_gain: float, window_sigmas: float = 3.0) -> float | None:
+                      saturation: float, noise2: float, inv_gain: float, window_sigmas: float = 3.0,
+                      narrow_end: bool = False) -> float | None:
     """The Gaussian PSF sigma (px) that explains the stars ``pv`` (module docstring), or None with
     fewer than ``MIN_STARS`` usable stars or a best width at an end of the coarse grid. ``noise2``:
     the background noise variance and ``inv_gain`` the shot-noise factor, in the image's units;
-    pixels at ``saturation`` are left out."""
+    pixels at ``saturation`` are left out. ``narrow_end``: a coarse winner at the grid's narrow end
+    (an undersampled PSF, most of a star's light in one pixel) is refined like any other, down to
+    ``0.75`` of it: the best model width for a fit, not a measurement of the PSF."""
     pv = np.ascontiguousarray(np.asarray(pv, dtype=float)[:, :4])
     if len(pv) < MIN_STARS:
         return None
     frame = (np.asarray(image), float(saturation), float(noise2), float(inv_gain), float(exposure_s),
              float(line_delay_s))
     coarse = _best_width(frame, pv, COARSE_GRID, window_sigmas, refine=False)
-    if coarse is None or coarse in (COARSE_GRID[0], COARSE_GRID[-1]):
+    if coarse is None or coarse == COARSE_GRID[-1] or (coarse == COARSE_GRID[0] and not narrow_end):
         return None
     return _best_width(frame, pv, coarse * FINE_STEPS, window_sigmas, refine=True)
 

@@ -311,6 +311,7 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
         "noise": {"sigma_px_median": float(np.median(data.obs.sigma)), "source": data.obs.sigma_source},
         "noise_check": d.noise.as_json() if d.noise is not None else None,
         "rejected_outliers": data.n_rejected,
+        "outlier_gate_sigmas": data.gate_sigmas,
         "isolated_misfits": _isolated(data.obs, d.model.prediction, v.isolated),
         "outlier_rounds": list(d.outlier_rounds),
         "split": {"unit": data.unit, "frames": data.obs.n_frames, "train_frames": data.n_train_frames,

@@ -35,6 +35,17 @@ MIN_STARS_PER_FRAME = 4  # an attitude from fewer stars says little: frames keep
 OUTLIER_SIGMA = 30.0  # far beyond noise, below the identifier's refine gate: a wrong match, not physics
 GATE_ROUNDS = 4  # attitude refits of the gross-outlier gate (:func:`gross_outliers`)
 MIN_TRAINING_STARS = 10  # fewer training stars left after the outlier gate: nothing to diagnose
+# Times the median miss of the gate that replaces OUTLIER_SIGMA when that one would leave fewer than
+# MIN_TRAINING_STARS, or reject more than MAX_GROSS_FRACTION of the stars (wrong identifications are a
+# minority of a verified identification): many stars beyond a gate meant for them say the model is far
+# off (a lens far from the one declared, against stars measured to a few hundredths of a pixel),
+# not that most identifications are wrong; a wrong one still misses by many times the typical star.
+# Only for a model off by at most ROBUST_GATE_MAX_MISS of the image diagonal at the median star
+# (8 px on 808 x 608, the distortion a lens's corners commonly show): beyond it the model is too far
+# for the fits to start from, and the diagnosis says what to state closer
+ROBUST_GATE = 5.0
+MAX_GROSS_FRACTION = 0.25
+ROBUST_GATE_MAX_MISS = 0.008
 LOCATED_STRUCTURE_ROWS = 12  # covariate x channel tests reported (strongest first)
 
 
@@ -49,6 +60,7 @@ class Dataset:
     att_mask: np.ndarray  # observations the attitudes are fitted to: training stars, and held-out frames' own
     n_rejected: int  # gross outliers dropped
     channel_heldout: GyroChannel | None  # the increment channel of the pairs touching a held-out frame
+    gate_sigmas: float = OUTLIER_SIGMA  # the gross-outlier gate used (Mahalanobis sigmas)
 
     @property
     def train(self) -> np.ndarray:
@@ -132,11 +144,14 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
     if obs.sigma_source == "estimated":
         obs = estimate_sigma(obs, pred0)
         nuis0, pred0 = fit_nuisance(obs, attitudes, *fit, att_mask, sensor.moving)
-    # gross outliers (misidentified stars: the tracking refine gate is 2 px = 40 sigma at 0.05 px)
-    if gate is None:
-        far = gross_outliers(obs, attitudes, sensor, att_mask, pred0)
-    else:  # the named model's misses
-        far = gross_outliers(obs, attitudes, gate, att_mask)
+    # gross outliers (misidentified stars: the tracking refine gate is 2 px = 40 sigma at 0.05 px),
+    # against the named model's misses when one is given
+    model = sensor if gate is None else gate
+    far = gross_outliers(obs, attitudes, model, att_mask, pred0 if gate is None else None)
+    gate_sigmas = OUTLIER_SIGMA
+    if np.count_nonzero(~far & ~obs.heldout) < MIN_TRAINING_STARS or far.mean() > MAX_GROSS_FRACTION:
+        gate_sigmas = _robust_gate(obs, attitudes, model, att_mask)
+        far = gross_outliers(obs, attitudes, model, att_mask, gate_sigmas=gate_sigmas)
     n_rejected = int(far.sum())
     if np.count_nonzero(~obs.heldout) < MIN_TRAINING_STARS:
         raise UserError(f"only {np.count_nonzero(~obs.heldout)} of the {obs.n} identified stars are left for training "
@@ -145,7 +160,7 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
     if np.count_nonzero(~far & ~obs.heldout) < MIN_TRAINING_STARS:
         miss = float(np.nanmedian(np.hypot(obs.x - pred0.x, obs.y - pred0.y)))
         raise UserError(f"the simulation as given misses {n_rejected} of the {obs.n} identified stars by more than "
-                        f"{OUTLIER_SIGMA:g} sigma (median miss {miss:.3g} px), leaving fewer than {MIN_TRAINING_STARS} "
+                        f"{gate_sigmas:.3g} sigma (median miss {miss:.3g} px), leaving fewer than {MIN_TRAINING_STARS} "
                         f"training stars to diagnose: its sensor model is far from the recording's (lens projection, "
                         f"focal length, distortion or principal point); state them closer in the scenario")
     if n_rejected:
@@ -159,7 +174,18 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
     if chan is not None:
         obs = replace(obs, channel=chan)
         nuis0, pred0 = fit_nuisance(obs, nuis0, *fit, att_mask, sensor.moving)
-    return Dataset(obs, unit, frame_has_train, att_mask, n_rejected, chan_out), nuis0, pred0
+    return Dataset(obs, unit, frame_has_train, att_mask, n_rejected, chan_out, gate_sigmas), nuis0, pred0
+
+
+def _robust_gate(obs: Observations, attitudes, model: SensorModel, att_mask: np.ndarray) -> float:
+    """``ROBUST_GATE`` times the median miss (sigmas) of ``model`` with every star in the attitude
+    fit, never below ``OUTLIER_SIGMA``; ``OUTLIER_SIGMA`` when the median miss exceeds
+    ``ROBUST_GATE_MAX_MISS`` of the image diagonal."""
+    _, pred = fit_nuisance(obs, attitudes, model.camera, model.timing, model.effects, att_mask, model.moving)
+    diagonal = float(np.hypot(model.camera.width, model.camera.height))
+    if np.median(np.hypot(obs.x - pred.x, obs.y - pred.y)) > ROBUST_GATE_MAX_MISS * diagonal:
+        return OUTLIER_SIGMA
+    return max(OUTLIER_SIGMA, ROBUST_GATE * float(np.median(miss_sigmas(obs, pred))))
 
 
 def check_parity(obs: Observations, model: SensorModel) -> None:
@@ -216,8 +242,8 @@ def _local_triangles(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def gross_outliers(obs: Observations, attitudes, model: SensorModel, att_mask: np.ndarray,
-                   pred: Prediction | None = None) -> np.ndarray:
-    """The stars ``model`` misses by more than ``OUTLIER_SIGMA`` with every frame's attitude fitted
+                   pred: Prediction | None = None, gate_sigmas: float = OUTLIER_SIGMA) -> np.ndarray:
+    """The stars ``model`` misses by more than ``gate_sigmas`` with every frame's attitude fitted
     without them: a fixed point of fitting the attitudes to the stars inside the gate and gating
     every star again (at most ``GATE_ROUNDS`` fits). A wrong identification pulls its frame's
     least-squares attitude, by tens of pixels when it is hundreds of pixels off, and a single gate
@@ -227,12 +253,12 @@ def gross_outliers(obs: Observations, attitudes, model: SensorModel, att_mask: n
     fit = (model.camera, model.timing, model.effects)
     if pred is None:
         _, pred = fit_nuisance(obs, attitudes, *fit, att_mask, model.moving)
-    far = beyond_gate(obs, pred)
+    far = miss_sigmas(obs, pred) > gate_sigmas
     for _ in range(GATE_ROUNDS):
         if not far.any():
             break
         _, pred = fit_nuisance(obs, attitudes, *fit, att_mask & ~far, model.moving)
-        again = beyond_gate(obs, pred)
+        again = miss_sigmas(obs, pred) > gate_sigmas
         if np.array_equal(again, far):
             break
         far = again
@@ -240,10 +266,15 @@ def gross_outliers(obs: Observations, attitudes, model: SensorModel, att_mask: n
 
 
 def beyond_gate(obs: Observations, pred: Prediction) -> np.ndarray:
-    """The stars further than ``OUTLIER_SIGMA`` from ``pred`` (Mahalanobis under a 2 x 2 covariance)."""
+    """The stars further than ``OUTLIER_SIGMA`` from ``pred`` (:func:`miss_sigmas`)."""
+    return miss_sigmas(obs, pred) > OUTLIER_SIGMA
+
+
+def miss_sigmas(obs: Observations, pred: Prediction) -> np.ndarray:
+    """Each star's distance from ``pred`` in sigmas (Mahalanobis under its 2 x 2 covariance)."""
     if obs.cov is None:
-        return np.hypot(obs.x - pred.x, obs.y - pred.y) > OUTLIER_SIGMA * obs.sigma
-    return np.linalg.norm(whitened_residuals(obs, pred), axis=1) > OUTLIER_SIGMA
+        return np.hypot(obs.x - pred.x, obs.y - pred.y) / obs.sigma
+    return np.linalg.norm(whitened_residuals(obs, pred), axis=1)
 
 
 def split_heldout(obs: Observations, fraction: float, seed: int) -> tuple[np.ndarray, str]:

@@ -42,6 +42,8 @@ from rollingstar.sensors.effects.chain import predict as chain_predict
 from rollingstar.sensors.so3 import quat_multiply, skew
 
 POS_STEP_PX = 1e-3
+# the position and its four central-difference neighbours, (dx, dy) px
+POS_OFFSETS = np.array([[0.0, 0.0], [POS_STEP_PX, 0.0], [-POS_STEP_PX, 0.0], [0.0, POS_STEP_PX], [0.0, -POS_STEP_PX]])
 # A frame takes a one-sided (backward/forward) rate instead of the central difference only when it
 # fits its stars better by this much chi-square: picking the best of three on noise alone overfits
 # the rate and biases every time-like effect (measured: rolling-shutter pulls shifted by -0.5
@@ -232,16 +234,18 @@ def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=(), 
         effects = tuple(effects)
 
         def chain(c):
-            x, y = chain_predict(effects, c)
             # the attitude moves the ideal position; the chain maps that motion through its position
             # Jacobian d(x', y')/d(x, y), taken by central differences (the effects publish only
-            # parameter Jacobians). Needed where an effect is strongly nonlinear in position.
-            cols = []
-            for dx, dy in ((POS_STEP_PX, 0.0), (0.0, POS_STEP_PX)):
-                xp, yp = chain_predict(effects, c.evolve(x=c.x + dx, y=c.y + dy))
-                xm, ym = chain_predict(effects, c.evolve(x=c.x - dx, y=c.y - dy))
-                cols.append(np.stack([xp - xm, yp - ym], axis=-1) / (2 * POS_STEP_PX))
-            return x, y, np.stack(cols, axis=-1)
+            # parameter Jacobians). Needed where an effect is strongly nonlinear in position. The
+            # position and its four neighbours go through the chain in one call over 5n stars (an
+            # effect acts on each star alone or on per-frame means, which equal copies keep): the
+            # chain's cost is mostly per call, not per star
+            n = c.n
+            big = c.take(np.tile(np.arange(n), 5))
+            big = big.evolve(x=big.x + np.repeat(POS_OFFSETS[:, 0], n), y=big.y + np.repeat(POS_OFFSETS[:, 1], n))
+            xs, ys = (np.reshape(a, (5, n)) for a in chain_predict(effects, big))
+            cols = [np.stack([xs[k] - xs[k + 1], ys[k] - ys[k + 1]], axis=-1) / (2 * POS_STEP_PX) for k in (1, 3)]
+            return xs[0], ys[0], np.stack(cols, axis=-1)
 
         x, y, pos_jac = by_exposure(ctx, expo, chain)
         jac = pos_jac @ jac  # (n, 2, 2) @ (n, 2, 3)

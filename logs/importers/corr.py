@@ -26,8 +26,9 @@ from __future__ import annotations
 import json
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import yaml
@@ -41,6 +42,7 @@ from rollingstar.logs.importers.common import (
     import_metadata,
     output_path,
 )
+from rollingstar.logs.importers.images import read_image
 from rollingstar.logs.importers.observation import NO_OBSERVATION, catalog_for, mean_per_frame
 from rollingstar.logs.importers.sidecar import (
     NOMINAL_PIXEL_SIZE_UM,
@@ -61,6 +63,8 @@ FRAME_SPACING_NS = 1_000_000_000
 FOV_TOLERANCE = 0.01
 """Largest relative spread of log.json fields of view within one recording (one camera)."""
 REQUIRED_COLUMNS = ("field_x", "field_y", "index_ra", "index_dec")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")  # the solved image beside a corr table (its FITS is the table)
+STAR_CONTRAST = 5.0  # robust sigmas above the background at the median star for an image to be the solved one
 EPOCH_REASON = ("the scenario default: log.json's dates are not read (local wall-clock time of no stated zone, "
                 "day and month order not stated), and the stars carry astrometry.net's catalogue directions")
 
@@ -190,6 +194,8 @@ class CorrFrame:
     catalog_id: np.ndarray
     flux: np.ndarray
     residual_px: np.ndarray  # (n, 2) field - index position, NaN when index_x/y are absent
+    table_residual_px: np.ndarray | None = None  # the table's own field - index, when the stars were measured again
+    cov: np.ndarray | None = None  # (n, 2, 2) px^2 of the stars measured again (NaN: a table position)
 
 
 def find_corr_folders(root: str | Path) -> list[Path]:
@@ -337,15 +343,84 @@ def camera_for(frames: list[CorrFrame], root: Path) -> tuple[CameraSpec, float]:
 
 def _image_for(folder: Path) -> str | None:
     """The PNG the corr table was made from, when the folder makes it unambiguous."""
-    pngs = sorted(p.name for p in folder.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".tif", ".tiff"))
+    pngs = _images_in(folder)
     if len(pngs) == 1:
         return pngs[0]
     exposed = [p for p in pngs if re.search(r"_\d+e_", p)]  # creusot naming: <scene>_<exposure>e_<gain>g.png
     return exposed[0] if len(exposed) == 1 else None
 
 
-def import_corr(folder: str | Path, out: str | Path) -> Path:
+def _images_in(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def solved_image(frame: CorrFrame, log: WarningLog) -> tuple[Path, np.ndarray] | None:
+    """The image ``frame``'s table was made from, and its pixels: the folder's only image, or the
+    one its naming singles out, or else the one whose pixels at the table's stars stand highest
+    above its background (``STAR_CONTRAST`` robust sigmas at the median star, required of every
+    choice: a dark frame or another scene is not the solved image). None, with a warning, when no
+    image qualifies."""
+    names = _images_in(frame.folder)
+    named = _image_for(frame.folder)
+    best, best_score = None, -np.inf
+    for name in [named] if named else names:
+        path = frame.folder / name
+        img = read_image(path)
+        if img.shape != (frame.meta.image_size.y, frame.meta.image_size.x):
+            log(f"{path}: {img.shape[1]}x{img.shape[0]} px, not the {frame.meta.image_size.x}x"
+                f"{frame.meta.image_size.y} of {frame.log_json.name}; not the solved image")
+            continue
+        score = _star_contrast(img, frame.x, frame.y)
+        if score > best_score:
+            best, best_score = (path, img), score
+    if best is None or best_score < STAR_CONTRAST:
+        why = "no image file" if not names else (f"no image shows stars at the table's positions (best: {best[0].name}, "
+                                                 f"{best_score:.1f} sigma)" if best else "no image of the table's size")
+        log(f"{frame.folder}: {why}; the table's own positions are kept")
+        return None
+    return best
+
+
+def _star_contrast(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> float:
+    """The median over the stars of the brightest pixel within 1 px of each, above the image's
+    median, in robust sigmas of the image (MAD)."""
+    a = img.astype(float)
+    med = float(np.median(a))
+    scale = 1.4826 * float(np.median(np.abs(a - med))) or 1.0
+    h, w = a.shape
+    r = np.clip(np.rint(y).astype(int), 1, h - 2)
+    c = np.clip(np.rint(x).astype(int), 1, w - 2)
+    peaks = np.max([a[r + dr, c + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1)], axis=0) if len(x) else np.zeros(1)
+    return float((np.median(peaks) - med) / scale)
+
+
+def remeasured_frame(frame: CorrFrame, remeasure: Callable, log: WarningLog) -> tuple[CorrFrame, dict]:
+    """``frame`` with its stars measured again on its solved image by ``remeasure`` (``(image, x, y)
+    ->`` :class:`~rollingstar.estimators.centroiders.remeasure.Remeasured`), and what was done."""
+    found = solved_image(frame, log) if frame.x.size else None
+    if found is None:
+        return frame, {"image": None, "measured": 0}
+    path, img = found
+    r = remeasure(img, frame.x, frame.y)
+    left = {str(k): int(v) for k, v in zip(*np.unique(r.reason[~r.measured], return_counts=True))}
+    moved = np.column_stack([r.x - frame.x, r.y - frame.y])
+    cov = np.where(r.measured[:, None, None], r.cov, np.nan)
+    frame = replace(frame, x=r.x, y=r.y, residual_px=frame.residual_px + moved, table_residual_px=frame.residual_px,
+                    cov=cov)
+    return frame, {"image": path.name, "measured": int(r.measured.sum()), "kept_from_table": left,
+                   "psf_sigma_px": r.psf_sigma_px, "psf_measured": bool(r.psf_measured)}
+
+
+def import_corr(folder: str | Path, out: str | Path, remeasure: Callable | None = None) -> Path:
     """Import the corr table(s) under ``folder`` into the recording ``out``; returns ``out``.
+
+    ``remeasure``: None keeps the table's positions; else a function ``(image, x, y) ->``
+    :class:`~rollingstar.estimators.centroiders.remeasure.Remeasured` (the layer above passes
+    :func:`~rollingstar.estimators.centroiders.remeasure.remeasure_stars`) that measures the stars
+    again on each table's solved image (:func:`solved_image`); the stars it could not measure keep
+    the table's positions. The recording's centroid sigma follows one rule either way: the RMS per
+    axis of the written positions about astrometry.net's projection of its catalogue stars
+    (``index_x, index_y``); the table's own figure is kept in ``import.details.table_residual_px``.
 
     Recoverable problems emit :class:`~rollingstar.logs.importers.common.ImportDataWarning` and are kept in
     the log's ``import.warnings`` metadata; the per-frame sources and log.json pointing centres
@@ -355,11 +430,11 @@ def import_corr(folder: str | Path, out: str | Path) -> Path:
     out = output_path(out)
     log = WarningLog()
     frames = [_read_frame(f, log) for f in find_corr_folders(root)]
+    remeasured = None
+    if remeasure is not None:
+        frames, remeasured = zip(*(remeasured_frame(f, remeasure, log) for f in frames))
     cam, fov = camera_for(frames, root)
-    resid = np.concatenate([f.residual_px for f in frames])
-    resid = resid[np.isfinite(resid).all(axis=1)]
-    with np.errstate(over="ignore"):  # damaged index_xy overflow to inf, refused just below
-        sigma = float(np.sqrt(np.mean(resid**2))) if resid.size else None
+    sigma = _residual_rms([f.residual_px for f in frames])
     if sigma is not None and not (np.isfinite(sigma) and sigma < math.hypot(cam.width_px, cam.height_px)):
         log(f"{root}: field_xy - index_xy residuals of {sigma:.3g} px RMS are not a centroid noise (damaged "
             f"index_x/index_y?); the recording declares the default centroid noise instead")
@@ -377,14 +452,20 @@ def import_corr(folder: str | Path, out: str | Path) -> Path:
     timing = build_timing(scenario)
     details = {
         "focal_px": cam.focal_px, "fov_deg": fov, "fov_rule": "focal_px = hypot(W, H) / radians(fov_deg)",
-        "centroid_sigma_px": sigma, "centroid_sigma_rule": "RMS per axis of field_xy - index_xy over all stars",
+        "centroid_sigma_px": sigma, "centroid_sigma_rule": "RMS per axis of the written x, y - index_xy over all stars",
+        "table_residual_px": sigma if remeasured is None else _residual_rms(
+            [f.residual_px if f.table_residual_px is None else f.table_residual_px for f in frames]),
         "frame_spacing_ns": FRAME_SPACING_NS, "catalog": catalog_details,
+        "positions": "astrometry.net's field_x, field_y" if remeasured is None else (
+            "measured again on each table's image (rollingstar.estimators.centroiders.remeasure); "
+            "stars it could not measure keep field_x, field_y"),
         "frames": [{
             "frame": k, "t0_ns": k * FRAME_SPACING_NS,
             "folder": f.folder.relative_to(root).as_posix() if f.folder != root else ".",
             "fits": f.fits.name, "log_json": f.log_json.name, "image": _image_for(f.folder),
             "fov_deg": f.meta.fov_deg, "ra_deg": f.meta.center.ra_degrees, "dec_deg": f.meta.center.dec_degrees,
-            "timestamp": f.meta.timestamp, "n_stars": int(f.x.size)} for k, f in enumerate(frames)],
+            "timestamp": f.meta.timestamp, "n_stars": int(f.x.size),
+            **({} if remeasured is None else {"remeasured": remeasured[k]})} for k, f in enumerate(frames)],
     }
     metadata = {"scenario": {"yaml": to_yaml(scenario)},
                 "sensor": {"yaml": yaml.safe_dump(cam.model_dump(mode="json"), sort_keys=False)},
@@ -394,8 +475,25 @@ def import_corr(folder: str | Path, out: str | Path) -> Path:
             t0 = k * FRAME_SPACING_NS
             writer.write_json(TOPIC_CENTROIDS, arrays_to_stars(
                 k, t0, x=f.x, y=f.y, t_ns=timing.row_mid_exposure_ns(t0, f.y), row_time_ns=timing.row_start_ns(t0, f.y),
-                flux=f.flux, catalog_id=f.catalog_id, ref_icrs=f.ref_icrs), t0)
+                flux=f.flux, catalog_id=f.catalog_id, ref_icrs=f.ref_icrs, **_covariance_columns(f.cov)), t0)
     return out
+
+
+def _covariance_columns(cov: np.ndarray | None) -> dict:
+    """``cov_xx, cov_xy, cov_yy`` and ``sigma_px`` (``sqrt(trace / 2)``) of the stars measured again
+    (NaN for the others, which take the recording's centroid sigma); {} when none was."""
+    if cov is None:
+        return {}
+    return {"cov_xx": cov[:, 0, 0], "cov_xy": cov[:, 0, 1], "cov_yy": cov[:, 1, 1],
+            "sigma_px": np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))}
+
+
+def _residual_rms(residuals: list[np.ndarray]) -> float | None:
+    """RMS per axis of the finite ``(n, 2)`` residuals (None: none; inf: damaged ``index_xy``)."""
+    resid = np.concatenate(residuals)
+    resid = resid[np.isfinite(resid).all(axis=1)]
+    with np.errstate(over="ignore"):  # damaged index_xy overflow to inf, refused by the caller
+        return float(np.sqrt(np.mean(resid**2))) if resid.size else None
 
 
 def pointing_centres(recording: str | Path) -> dict[int, dict]:
