@@ -249,30 +249,41 @@ def _outlier_rounds(observations: Observations, attitudes: Rotation, sensor: Sen
                     gyro: GyroData | None, options: DiagnoseOptions, lens: ProjectionChoice | None = None) -> tuple:
     """The four steps in rounds of model-aware outlier rejection: the gross-outlier gate of each
     round after the first is the model the previous round named (stars its physics explains come
-    back); a fixed point when a round names what its gate held. The first round's gate is the model
+    back); a fixed point when a round names what its gate held, or when its gate keeps the stars the
+    round before named on (whose steps then stand). The first round's gate is the model
     as given, or, when the lens was fitted (``lens``, :mod:`.projection`), the model with the
     projection, focal length and ``k1`` of that fit (reported as the gate "lens fit"): a strong
     distortion the model as given leaves out moves corner stars beyond the gate, and they must not
     be lost before step 2 can name it. Returns the
     last round's (location, naming, model, verification) and each round's gate and rejected
     fraction."""
-    gate_names, rounds = (), []
+    gate_names, rounds, last = (), [], None
     lens_camera = None if lens is None else fitted_camera(sensor.camera, lens)
     gate = None if lens_camera is None else replace(sensor, camera=lens_camera)
     for _ in range(MAX_OUTLIER_ROUNDS):
         location = locate(observations, attitudes, sensor, cands, gyro, options, gate)
-        naming = name_effects(location, sensor, cands, options)
-        model = model_effects(location.data, naming, sensor, options)
-        verification = verify(location, naming, model, sensor, cands, options)
         rejected = location.data.n_rejected
         rounds.append({"gate": list(gate_names) or (["lens fit"] if gate is not None else []),
                        "rejected": rejected, "fraction": rejected / max(observations.n, 1)})
+        if last is not None and _same_stars(location.data.obs, last[0].data.obs):
+            # the named model's gate kept the stars the last round named on: the same steps again
+            location, naming, model, verification = last
+            break
+        naming = name_effects(location, sensor, cands, options)
+        model = model_effects(location.data, naming, sensor, options)
+        verification = verify(location, naming, model, sensor, cands, options)
+        last = (location, naming, model, verification)
         names = tuple(c.name for c in verification.named)
         if not rejected or not names or names == gate_names:
             break
         gate_names = names
         gate = sensor_model(updated_scenario(sensor.scenario, verification.named, verification.thetas), sensor.moving)
     return location, naming, model, verification, tuple(rounds)
+
+
+def _same_stars(a: Observations, b: Observations) -> bool:
+    """True when two rounds kept the same stars of one recording, with the same held-out split."""
+    return a.n == b.n and np.array_equal(a.x, b.x) and np.array_equal(a.y, b.y) and np.array_equal(a.heldout, b.heldout)
 
 
 def _isolated(obs: Observations, pred, isolated: np.ndarray) -> list[dict]:
