@@ -28,7 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from rollingstar.config import CONFIGS, format_validation_error
 from rollingstar.errors import UserError
 from rollingstar.logs.reader import LogReader
-from rollingstar.outputs import safe_output
+from rollingstar.outputs import check_not_an_input, safe_output
 from rollingstar.pipelines.plots import pyplot
 
 DEFAULT_LAYOUT = CONFIGS / "foxglove" / "run.json"
@@ -207,6 +207,7 @@ def render_preview(log: str | Path, out_png: str | Path, layout: str | Path = DE
                    frame: int | None = None) -> Path:
     """Draw every panel of ``layout`` from ``log`` into ``out_png`` (module docstring); ``frame``: the
     image shown (default the middle one)."""
+    check_not_an_input(out_png, [log, layout])  # before the drawing, not after it
     reader = LogReader(log)
     panels = read_layout(layout, reader)
     images = [panel for kind, panel in panels if kind == "Image"]

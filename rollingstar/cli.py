@@ -77,14 +77,15 @@ def _guarded(fn):
     Every exception becomes a one-paragraph message on stderr and exit code 2 (130 on Ctrl-C, after
     the message of what was kept); ``--debug`` shows the traceback instead. Exit code 1 is reserved
     for commands that ran fine but whose check failed (the regression gate, ``bench perf``).
-    Warnings are printed as one line each."""
+    Warnings are printed as one line each, a repeated one once (a file opened by several steps
+    warns each time it is opened)."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("always")
-                warnings.showwarning = lambda message, category, *a, **k: err.print(f"[yellow]warning:[/] {message}")
+                warnings.showwarning = _printer(set())
                 return fn(*args, **kwargs)
         except (typer.Exit, typer.Abort):
             raise
@@ -98,6 +99,15 @@ def _guarded(fn):
             raise typer.Exit(2) from None
 
     return wrapper
+
+
+def _printer(shown: set[str]):
+    """A ``warnings.showwarning`` that prints each distinct message once, as one line on stderr."""
+    def show(message, category, *args, **kwargs):
+        if str(message) not in shown:
+            shown.add(str(message))
+            err.print(f"[yellow]warning:[/] {message}")
+    return show
 
 
 def _quiet():

@@ -137,3 +137,17 @@ def test_killed_writer_keeps_finished_chunks(tmp_path):
     assert times == list(range(len(times)))
     assert reader.metadata()["rollingstar"]["format_version"] == "1.2"
     assert reader.summary_info().truncated
+
+
+def test_a_cut_log_is_warned_about_once_per_command(small_recording, tmp_path):
+    """Every step that opens a cut log warns; the command line prints the message once."""
+    from typer.testing import CliRunner
+
+    from rollingstar.cli import app
+
+    cut = tmp_path / "cut.mcap"
+    data = small_recording.read_bytes()
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    res = CliRunner().invoke(app, ["diagnose", "--recording", str(cut), "-o", str(tmp_path / "report"), "-q"])
+    assert res.exit_code == 0, res.output
+    assert res.output.count("has no valid footer") == 1, res.output  # diagnose opens the log four times

@@ -59,3 +59,19 @@ def test_the_shipped_layout_and_panels_preview_does_not_draw_are_accepted(tmp_pa
     code, err = preview(small_output, layout, tmp_path)
     assert code == 0, err
     assert (tmp_path / "p.png").is_file()
+
+
+def test_an_output_that_is_an_input_is_refused_before_anything_is_drawn(tmp_path, small_output, monkeypatch):
+    """``-o`` naming the log itself: refused (exit 2) with the log untouched, and no figure is
+    drawn first (the drawing is the slow part)."""
+    from rollingstar.cli import app
+    from rollingstar.pipelines import preview as preview_module
+
+    def no_drawing():
+        raise AssertionError("the figure was drawn before the output was checked")
+
+    monkeypatch.setattr(preview_module, "pyplot", no_drawing)
+    before = small_output.read_bytes()
+    res = CliRunner().invoke(app, ["preview", str(small_output), "-o", str(small_output)])
+    assert res.exit_code == 2 and "Traceback" not in res.output and "the figure was drawn" not in res.output
+    assert small_output.read_bytes() == before
