@@ -250,7 +250,7 @@ def _outlier_rounds(observations: Observations, attitudes: Rotation, sensor: Sen
     """The four steps in rounds of model-aware outlier rejection: the gross-outlier gate of each
     round after the first is the model the previous round named (stars its physics explains come
     back); a fixed point when a round names what its gate held, or when its gate keeps the stars the
-    round before named on (whose steps then stand). The first round's gate is the model
+    round before named on (whose steps then stand; that gate is not listed). The first round's gate is the model
     as given, or, when the lens was fitted (``lens``, :mod:`.projection`), the model with the
     projection, focal length and ``k1`` of that fit (reported as the gate "lens fit"): a strong
     distortion the model as given leaves out moves corner stars beyond the gate, and they must not
@@ -262,13 +262,13 @@ def _outlier_rounds(observations: Observations, attitudes: Rotation, sensor: Sen
     gate = None if lens_camera is None else replace(sensor, camera=lens_camera)
     for _ in range(MAX_OUTLIER_ROUNDS):
         location = locate(observations, attitudes, sensor, cands, gyro, options, gate)
-        rejected = location.data.n_rejected
-        rounds.append({"gate": list(gate_names) or (["lens fit"] if gate is not None else []),
-                       "rejected": rejected, "fraction": rejected / max(observations.n, 1)})
         if last is not None and _same_stars(location.data.obs, last[0].data.obs):
             # the named model's gate kept the stars the last round named on: the same steps again
             location, naming, model, verification = last
             break
+        rejected = location.data.n_rejected
+        rounds.append({"gate": list(gate_names) or (["lens fit"] if gate is not None else []),
+                       "rejected": rejected, "fraction": rejected / max(observations.n, 1)})
         naming = name_effects(location, sensor, cands, options)
         model = model_effects(location.data, naming, sensor, options)
         verification = verify(location, naming, model, sensor, cands, options)

@@ -218,7 +218,8 @@ def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=(), 
     """Predict every observation: ideal pinhole position, then the effect chain in stage order.
 
     ``attitude_jacobian=False``: positions only; ``att_jac`` is then the pinhole's, without the
-    chain's position Jacobian (four more chain evaluations), for callers that difference positions."""
+    chain's position Jacobian (the chain over four more copies of the stars), for callers that
+    difference positions."""
     rot = camera_rotations(obs, nuis)
     w = rot.inv().apply(obs.u_icrs)
     x0, y0, _ = camera.project(w)
@@ -237,9 +238,9 @@ def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=(), 
             # the attitude moves the ideal position; the chain maps that motion through its position
             # Jacobian d(x', y')/d(x, y), taken by central differences (the effects publish only
             # parameter Jacobians). Needed where an effect is strongly nonlinear in position. The
-            # position and its four neighbours go through the chain in one call over 5n stars (an
-            # effect acts on each star alone or on per-frame means, which equal copies keep): the
-            # chain's cost is mostly per call, not per star
+            # position and its four neighbours go through the chain in one call over 5n stars
+            # (every effect acts on each star alone: tests/diagnosis/test_observations_tiling.py);
+            # the chain's cost is mostly per call, not per star
             n = c.n
             big = c.take(np.tile(np.arange(n), 5))
             big = big.evolve(x=big.x + np.repeat(POS_OFFSETS[:, 0], n), y=big.y + np.repeat(POS_OFFSETS[:, 1], n))

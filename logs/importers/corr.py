@@ -194,7 +194,6 @@ class CorrFrame:
     catalog_id: np.ndarray
     flux: np.ndarray
     residual_px: np.ndarray  # (n, 2) field - index position, NaN when index_x/y are absent
-    table_residual_px: np.ndarray | None = None  # the table's own field - index, when the stars were measured again
     cov: np.ndarray | None = None  # (n, 2, 2) px^2 of the stars measured again (NaN: a table position)
 
 
@@ -358,14 +357,19 @@ def solved_image(frame: CorrFrame, log: WarningLog) -> tuple[Path, np.ndarray] |
     """The image ``frame``'s table was made from, and its pixels: the folder's only image, or the
     one its naming singles out, or else the one whose pixels at the table's stars stand highest
     above its background (``STAR_CONTRAST`` robust sigmas at the median star, required of every
-    choice: a dark frame or another scene is not the solved image). None, with a warning, when no
-    image qualifies."""
+    choice: a dark frame or another scene is not the solved image). A file that is not a readable
+    image of the table's size is passed over with a warning; None, with a warning, when no image
+    qualifies."""
     names = _images_in(frame.folder)
     named = _image_for(frame.folder)
     best, best_score = None, -np.inf
-    for name in [named] if named else names:
+    for name in [named] + [n for n in names if n != named] if named else names:
         path = frame.folder / name
-        img = read_image(path)
+        try:
+            img = read_image(path)
+        except ImportDataError as exc:  # another file of the folder: not the solved image
+            log(f"{exc}; not used as the solved image")
+            continue
         if img.shape != (frame.meta.image_size.y, frame.meta.image_size.x):
             log(f"{path}: {img.shape[1]}x{img.shape[0]} px, not the {frame.meta.image_size.x}x"
                 f"{frame.meta.image_size.y} of {frame.log_json.name}; not the solved image")
@@ -373,6 +377,8 @@ def solved_image(frame: CorrFrame, log: WarningLog) -> tuple[Path, np.ndarray] |
         score = _star_contrast(img, frame.x, frame.y)
         if score > best_score:
             best, best_score = (path, img), score
+        if name == named and score >= STAR_CONTRAST:  # the image the naming singles out shows the stars
+            break
     if best is None or best_score < STAR_CONTRAST:
         why = "no image file" if not names else (f"no image shows stars at the table's positions (best: {best[0].name}, "
                                                  f"{best_score:.1f} sigma)" if best else "no image of the table's size")
@@ -403,10 +409,8 @@ def remeasured_frame(frame: CorrFrame, remeasure: Callable, log: WarningLog) -> 
     path, img = found
     r = remeasure(img, frame.x, frame.y)
     left = {str(k): int(v) for k, v in zip(*np.unique(r.reason[~r.measured], return_counts=True))}
-    moved = np.column_stack([r.x - frame.x, r.y - frame.y])
     cov = np.where(r.measured[:, None, None], r.cov, np.nan)
-    frame = replace(frame, x=r.x, y=r.y, residual_px=frame.residual_px + moved, table_residual_px=frame.residual_px,
-                    cov=cov)
+    frame = replace(frame, x=r.x, y=r.y, cov=cov)
     return frame, {"image": path.name, "measured": int(r.measured.sum()), "kept_from_table": left,
                    "psf_sigma_px": r.psf_sigma_px, "psf_measured": bool(r.psf_measured)}
 
@@ -417,10 +421,9 @@ def import_corr(folder: str | Path, out: str | Path, remeasure: Callable | None 
     ``remeasure``: None keeps the table's positions; else a function ``(image, x, y) ->``
     :class:`~rollingstar.estimators.centroiders.remeasure.Remeasured` (the layer above passes
     :func:`~rollingstar.estimators.centroiders.remeasure.remeasure_stars`) that measures the stars
-    again on each table's solved image (:func:`solved_image`); the stars it could not measure keep
-    the table's positions. The recording's centroid sigma follows one rule either way: the RMS per
-    axis of the written positions about astrometry.net's projection of its catalogue stars
-    (``index_x, index_y``); the table's own figure is kept in ``import.details.table_residual_px``.
+    again on each table's solved image (:func:`solved_image`); the stars it measured carry its
+    covariances, the others keep the table's positions and the recording's centroid sigma, the
+    table's own accuracy (the RMS per axis of ``field_xy - index_xy``) either way.
 
     Recoverable problems emit :class:`~rollingstar.logs.importers.common.ImportDataWarning` and are kept in
     the log's ``import.warnings`` metadata; the per-frame sources and log.json pointing centres
@@ -452,9 +455,7 @@ def import_corr(folder: str | Path, out: str | Path, remeasure: Callable | None 
     timing = build_timing(scenario)
     details = {
         "focal_px": cam.focal_px, "fov_deg": fov, "fov_rule": "focal_px = hypot(W, H) / radians(fov_deg)",
-        "centroid_sigma_px": sigma, "centroid_sigma_rule": "RMS per axis of the written x, y - index_xy over all stars",
-        "table_residual_px": sigma if remeasured is None else _residual_rms(
-            [f.residual_px if f.table_residual_px is None else f.table_residual_px for f in frames]),
+        "centroid_sigma_px": sigma, "centroid_sigma_rule": "RMS per axis of field_xy - index_xy over all stars",
         "frame_spacing_ns": FRAME_SPACING_NS, "catalog": catalog_details,
         "positions": "astrometry.net's field_x, field_y" if remeasured is None else (
             "measured again on each table's image (rollingstar.estimators.centroiders.remeasure); "
@@ -462,7 +463,8 @@ def import_corr(folder: str | Path, out: str | Path, remeasure: Callable | None 
         "frames": [{
             "frame": k, "t0_ns": k * FRAME_SPACING_NS,
             "folder": f.folder.relative_to(root).as_posix() if f.folder != root else ".",
-            "fits": f.fits.name, "log_json": f.log_json.name, "image": _image_for(f.folder),
+            "fits": f.fits.name, "log_json": f.log_json.name,
+            "image": _image_for(f.folder) if remeasured is None else remeasured[k]["image"],
             "fov_deg": f.meta.fov_deg, "ra_deg": f.meta.center.ra_degrees, "dec_deg": f.meta.center.dec_degrees,
             "timestamp": f.meta.timestamp, "n_stars": int(f.x.size),
             **({} if remeasured is None else {"remeasured": remeasured[k]})} for k, f in enumerate(frames)],

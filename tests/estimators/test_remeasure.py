@@ -7,6 +7,8 @@ counts. The listed positions are the truth plus 0.3 px of another tool's noise.
 """
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 from scipy.special import erf
@@ -59,6 +61,24 @@ def test_remeasured_positions_beat_the_listed_ones_and_match_their_covariance():
     assert abs(z2.mean() - 2.0) < 4 * 2.0 / np.sqrt(z2.size) + 0.3
 
 
+@pytest.mark.parametrize("psf, gain", [(1.3, None), (0.4, None), (0.4, GAIN)])
+def test_covariances_hold_without_a_gain_and_for_an_undersampled_psf(psf, gain, monkeypatch):
+    """The corr import states no gain (an 8-bit PNG has none), and the creusot 16 mm PSF is 0.4 px
+    wide: the shot noise measured from the stars' residuals, the core pixels' misfit and the
+    model's own bias keep the stated covariances honest (mean z^2 within 1.2-3.2 of its 2)."""
+    monkeypatch.setattr(sys.modules[__name__], "PSF", psf)
+    rng = np.random.default_rng(11)
+    z2 = []
+    for _ in range(8):
+        x, y = field(rng)
+        img = draw(rng, x, y, rng.uniform(3000, 20000, x.size))
+        r = remeasure_stars(img, x + rng.normal(0, 0.3, x.size), y + rng.normal(0, 0.3, x.size), gain_e_per_adu=gain)
+        d = np.column_stack([r.x - x, r.y - y])[r.measured]
+        z2.append(np.einsum("ni,nij,nj->n", d, np.linalg.inv(r.cov[r.measured]), d))
+    z2 = np.concatenate(z2)
+    assert z2.size >= 190 and 1.2 < z2.mean() < 3.2, z2.mean()
+
+
 def test_stars_that_are_not_measurements_keep_the_listed_position_with_the_reason():
     rng = np.random.default_rng(5)
     x, y = field(rng, 6)
@@ -83,3 +103,25 @@ def test_a_shifted_or_mirrored_listing_is_not_measured():
     for lx, ly in ((x + 20.0, y), (SIZE - 1 - x, y + 13.0)):
         r = remeasure_stars(img, lx, ly, psf_sigma_px=PSF)
         assert not r.measured.any(), r.reason
+
+
+def test_a_listed_neighbour_within_the_window_is_not_measured():
+    """Two stars 3.5 px apart share a window's light: the fit of either would be pulled towards the
+    other, so both keep the listed position (``blended``)."""
+    rng = np.random.default_rng(2)
+    x, y = np.array([60.0, 63.5, 150.2]), np.array([80.3, 80.3, 150.7])
+    img = draw(rng, x, y, np.full(3, 8000.0))
+    r = remeasure_stars(img, x, y, psf_sigma_px=PSF, gain_e_per_adu=GAIN)
+    assert list(r.reason) == ["blended", "blended", ""]
+
+
+def test_inputs_that_are_not_an_image_and_star_list_are_refused():
+    from rollingstar.errors import UserError
+
+    img = np.zeros((32, 32), dtype=np.uint16)
+    empty = remeasure_stars(img, np.zeros(0), np.zeros(0))
+    assert empty.x.size == 0 and not empty.measured.any()
+    for bad, x, match in ((np.zeros((4, 32, 32)), [1.0], "2-D image"), (np.full((32, 32), np.nan), [1.0], "NaN"),
+                          (img, [np.nan], "finite")):
+        with pytest.raises(UserError, match=match):
+            remeasure_stars(bad, np.array(x), np.array([1.0]))

@@ -1,0 +1,40 @@
+"""The diagnosis's prediction sends a star and its four position neighbours through the effect
+chain in one call over 5n copies (``observations.predict``). That is right only if every effect
+acts on each star alone: this checks it for every registered effect, and for all of them chained,
+on a context with every field populated (several frames, a turning camera)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rollingstar.sensors.effects import EFFECTS
+from rollingstar.sensors.effects.chain import predict as chain_predict
+from tests.sensors.test_effects import full_context, random_values
+
+
+def _values(cls, rng) -> dict:
+    """Random parameter values; the empirical shapes' axis choices are whole numbers."""
+    return {k: float(round(v)) if k in ("axis", "along", "across") else v for k, v in random_values(cls, rng).items()}
+
+
+def _tiled(effects, ctx, offsets):
+    n = ctx.n
+    big = ctx.take(np.tile(np.arange(n), len(offsets)))
+    big = big.evolve(x=big.x + np.repeat(offsets[:, 0], n), y=big.y + np.repeat(offsets[:, 1], n))
+    return [np.reshape(a, (len(offsets), n)) for a in chain_predict(effects, big)]
+
+
+def _one_by_one(effects, ctx, offsets):
+    out = [chain_predict(effects, ctx.evolve(x=ctx.x + dx, y=ctx.y + dy)) for dx, dy in offsets]
+    return [np.stack([o[k] for o in out]) for k in (0, 1)]
+
+
+@pytest.mark.parametrize("name", sorted(EFFECTS) + ["all"])
+def test_an_effect_sees_each_star_alone(name):
+    rng = np.random.default_rng(4)
+    classes = sorted(EFFECTS.items()) if name == "all" else [(name, EFFECTS[name])]
+    effects = tuple(cls(**_values(cls, rng)) for _, cls in classes)
+    ctx = full_context(n=60)
+    offsets = np.array([[0.0, 0.0], [1e-3, 0.0], [-1e-3, 0.0], [0.0, 1e-3], [0.0, -1e-3]])
+    for a, b in zip(_tiled(effects, ctx, offsets), _one_by_one(effects, ctx, offsets)):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
