@@ -176,14 +176,14 @@ def markdown_image(rows: list[dict]) -> str:
         return ", ".join(f"{s:.2f}" + ("" if m else " (default)") for s, m in zip(r["psf_sigma_px"], r["psf_measured"]))
 
     lines = ["| recording | scope | stars measured again | PSF sigma (px) | stated sigma, median (px) | named | "
-             "held-out RMS after (px) | a.net residual (px) | after / a.net | CPU s |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "training chi2/dof after | held-out RMS after (px) | a.net residual (px) | after / a.net | CPU s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         named = ", ".join(e["name"] for e in r["effects"]) or "none"
         ratio = (f"{r['heldout_rms_after_px'] / r['anet_residual_px']:.2f}"
                  if r["heldout_rms_after_px"] is not None and r["anet_residual_px"] else "n/a")
         lines.append(f"| {r['recording']} | {r['scope']} | {r['measured']} of {r['listed']} | {psf(r)} | "
-                     f"{f(r['sigma_px'])} | {named} | {f(r['heldout_rms_after_px'], '{:.3f}')} | "
+                     f"{f(r['sigma_px'])} | {named} | {f(r['chi2_dof_after'])} | {f(r['heldout_rms_after_px'], '{:.3f}')} | "
                      f"{f(r['anet_residual_px'])} | {ratio} | {f(r['cpu_s'], '{:.2f}')} |")
     cpu = [r["cpu_s"] for r in rows]
     lines += ["", *against(rows, "anet_residual_px", "astrometry.net's in-sample residual, stars measured again"),
