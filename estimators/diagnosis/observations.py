@@ -42,6 +42,7 @@ from rollingstar.sensors.effects.chain import predict as chain_predict
 from rollingstar.sensors.so3 import quat_multiply, skew
 
 POS_STEP_PX = 1e-3
+TILED_MAX_STARS = 1000  # up to this many stars the chain runs once over 5 copies of them (in predict)
 # the position and its four central-difference neighbours, (dx, dy) px
 POS_OFFSETS = np.array([[0.0, 0.0], [POS_STEP_PX, 0.0], [-POS_STEP_PX, 0.0], [0.0, POS_STEP_PX], [0.0, -POS_STEP_PX]])
 # A frame takes a one-sided (backward/forward) rate instead of the central difference only when it
@@ -237,14 +238,18 @@ def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=(), 
         def chain(c):
             # the attitude moves the ideal position; the chain maps that motion through its position
             # Jacobian d(x', y')/d(x, y), taken by central differences (the effects publish only
-            # parameter Jacobians). Needed where an effect is strongly nonlinear in position. The
-            # position and its four neighbours go through the chain in one call over 5n stars
-            # (every effect acts on each star alone: tests/diagnosis/test_observations_tiling.py);
-            # the chain's cost is mostly per call, not per star
+            # parameter Jacobians). Needed where an effect is strongly nonlinear in position. A few
+            # stars' position and four neighbours go through the chain in one call over 5n copies
+            # (every effect acts on each star alone: tests/diagnosis/test_observations_tiling.py):
+            # the chain's cost is then per call; beyond TILED_MAX_STARS copying the context costs more
             n = c.n
-            big = c.take(np.tile(np.arange(n), 5))
-            big = big.evolve(x=big.x + np.repeat(POS_OFFSETS[:, 0], n), y=big.y + np.repeat(POS_OFFSETS[:, 1], n))
-            xs, ys = (np.reshape(a, (5, n)) for a in chain_predict(effects, big))
+            if n <= TILED_MAX_STARS:
+                big = c.take(np.tile(np.arange(n), 5))
+                big = big.evolve(x=big.x + np.repeat(POS_OFFSETS[:, 0], n), y=big.y + np.repeat(POS_OFFSETS[:, 1], n))
+                xs, ys = (np.reshape(a, (5, n)) for a in chain_predict(effects, big))
+            else:
+                xs, ys = (np.stack(a) for a in zip(*(chain_predict(effects, c.evolve(x=c.x + dx, y=c.y + dy))
+                                                     for dx, dy in POS_OFFSETS)))
             cols = [np.stack([xs[k] - xs[k + 1], ys[k] - ys[k + 1]], axis=-1) / (2 * POS_STEP_PX) for k in (1, 3)]
             return xs[0], ys[0], np.stack(cols, axis=-1)
 
