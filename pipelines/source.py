@@ -205,16 +205,26 @@ def stars_from_record(data: dict) -> tuple[StarTable, int]:
 
 
 def gyro_from_messages(messages) -> GyroSamples:
-    """The gyro samples of ``/gyro`` messages, in message order."""
+    """The gyro samples of ``/gyro`` messages in time order (a logger may write its batches out of
+    order; each batch's own samples are in order, :class:`~rollingstar.logs.records.GyroSamplesRecord`)."""
     if not messages:
         return GyroSamples.empty()
-    samples = join_gyro_samples(m.record for m in messages)
+    samples = _time_ordered(join_gyro_samples(m.record for m in messages))
     return GyroSamples(samples["t_ns"], samples["omega_rad_s"])
 
 
 def truth_from_messages(messages) -> TruthSamples | None:
-    """The truth attitude samples of ``/truth/attitude`` messages; None without any."""
+    """The truth attitude samples of ``/truth/attitude`` messages in time order; None without any."""
     if not messages:
         return None
-    samples = join_attitude_samples(m.record for m in messages)
+    samples = _time_ordered(join_attitude_samples(m.record for m in messages))
     return TruthSamples(samples["t_ns"], samples["q_xyzw"], samples["omega_rad_s"])
+
+
+def _time_ordered(samples: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Joined samples sorted by ``t_ns`` (stable: samples of equal time keep their order)."""
+    t = samples["t_ns"]
+    if t.size < 2 or np.all(np.diff(t) >= 0):
+        return samples
+    order = np.argsort(t, kind="stable")
+    return {k: v[order] for k, v in samples.items()}
