@@ -207,7 +207,7 @@ def render_preview(log: str | Path, out_png: str | Path, layout: str | Path = DE
                    frame: int | None = None) -> Path:
     """Draw every panel of ``layout`` from ``log`` into ``out_png`` (module docstring); ``frame``: the
     image shown (default the middle one)."""
-    check_not_an_input(out_png, [log, layout])  # before the drawing, not after it
+    check_not_an_input(out_png, [log, layout])  # before drawing: the figure takes seconds to draw
     reader = LogReader(log)
     panels = read_layout(layout, reader)
     images = [panel for kind, panel in panels if kind == "Image"]

@@ -4,8 +4,8 @@ A table of star positions made by another tool (astrometry.net's ``corr`` table,
 centroid list) carries that tool's centroid noise. When the image is at hand, each listed star is
 fitted again by maximum likelihood with the project's spot model: a Gaussian PSF (sigma measured
 from the listed stars themselves, :func:`~rollingstar.estimators.centroiders.psf_width.measure_psf_sigma`;
-an undersampled PSF gets the narrowest width that fits it, down to 0.3 px; 1 px when too few stars
-can be fitted) on a local background, the compiled Levenberg-Marquardt fit the ``streak``
+an undersampled PSF gets the narrowest width that fits it, down to 0.3 px; 1 px when no width could
+be measured) on a local background, the compiled Levenberg-Marquardt fit the ``streak``
 centroider uses (:func:`~rollingstar.estimators.centroiders.streak_kernel.levenberg_marquardt`)
 with the spot at rest.
 
@@ -13,17 +13,22 @@ Pixel noise (ADU^2): ``var = noise^2 + a s`` with ``noise^2`` the image's backgr
 (:func:`~rollingstar.estimators.attitude.pixel_bundle.background_variance`) and ``s`` the star's
 model signal at the pixel. ``a`` is ``1 / gain`` when the conversion gain is given; otherwise (an
 8-bit PNG states none) it is measured from the stars' own residuals after a first fit
-(:func:`_noise_per_signal`), and the stars are fitted again with it. Each star's 2 x 2 position covariance is the inverse of its Fisher information under that
-noise, scaled by the reduced chi-square of its core pixels (``s`` above the background noise)
+(:func:`_noise_per_signal`), and the stars are fitted again with it. Each star's 2 x 2 position
+covariance is the inverse of its Fisher information under that noise, scaled by the reduced chi-square of its core pixels (``s`` above the background noise)
 when that exceeds 1: what the Gaussian model does not draw of a real PSF (an undersampled one
 above all) shows there, and a window's background pixels would dilute it; plus the model's own
 bias on an exactly pixel-integrated Gaussian of the measured width (:func:`model_bias_px`).
-Pixels at the saturation level are left out.
+Pixels at the saturation level are left out. A misfit that moves no position (a symmetric PSF
+of another shape: an elliptical one, 1.6 x 0.9 px) inflates the covariances all the same, up to
+about 3x in sigma: the stated accuracy then errs on the large side, which the residuals of one
+fit cannot tell from a misfit that does move it (``tests/estimators/test_remeasure.py``).
 
 A star is kept only when the fit is a measurement of the listed star: finite, with positive flux
-and signal-to-noise of at least ``MIN_SNR`` against the background's noise (the first fit's), at most ``MAX_SHIFT_PX`` from the listed position, with
-no saturated pixel in its window (a saturated core's position comes from its wings alone) and no
-other listed star within ``BLEND_SIGMAS`` PSF widths (a neighbour's light pulls the fit). The
+and signal-to-noise of at least ``MIN_SNR`` under the first fit's pixel noise (the background's, plus
+the stated gain's shot noise), at most ``MAX_SHIFT_PX`` from the listed position, with
+no saturated pixel in its window (a saturated core's position comes from its wings alone), no
+other listed star within ``BLEND_SIGMAS`` PSF widths (a neighbour's light pulls the fit), and
+listed inside the image (``outside`` otherwise). The
 others keep the listed position and the table's own accuracy; :class:`Remeasured` says which and why.
 """
 from __future__ import annotations
@@ -54,6 +59,7 @@ MIN_SNR = 5.0  # flux over its standard deviation below which a fit is no measur
 BLEND_SIGMAS = 6.0  # another listed star closer than this many PSF widths (and 3 px) shares the window's light
 ITERATIONS = 30  # most Levenberg-Marquardt iterations per star
 MIN_CORE_PIXELS = 6  # fewer core pixels: the star's misfit scale is the image's pooled one
+MAX_PSF_SIGMA_PX = 20.0  # a stated PSF wider than this is no star tracker's (and its windows would not fit memory)
 
 
 class Remeasured(NamedTuple):
@@ -85,7 +91,11 @@ def remeasure_stars(image: np.ndarray, x: np.ndarray, y: np.ndarray, saturation:
     docstring). ``saturation``: the level (ADU) at and above which pixels are left out (None:
     :func:`_saturation`); ``gain_e_per_adu``: the conversion gain (None: the shot noise is measured
     from the stars); ``psf_sigma_px``: the Gaussian PSF sigma (None: measured from these stars)."""
-    img, x, y = _checked(image, x, y)
+    img, x, y = _checked(image, x, y, gain_e_per_adu, psf_sigma_px)
+    inside = (x > -0.5) & (x < img.shape[1] - 0.5) & (y > -0.5) & (y < img.shape[0] - 0.5)
+    if not inside.all():  # measured on the stars the image holds, the others reported as outside
+        r = remeasure_stars(image, x[inside], y[inside], saturation, gain_e_per_adu, psf_sigma_px)
+        return _scattered(r, inside, x, y)
     sat = _saturation(image) if saturation is None else float(saturation)
     noise2 = background_variance(img)
     a = 1.0 / gain_e_per_adu if gain_e_per_adu else 0.0
@@ -100,7 +110,8 @@ def remeasure_stars(image: np.ndarray, x: np.ndarray, y: np.ndarray, saturation:
     if not gain_e_per_adu and x.size:  # the shot noise from the stars' residuals, then the fit under it
         a = _noise_per_signal(img, fit, sat, noise2, psf)
         fit = _fit(img, x, y, sat, noise2, a, psf)
-        reason = np.where((reason == "") & ~(np.hypot(fit.p[:, 0] - x, fit.p[:, 1] - y) <= MAX_SHIFT_PX), "moved", reason)
+        again = _rejections(img, fit, x, y, sat, psf)
+        reason = np.where((reason == "") & np.isin(again, ("moved", "no_fit")), again, reason)
     cov = fit.cov * _core_scale(img, fit, sat, noise2, a, psf)[:, None, None]
     cov[:, :2, :2] += model_bias_px(psf) ** 2 * np.eye(2)
     ok = reason == ""
@@ -109,7 +120,24 @@ def remeasure_stars(image: np.ndarray, x: np.ndarray, y: np.ndarray, saturation:
                       float(a))
 
 
-def _checked(image, x, y) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _scattered(r: Remeasured, inside: np.ndarray, x: np.ndarray, y: np.ndarray) -> Remeasured:
+    """``r`` (of the stars ``inside``) spread back over every listed star, the others ``outside``."""
+    cov = np.full((x.size, 2, 2), np.nan)
+    cov[inside] = r.cov
+    reason = np.full(x.size, "outside", dtype=object)
+    reason[inside] = r.reason
+    measured = np.zeros(x.size, dtype=bool)
+    measured[inside] = r.measured
+    xs, ys = x.copy(), y.copy()
+    xs[inside], ys[inside] = r.x, r.y
+    return r._replace(x=xs, y=ys, cov=cov, measured=measured, reason=reason.astype(str))
+
+
+def _checked(image, x, y, gain, psf_sigma_px) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    if gain is not None and not (np.isfinite(gain) and gain > 0):
+        raise UserError(f"remeasure: gain_e_per_adu must be a positive number, got {gain}")
+    if psf_sigma_px is not None and not (np.isfinite(psf_sigma_px) and 0 < psf_sigma_px <= MAX_PSF_SIGMA_PX):
+        raise UserError(f"remeasure: psf_sigma_px must be in (0, {MAX_PSF_SIGMA_PX:g}] px, got {psf_sigma_px}")
     img = np.ascontiguousarray(image, dtype=float)
     if img.ndim != 2 or img.size == 0:
         raise UserError(f"remeasure: expected a 2-D image of pixels, got an array of shape {img.shape}")
@@ -245,11 +273,11 @@ def _window_max(img, r0: int, c0: int, size: int) -> float:
 
 def _saturation(image: np.ndarray) -> float:
     """The level an integer image clips at: its maximum when that is ``2^k - 1`` (k >= 8: the full
-    scale of 8-bit data, of 10-, 12- or 14-bit data in a 16-bit container, or of 16-bit data)
-    and at least two pixels hold it; +inf otherwise (no pixel is known to be clipped)."""
+    scale of 8-bit data, of 10-, 12- or 14-bit data in a 16-bit container, or of 16-bit data);
+    +inf otherwise (no pixel is known to be clipped). A hot pixel at full scale only costs the
+    stars whose window holds it their measurement; a clipped core taken as unclipped would bias one."""
     a = np.asarray(image)
     if a.dtype.kind not in "ui" or not a.size:
         return np.inf
     top = int(a.max())
-    clipped = top >= 255 and (top + 1) & top == 0 and np.count_nonzero(a == top) >= 2
-    return float(top) if clipped else np.inf
+    return float(top) if top >= 255 and (top + 1) & top == 0 else np.inf

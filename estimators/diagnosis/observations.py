@@ -219,7 +219,7 @@ def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=(), 
     """Predict every observation: ideal pinhole position, then the effect chain in stage order.
 
     ``attitude_jacobian=False``: positions only; ``att_jac`` is then the pinhole's, without the
-    chain's position Jacobian (the chain over four more copies of the stars), for callers that
+    chain's position Jacobian (the chain at four more positions of each star), for callers that
     difference positions."""
     rot = camera_rotations(obs, nuis)
     w = rot.inv().apply(obs.u_icrs)
@@ -238,10 +238,11 @@ def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=(), 
         def chain(c):
             # the attitude moves the ideal position; the chain maps that motion through its position
             # Jacobian d(x', y')/d(x, y), taken by central differences (the effects publish only
-            # parameter Jacobians). Needed where an effect is strongly nonlinear in position. A few
-            # stars' position and four neighbours go through the chain in one call over 5n copies
-            # (every effect acts on each star alone: tests/diagnosis/test_observations_tiling.py):
-            # the chain's cost is then per call; beyond TILED_MAX_STARS copying the context costs more
+            # parameter Jacobians). Needed where an effect is strongly nonlinear in position. Up to
+            # TILED_MAX_STARS stars, each position and its four neighbours go through the chain in
+            # one call over 5n copies (every effect acts on each star alone:
+            # tests/diagnosis/test_observations_tiling.py): the chain's cost is then per call;
+            # beyond TILED_MAX_STARS copying the context costs more
             n = c.n
             if n <= TILED_MAX_STARS:
                 big = c.take(np.tile(np.arange(n), 5))

@@ -394,9 +394,9 @@ def _star_contrast(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> float:
     med = float(np.median(a))
     scale = 1.4826 * float(np.median(np.abs(a - med))) or 1.0
     h, w = a.shape
-    r = np.clip(np.rint(y).astype(int), 1, h - 2)
-    c = np.clip(np.rint(x).astype(int), 1, w - 2)
-    peaks = np.max([a[r + dr, c + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1)], axis=0) if len(x) else np.zeros(1)
+    r, c = np.rint(y).astype(int), np.rint(x).astype(int)
+    peaks = (np.max([a[np.clip(r + dr, 0, h - 1), np.clip(c + dc, 0, w - 1)] for dr in (-1, 0, 1) for dc in (-1, 0, 1)],
+                    axis=0) if len(x) else np.zeros(1))
     return float((np.median(peaks) - med) / scale)
 
 

@@ -38,3 +38,29 @@ def test_an_effect_sees_each_star_alone(name):
     offsets = np.array([[0.0, 0.0], [1e-3, 0.0], [-1e-3, 0.0], [0.0, 1e-3], [0.0, -1e-3]])
     for a, b in zip(_tiled(effects, ctx, offsets), _one_by_one(effects, ctx, offsets)):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
+
+
+def test_predict_gives_the_same_attitude_jacobian_tiled_or_call_by_call(monkeypatch):
+    """``predict`` itself, on a synthetic recording with every registered effect: the tiled chain
+    (the default for this many stars) and the call-by-call chain (``TILED_MAX_STARS = 0``) agree."""
+    from rollingstar.estimators.diagnosis import observations
+    from rollingstar.sensors.effects.base import MissingContextError
+    from tests.diagnosis.synthetic import synthetic
+
+    rng = np.random.default_rng(6)
+    obs, truth, camera, timing = synthetic(frames=4, stars=20, noise=False)
+    effects = []
+    for _, cls in sorted(EFFECTS.items()):  # those this recording's context can drive
+        effect = cls(**_values(cls, rng))
+        try:
+            observations.predict(obs, truth, camera, timing, (effect,), attitude_jacobian=False)
+        except MissingContextError:
+            continue
+        effects.append(effect)
+    effects = tuple(effects)
+    assert len(effects) >= 10 and obs.n <= observations.TILED_MAX_STARS
+    tiled = observations.predict(obs, truth, camera, timing, effects)
+    monkeypatch.setattr(observations, "TILED_MAX_STARS", 0)
+    calls = observations.predict(obs, truth, camera, timing, effects)
+    for a, b in ((tiled.x, calls.x), (tiled.y, calls.y), (tiled.att_jac, calls.att_jac)):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
