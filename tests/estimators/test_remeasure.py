@@ -61,21 +61,27 @@ def test_remeasured_positions_beat_the_listed_ones_and_match_their_covariance():
     assert abs(z2.mean() - 2.0) < 4 * 2.0 / np.sqrt(z2.size) + 0.3
 
 
+def _z2_of_listed_stars(render, gain, images: int) -> np.ndarray:
+    """z^2 of every measured star's error under its stated covariance, over ``images`` images drawn
+    by ``render(rng, x, y, flux)``, the stars listed 0.3 px off."""
+    rng = np.random.default_rng(11)
+    z2 = []
+    for _ in range(images):
+        x, y = field(rng)
+        img = render(rng, x, y, rng.uniform(3000, 20000, x.size))
+        r = remeasure_stars(img, x + rng.normal(0, 0.3, x.size), y + rng.normal(0, 0.3, x.size), gain_e_per_adu=gain)
+        d = np.column_stack([r.x - x, r.y - y])[r.measured]
+        z2.append(np.einsum("ni,nij,nj->n", d, np.linalg.inv(r.cov[r.measured]), d))
+    return np.concatenate(z2)
+
+
 @pytest.mark.parametrize("psf, gain", [(1.3, None), (0.4, None), (0.4, GAIN)])
 def test_covariances_hold_without_a_gain_and_for_an_undersampled_psf(psf, gain, monkeypatch):
     """The corr import states no gain (an 8-bit PNG has none), and the creusot 16 mm PSF is 0.4 px
     wide: the shot noise measured from the stars' residuals, the core pixels' misfit and the
     model's own bias keep the stated covariances honest (mean z^2 within 1.2-3.2 of its 2)."""
     monkeypatch.setattr(sys.modules[__name__], "PSF", psf)
-    rng = np.random.default_rng(11)
-    z2 = []
-    for _ in range(8):
-        x, y = field(rng)
-        img = draw(rng, x, y, rng.uniform(3000, 20000, x.size))
-        r = remeasure_stars(img, x + rng.normal(0, 0.3, x.size), y + rng.normal(0, 0.3, x.size), gain_e_per_adu=gain)
-        d = np.column_stack([r.x - x, r.y - y])[r.measured]
-        z2.append(np.einsum("ni,nij,nj->n", d, np.linalg.inv(r.cov[r.measured]), d))
-    z2 = np.concatenate(z2)
+    z2 = _z2_of_listed_stars(draw, gain, images=8)
     assert z2.size >= 190 and 1.2 < z2.mean() < 3.2, z2.mean()
 
 
@@ -162,13 +168,5 @@ def test_a_psf_the_gaussian_does_not_draw_leaves_the_covariances_conservative(ga
     pixels and in the measured shot noise, and the stated covariances then err on the large side
     (mean z^2 about 0.1 here: sigmas about 3x the errors, the documented cost of a symmetric misfit
     that moves no position), never on the small one."""
-    rng = np.random.default_rng(11)
-    z2 = []
-    for _ in range(6):
-        x, y = field(rng)
-        img = _elliptical(rng, x, y, rng.uniform(3000, 20000, x.size))
-        r = remeasure_stars(img, x + rng.normal(0, 0.3, x.size), y + rng.normal(0, 0.3, x.size), gain_e_per_adu=gain)
-        d = np.column_stack([r.x - x, r.y - y])[r.measured]
-        z2.append(np.einsum("ni,nij,nj->n", d, np.linalg.inv(r.cov[r.measured]), d))
-    z2 = np.concatenate(z2)
+    z2 = _z2_of_listed_stars(_elliptical, gain, images=6)
     assert z2.size >= 140 and z2.mean() < 2.0 and np.mean(z2 > 9.21) < 0.01
