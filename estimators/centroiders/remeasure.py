@@ -33,6 +33,7 @@ others keep the listed position and the table's own accuracy; :class:`Remeasured
 """
 from __future__ import annotations
 
+import warnings
 from functools import lru_cache
 from typing import NamedTuple
 
@@ -157,7 +158,9 @@ def _fit(img, x, y, sat, noise2, a, psf_sigma_px) -> _Fit:
     row0 = np.rint(y).astype(np.int64) - half
     col0 = np.rint(x).astype(np.int64) - half
     n = len(x)
-    b0 = np.array([_window_median(img, r, c, size) for r, c in zip(row0, col0)])
+    with np.errstate(all="ignore"), warnings.catch_warnings():  # a window wholly outside: no median (0)
+        warnings.simplefilter("ignore", RuntimeWarning)
+        b0 = np.nan_to_num(np.nanmedian(_windows(img, row0, col0, size), axis=(1, 2)))
     start = window_moments(img, row0, col0, size, size, b0, 3.0 * np.sqrt(noise2))
     p = np.ascontiguousarray(np.column_stack([x, y, np.zeros((n, 2)), np.maximum(start[:, 0], 10.0 * np.sqrt(noise2)),
                                               b0]))
@@ -174,10 +177,7 @@ def _residuals(img, fit: _Fit, sat, psf_sigma_px) -> tuple[np.ndarray, np.ndarra
     """Per star and window pixel: the residual ``r``, the model signal ``s`` (ADU) and which pixels
     count (inside the image, below saturation, of a finite fit)."""
     h = fit.size
-    padded = np.pad(img, h, constant_values=np.nan)
-    rows = fit.row0[:, None] + np.arange(h) + h
-    cols = fit.col0[:, None] + np.arange(h) + h
-    win = padded[rows[:, :, None], cols[:, None, :]]
+    win = _windows(img, fit.row0, fit.col0, h)
     finite = np.all(np.isfinite(fit.p), axis=1)
     p = np.where(finite[:, None], fit.p, 0.0)
     mu = streak_mu(p, fit.row0, fit.col0, h, h, psf_sigma_px, 0.0, 0.0)
@@ -238,13 +238,13 @@ def model_bias_px(psf_sigma_px: float) -> float:
 
 def _rejections(img, fit: _Fit, x, y, sat, psf_sigma_px) -> np.ndarray:
     """Why each fit is not a measurement of its listed star (``""``: it is)."""
-    p, cov, half = fit.p, fit.cov, fit.size // 2
+    p, cov = fit.p, fit.cov
     reason = np.full(len(x), "", dtype=object)
     with np.errstate(invalid="ignore", divide="ignore"):
         snr = p[:, 4] / np.sqrt(cov[:, 4, 4])
     finite = np.all(np.isfinite(p), axis=1) & np.isfinite(cov[:, 0, 0]) & np.isfinite(cov[:, 1, 1])
-    saturated = np.array([_window_max(img, int(round(yy)) - half, int(round(xx)) - half, fit.size) >= sat
-                          for xx, yy in zip(x, y)], dtype=bool)
+    win = _windows(img, fit.row0, fit.col0, fit.size)  # centred on the listed positions
+    saturated = np.any(win >= sat, axis=(1, 2))
     d = np.hypot(x[:, None] - x[None, :], y[:, None] - y[None, :])
     np.fill_diagonal(d, np.inf)
     blended = d.min(axis=1, initial=np.inf) < max(BLEND_SIGMAS * psf_sigma_px, 3.0)
@@ -257,18 +257,13 @@ def _rejections(img, fit: _Fit, x, y, sat, psf_sigma_px) -> np.ndarray:
     return reason.astype(str)
 
 
-def _window(img, r0: int, c0: int, size: int) -> np.ndarray:
-    return img[max(r0, 0): max(r0 + size, 0), max(c0, 0): max(c0 + size, 0)]
-
-
-def _window_median(img, r0: int, c0: int, size: int) -> float:
-    w = _window(img, r0, c0, size)
-    return float(np.median(w)) if w.size else 0.0
-
-
-def _window_max(img, r0: int, c0: int, size: int) -> float:
-    w = _window(img, r0, c0, size)
-    return float(w.max()) if w.size else np.inf
+def _windows(img, row0: np.ndarray, col0: np.ndarray, size: int) -> np.ndarray:
+    """The stars' ``size x size`` windows (n, size, size) from their top-left pixels, NaN beyond
+    the image."""
+    padded = np.pad(img, size, constant_values=np.nan)
+    rows = row0[:, None] + np.arange(size) + size
+    cols = col0[:, None] + np.arange(size) + size
+    return padded[rows[:, :, None], cols[:, None, :]]
 
 
 def _saturation(image: np.ndarray) -> float:

@@ -150,7 +150,7 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
     far = gross_outliers(obs, attitudes, model, att_mask, pred0 if gate is None else None)
     gate_sigmas = OUTLIER_SIGMA
     if np.count_nonzero(~far & ~obs.heldout) < MIN_TRAINING_STARS or far.mean() > MAX_GROSS_FRACTION:
-        gate_sigmas = _robust_gate(obs, attitudes, model, att_mask)
+        gate_sigmas = _robust_gate(obs, attitudes, model, att_mask, pred0 if gate is None else None)
         far = gross_outliers(obs, attitudes, model, att_mask, gate_sigmas=gate_sigmas)
     n_rejected = int(far.sum())
     if np.count_nonzero(~obs.heldout) < MIN_TRAINING_STARS:
@@ -177,11 +177,13 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
     return Dataset(obs, unit, frame_has_train, att_mask, n_rejected, chan_out, gate_sigmas), nuis0, pred0
 
 
-def _robust_gate(obs: Observations, attitudes, model: SensorModel, att_mask: np.ndarray) -> float:
+def _robust_gate(obs: Observations, attitudes, model: SensorModel, att_mask: np.ndarray,
+                 pred: Prediction | None = None) -> float:
     """``ROBUST_GATE`` times the median miss (sigmas) of ``model`` with every star in the attitude
     fit, never below ``OUTLIER_SIGMA``; ``OUTLIER_SIGMA`` when the median miss exceeds
     ``ROBUST_GATE_MAX_MISS`` of the image diagonal."""
-    _, pred = fit_nuisance(obs, attitudes, model.camera, model.timing, model.effects, att_mask, model.moving)
+    if pred is None:  # ``model``'s prediction with every star in the attitude fit, when not already made
+        _, pred = fit_nuisance(obs, attitudes, model.camera, model.timing, model.effects, att_mask, model.moving)
     diagonal = float(np.hypot(model.camera.width, model.camera.height))
     if np.median(np.hypot(obs.x - pred.x, obs.y - pred.y)) > ROBUST_GATE_MAX_MISS * diagonal:
         return OUTLIER_SIGMA
