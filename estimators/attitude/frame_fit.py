@@ -5,6 +5,7 @@ Model and linearisation: :mod:`rollingstar.estimators.attitude.rs_bundle` (modul
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from scipy.spatial.transform import Rotation
 
 from rollingstar.sensors.conventions import S_PER_NS
@@ -21,28 +22,6 @@ def predicted_directions(R: Rotation, omega: np.ndarray, ref: np.ndarray, dt: np
     return rotate_at_rate(-np.asarray(omega, dtype=float), ref @ R.as_matrix(), dt)  # R^T r as r^T R
 
 
-def position_normal(R: Rotation, omega: np.ndarray, ref: np.ndarray, dt: np.ndarray, d, k: int,
-                    huber_k: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Normal equations ``(sum w_i H_i^T W_i H_i, sum w_i H_i^T W_i e_i)`` of the position fit at
-    ``(R, omega)``: ``e_i`` the tangent-plane residual of star ``i`` (``d``: the stars'
-    :class:`~rollingstar.estimators.attitude.star_covariance.DirectionCovariance`), ``H_i`` its
-    Jacobian in the first ``k`` of ``(delta, eps)`` (3: attitude only, 6: attitude and rate).
-    ``huber_k``: Huber weights ``w_i = min(1, huber_k / m_i)`` on the Mahalanobis residuals
-    ``m_i = sqrt(e_i^T W_i e_i)`` (iteratively reweighted least squares: a fragment of a streak or a
-    misidentified star pulls with a bounded influence); None: ``w_i = 1``."""
-    Et = np.swapaxes(d.basis, -1, -2)
-    w = predicted_directions(R, omega, ref, dt)
-    S = Et @ skew(w)  # (n, 2, 3): tangent-plane motion per unit rotation
-    H = np.concatenate([S, S * dt[:, None, None]], axis=2)[:, :, :k]
-    e = np.einsum("nki,ni->nk", Et, d.body - w)
-    info = d.info
-    if huber_k is not None:
-        m = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", e, info, e), 1e-300))
-        info = info * np.minimum(1.0, huber_k / m)[:, None, None]
-    HtW = np.swapaxes(H, -1, -2) @ info
-    return np.sum(HtW @ H, axis=0), np.einsum("nik,nk->i", HtW, e)
-
-
 def apply_step(R: Rotation, omega: np.ndarray, step: np.ndarray) -> tuple[Rotation, np.ndarray]:
     """``R Exp(delta)`` and ``omega + eps`` for ``step = (delta[, eps])``."""
     omega = np.array(omega, dtype=float)
@@ -53,16 +32,96 @@ def apply_step(R: Rotation, omega: np.ndarray, step: np.ndarray) -> tuple[Rotati
 
 def fit_positions(R: Rotation, omega: np.ndarray, ref: np.ndarray, dt: np.ndarray, d, iterations: int,
                   fit_rate: bool, huber_k: float | None = None) -> tuple[Rotation, np.ndarray, np.ndarray]:
-    """Gauss-Newton fit of the attitude at ``t_ref`` and the rate to the stars' directions
-    (:func:`position_normal`, with Huber weights after the first iteration when ``huber_k`` is
-    given). Returns ``R``, ``omega`` and the information matrix (unweighted): 6 x 6 (attitude, rate),
-    or 3 x 3 (attitude) when ``fit_rate`` is False and ``omega`` is held."""
-    k = 6 if fit_rate else 3
+    """Gauss-Newton fit of the attitude at ``t_ref`` and the rate to the stars' directions. Each
+    iteration solves the normal equations ``(sum w_i H_i^T W_i H_i) step = sum w_i H_i^T W_i e_i``:
+    ``e_i`` the tangent-plane residual of star ``i`` (``d``: the stars'
+    :class:`~rollingstar.estimators.attitude.star_covariance.DirectionCovariance`), ``H_i`` its
+    Jacobian in ``(delta, eps)`` (attitude and rate; attitude alone when ``fit_rate`` is False and
+    ``omega`` is held), and after the first iteration, when ``huber_k`` is given, Huber weights
+    ``w_i = min(1, huber_k / m_i)`` on the Mahalanobis residuals ``m_i = sqrt(e_i^T W_i e_i)``
+    (iteratively reweighted least squares: a fragment of a streak or a misidentified star pulls
+    with a bounded influence). Returns ``R``, ``omega`` and the unweighted information matrix at the
+    solution: 6 x 6 (attitude, rate), or 3 x 3 (attitude).
+
+    Compiled (:func:`_position_fit`): the fit of a frame's few tens of stars is some ten small
+    array operations per iteration, and numpy's per-call overhead was most of its time."""
+    q, omega, normal = _position_fit(np.asarray(R.as_quat(), dtype=float), np.array(omega, dtype=float),
+                                     np.ascontiguousarray(ref, dtype=float), np.ascontiguousarray(dt, dtype=float),
+                                     np.ascontiguousarray(d.body, dtype=float), np.ascontiguousarray(d.basis, dtype=float),
+                                     np.ascontiguousarray(d.info, dtype=float), int(iterations), 6 if fit_rate else 3,
+                                     -1.0 if huber_k is None else float(huber_k))
+    return Rotation.from_quat(q), omega, normal
+
+
+@njit(cache=True, nogil=True)
+def _quat_matrix(q):  # pragma: no cover - compiled
+    """Rotation matrix of the unit quaternion ``q`` (x, y, z, w)."""
+    x, y, z, w = q[0], q[1], q[2], q[3]
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+@njit(cache=True, nogil=True)
+def _quat_step(q, delta):  # pragma: no cover - compiled
+    """``q Exp(delta)`` (scalar-last quaternions; the rotation ``R Exp(delta)``), renormalised."""
+    th = np.sqrt(delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2)
+    s = 0.5 - th * th / 48.0 if th < 1e-6 else np.sin(0.5 * th) / th
+    px, py, pz, pw = q[0], q[1], q[2], q[3]
+    qx, qy, qz, qw = s * delta[0], s * delta[1], s * delta[2], np.cos(0.5 * th)
+    out = np.array([pw * qx + px * qw + py * qz - pz * qy, pw * qy - px * qz + py * qw + pz * qx,
+                    pw * qz + px * qy - py * qx + pz * qw, pw * qw - px * qx - py * qy - pz * qz])
+    return out / np.sqrt(np.sum(out * out))
+
+
+@njit(cache=True, nogil=True)
+def _position_normal(q, omega, ref, dt, body, basis, info, k, huber_k):  # pragma: no cover - compiled
+    """Normal equations of :func:`fit_positions` at ``(q, omega)``; ``huber_k < 0``: unweighted.
+    Written out in scalars: numba's ``@`` on 2 x 3 arrays calls BLAS, slower than the loops."""
+    R = _quat_matrix(q)
+    rate = np.sqrt(omega[0] ** 2 + omega[1] ** 2 + omega[2] ** 2)
+    axis = -omega / rate if rate > 0 else np.zeros(3)
+    normal, rhs = np.zeros((k, k)), np.zeros(k)
+    H, v, e, HtW = np.zeros((2, 6)), np.zeros(3), np.zeros(2), np.zeros((6, 2))
+    for i in range(ref.shape[0]):
+        for j in range(3):  # R^T r
+            v[j] = ref[i, 0] * R[0, j] + ref[i, 1] * R[1, j] + ref[i, 2] * R[2, j]
+        if rate > 0:  # w = Exp(-omega dt) R^T r, Rodrigues' formula (rollingstar.sensors.so3.rotate_at_rate)
+            c, s = np.cos(rate * dt[i]), np.sin(rate * dt[i])
+            kv = (axis[0] * v[0] + axis[1] * v[1] + axis[2] * v[2]) * (1.0 - c)
+            k0, k1, k2 = axis[1] * v[2] - axis[2] * v[1], axis[2] * v[0] - axis[0] * v[2], axis[0] * v[1] - axis[1] * v[0]
+            v[0], v[1], v[2] = v[0] * c + k0 * s + axis[0] * kv, v[1] * c + k1 * s + axis[1] * kv, v[2] * c + k2 * s + axis[2] * kv
+        for a in range(2):  # row a of E^T [w]x and E^T [w]x dt, and the residual E^T (body - w)
+            e0, e1, e2 = basis[i, 0, a], basis[i, 1, a], basis[i, 2, a]
+            H[a, 0], H[a, 1], H[a, 2] = e1 * v[2] - e2 * v[1], e2 * v[0] - e0 * v[2], e0 * v[1] - e1 * v[0]
+            for b in range(3):
+                H[a, 3 + b] = H[a, b] * dt[i]
+            e[a] = e0 * (body[i, 0] - v[0]) + e1 * (body[i, 1] - v[1]) + e2 * (body[i, 2] - v[2])
+        w00, w01, w10, w11 = info[i, 0, 0], info[i, 0, 1], info[i, 1, 0], info[i, 1, 1]
+        if huber_k >= 0:
+            m = np.sqrt(max(e[0] * (w00 * e[0] + w01 * e[1]) + e[1] * (w10 * e[0] + w11 * e[1]), 1e-300))
+            scale = min(1.0, huber_k / m)
+            w00, w01, w10, w11 = w00 * scale, w01 * scale, w10 * scale, w11 * scale
+        for a in range(k):
+            HtW[a, 0] = H[0, a] * w00 + H[1, a] * w10
+            HtW[a, 1] = H[0, a] * w01 + H[1, a] * w11
+            rhs[a] += HtW[a, 0] * e[0] + HtW[a, 1] * e[1]
+            for b in range(k):
+                normal[a, b] += HtW[a, 0] * H[0, b] + HtW[a, 1] * H[1, b]
+    return normal, rhs
+
+
+@njit(cache=True, nogil=True)
+def _position_fit(q, omega, ref, dt, body, basis, info, iterations, k, huber_k):  # pragma: no cover - compiled
+    """:func:`fit_positions` on the quaternion ``q``: ``(q, omega, information)``."""
     for it in range(iterations):
-        normal, rhs = position_normal(R, omega, ref, dt, d, k, huber_k if it else None)
-        R, omega = apply_step(R, omega, np.linalg.solve(normal, rhs))
-    normal, _ = position_normal(R, omega, ref, dt, d, k)
-    return R, np.asarray(omega, dtype=float), 0.5 * (normal + normal.T)
+        normal, rhs = _position_normal(q, omega, ref, dt, body, basis, info, k, huber_k if it else -1.0)
+        step = np.linalg.solve(normal, rhs)
+        q = _quat_step(q, step[:3])
+        if k == 6:
+            omega = omega + step[3:]
+    normal, _ = _position_normal(q, omega, ref, dt, body, basis, info, k, -1.0)
+    return q, omega, 0.5 * (normal + normal.T)
 
 
 def velocity_rate(camera, stars) -> np.ndarray | None:

@@ -61,18 +61,20 @@ BACKGROUND_STRIDE = 16  # pixel stride of the frame's background-noise sample
 
 
 def star_kinematics(camera, timing, t0_ns: int, t_ref_ns: int, R: Rotation, omega: np.ndarray, ref: np.ndarray,
-                    t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    t_ns: np.ndarray, passes: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Each star's position at its own row's mid-exposure, image velocity and ``A_j`` (module docstring).
 
-    Returns ``pv`` (n, 4) = (x, y, vx, vy) px and px/s, ``A`` (n, 4, 6) and ``dt`` (n,) s. The own-row
-    time is the fixed point ``t = t0 + y ld + E/2``, two iterations from the stars' measured times
-    (each shrinks a row error ``d`` to ``|v| ld d``: 0.03 d at 10 deg/s on he2021a, so a
-    centroid a 17 px fragment off the streak's centre leaves 0.0006 px). ``A``: ``d(x, y)/d(delta, eps) = P [w]x [I, dt I]`` corrected for the own-row time moving
+    Returns ``pv`` (n, 4) = (x, y, vx, vy) px and px/s, ``A`` (n, 4, 6), ``dt`` (n,) s and the own-row
+    times (n,) ns. The own-row time is the fixed point ``t = t0 + y ld + E/2``, ``passes``
+    iterations from ``t_ns`` (each shrinks a row error ``d`` to ``|v| ld d``: 0.03 d at 10 deg/s on
+    he2021a, so two from the stars' measured times leave 0.0006 px of a centroid a 17 px fragment
+    off the streak's centre; one from the times of a step before, a few hundredths of a pixel away,
+    leaves nothing). ``A``: ``d(x, y)/d(delta, eps) = P [w]x [I, dt I]`` corrected for the own-row time moving
     with ``y`` (``dy = dy0 / (1 - vy ld)``, ``dx = dx0 + vx ld dy``), ``d v / d eps = P [w]x``; the
     velocity's dependence on the attitude (``|omega|`` times smaller) is left out."""
     ld = timing.effective_line_delay_ns * S_PER_NS
     t = np.asarray(t_ns, dtype=np.int64)
-    for _ in range(2):
+    for _ in range(passes):
         dt = (t - np.int64(t_ref_ns)) * S_PER_NS
         w = predicted_directions(R, omega, ref, dt)
         x, y, _ = camera.project(w)
@@ -90,7 +92,7 @@ def star_kinematics(camera, timing, t0_ns: int, t_ref_ns: int, R: Rotation, omeg
     A[:, :2, :3] = shear @ PS
     A[:, :2, 3:] = A[:, :2, :3] * dt[:, None, None]
     A[:, 2:, 3:] = PS
-    return np.column_stack([x, y, v]), A, dt
+    return np.column_stack([x, y, v]), A, dt, t
 
 
 def background_variance(image: np.ndarray) -> float:
@@ -212,7 +214,7 @@ def refine_on_pixels(frame, context, camera, stars, R: Rotation, omega, info, fi
     sigma ``psf_sigma_px``; the position solution ``(R, omega, info)`` is returned unchanged (and
     flagged) when no star has enough live pixels, or when fewer than two stars pass the screen."""
     kin = _kinematics(frame, context, camera, stars, t_ref)
-    pv, A, _ = kin(R, omega)
+    pv, A, _, t = kin(R, omega)
     pixels = _frame_pixels(frame, context, pv, psf_sigma_px, params.window_sigmas)
     nuis, live = _initial_nuisance(pv, pixels)
     usable = live >= MIN_LIVE_PIXELS
@@ -223,7 +225,7 @@ def refine_on_pixels(frame, context, camera, stars, R: Rotation, omega, info, fi
     start = (R, omega)
     for it in range(params.pixel_iterations + 1):
         if it:  # the first iteration's kinematics are the ones computed above
-            pv, A, _ = kin(R, omega)
+            pv, A, _, t = kin(R, omega, t_ns=t, passes=1)
         try:
             b = _Blocks(pv[usable], A[usable], nuis, pixels)
         except np.linalg.LinAlgError:  # a star's flux and background not determined by its pixels

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rollingstar.sensors.so3 import cross
+
 __all__ = ["tangent_basis", "direction_jacobian", "DirectionCovariance", "direction_covariance",
            "anisotropic_covariance", "isotropic_sigma_px", "is_isotropic", "FD_STEP_PX"]
 
@@ -36,27 +38,33 @@ def tangent_basis(u: np.ndarray) -> np.ndarray:
     """Two orthonormal vectors perpendicular to each unit vector: (n, 3, 2) columns ``e1, e2``."""
     u = np.asarray(u, dtype=float).reshape(-1, 3)
     # Helper axis: the coordinate axis least aligned with u (never parallel to it).
-    helper = np.eye(3)[np.argmin(np.abs(u), axis=1)]
-    e1 = np.cross(u, helper)
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(u, e1)
-    return np.stack([e1, e2], axis=-1)
+    helper = np.zeros_like(u)
+    helper[np.arange(len(u)), np.argmin(np.abs(u), axis=1)] = 1.0
+    e1 = cross(u, helper)
+    e1 /= np.sqrt(np.einsum("ij,ij->i", e1, e1))[:, None]
+    return np.stack([e1, cross(u, e1)], axis=-1)
 
 
 def direction_jacobian(camera, x, y) -> tuple[np.ndarray, np.ndarray]:
     """Unit camera directions ``b`` (n, 3) of the pixels and ``J = d b / d(x, y)`` (n, 3, 2)."""
+    body, _, J = _direction_basis_jacobian(camera, x, y)
+    return body, J
+
+
+def _direction_basis_jacobian(camera, x, y) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`direction_jacobian`'s ``b`` and ``J``, with the tangent basis ``E`` of ``b`` between them."""
     x = np.asarray(x, dtype=float).reshape(-1)
     y = np.asarray(y, dtype=float).reshape(-1)
     body = camera.unproject(x, y).reshape(-1, 3)
     body = body / np.linalg.norm(body, axis=1, keepdims=True)
+    E = tangent_basis(body)
     if hasattr(camera, "projection_jacobian"):
-        E = tangent_basis(body)
         PE = np.asarray(camera.projection_jacobian(body), dtype=float) @ E  # (n, 2, 2)
-        return body, E @ np.linalg.inv(PE)
+        return body, E, E @ np.linalg.inv(PE)
     h = FD_STEP_PX
     cols = [(camera.unproject(x + dx, y + dy) - camera.unproject(x - dx, y - dy)).reshape(-1, 3) / (2 * h)
             for dx, dy in ((h, 0.0), (0.0, h))]
-    return body, np.stack(cols, axis=-1)
+    return body, E, np.stack(cols, axis=-1)
 
 
 @dataclass(frozen=True)
@@ -82,8 +90,7 @@ class DirectionCovariance:
 def direction_covariance(camera, x, y, cov_px) -> DirectionCovariance:
     """The tangent-plane covariance of each star's direction from its pixel covariance ``cov_px``
     (n, 2, 2) px^2 (module docstring: ``Sigma = E^T J C J^T E``)."""
-    body, J = direction_jacobian(camera, x, y)
-    E = tangent_basis(body)
+    body, E, J = _direction_basis_jacobian(camera, x, y)
     M = np.swapaxes(E, -1, -2) @ J  # (n, 2, 2): tangent components of the pixel columns
     cov = M @ np.asarray(cov_px, dtype=float).reshape(-1, 2, 2) @ np.swapaxes(M, -1, -2)
     cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))

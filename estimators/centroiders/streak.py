@@ -275,6 +275,7 @@ class StreakCentroider(Centroider):
         self._inflow = {}
         self._background = None
         self._sample_grid = None  # (map, stride, the map on the tracked frames' sample grid)
+        self._corner_jacobian = None  # (camera, rotation_jacobian at the corners and centre)
         self.last_mode = ""  # how the last frame was centroided: tracked, full, cold or cog (diagnostics)
         self._kernels = {}
         p = self.params
@@ -285,9 +286,11 @@ class StreakCentroider(Centroider):
 
     def _longest_streak_px(self, camera, omega) -> float:
         """The longest streak ``|v| E`` expected at the detector's corners and centre (px)."""
-        x = np.array([0.0, camera.width - 1.0, 0.0, camera.width - 1.0, 0.5 * (camera.width - 1.0)])
-        y = np.array([0.0, 0.0, camera.height - 1.0, camera.height - 1.0, 0.5 * (camera.height - 1.0)])
-        v = rotation_jacobian(camera, x, y) @ np.asarray(omega, dtype=float)
+        if self._corner_jacobian is None or self._corner_jacobian[0] is not camera:  # once per camera
+            x = np.array([0.0, camera.width - 1.0, 0.0, camera.width - 1.0, 0.5 * (camera.width - 1.0)])
+            y = np.array([0.0, 0.0, camera.height - 1.0, camera.height - 1.0, 0.5 * (camera.height - 1.0)])
+            self._corner_jacobian = (camera, rotation_jacobian(camera, x, y))
+        v = self._corner_jacobian[1] @ np.asarray(omega, dtype=float)
         return float(np.max(np.hypot(v[:, 0], v[:, 1]))) * self._exposure
 
     def _set_psf(self, psf_sigma_px: float) -> None:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from rollingstar.sensors.motion import so3_right_jacobian
-from rollingstar.sensors.so3 import rotate_by_rotvec, skew
+from rollingstar.sensors.so3 import cross, rotate_by_rotvec, skew
 
 
 def project(camera, w) -> tuple[np.ndarray, np.ndarray]:
@@ -45,9 +45,9 @@ def rotation_jacobian(camera, x, y) -> np.ndarray:
 
 def image_velocity(camera, x, y, omega_rad_s) -> tuple[np.ndarray, np.ndarray]:
     """Image velocity (px/s) of fixed stars for body rate ``omega``: ``P(w) (w x omega)``."""
-    jac = rotation_jacobian(camera, x, y)
-    v = jac @ np.broadcast_to(np.asarray(omega_rad_s, dtype=float).reshape(-1, 3), (jac.shape[0], 3))[..., None]
-    return v[:, 0, 0], v[:, 1, 0]
+    w = camera.unproject(x, y).reshape(-1, 3)
+    v = np.einsum("nij,nj->ni", camera.projection_jacobian(w), cross(w, np.asarray(omega_rad_s, dtype=float)))
+    return v[:, 0], v[:, 1]
 
 
 def displace_direction(camera, x, y, dw_cam, jacobian: bool = True):

@@ -128,3 +128,51 @@ def test_a_pixel_model_that_explains_no_star_falls_back_to_the_positions_and_say
     positions = run_plugin(RsBundleSolver(pixels=False), frames, ctx)
     for o, p in zip(outs, positions):
         np.testing.assert_allclose(o.attitudes[0].q_xyzw, p.attitudes[0].q_xyzw, atol=1e-12)
+
+
+def _reference_position_fit(R, omega, ref, dt, d, iterations, k, huber_k):
+    """The position step written with numpy and scipy rotations, straight from the normal equations
+    of ``frame_fit.fit_positions``'s docstring (a test oracle for the compiled fit)."""
+    Et = np.swapaxes(d.basis, -1, -2)
+
+    def normal(R, omega, huber):
+        w = np.stack([Rotation.from_rotvec(omega * t).inv().apply(R.inv().apply(r)) for r, t in zip(ref, dt)])
+        S = Et @ skew(w)
+        H = np.concatenate([S, S * dt[:, None, None]], axis=2)[:, :, :k]
+        e = np.einsum("nki,ni->nk", Et, d.body - w)
+        info = d.info
+        if huber is not None:
+            m = np.sqrt(np.einsum("ni,nij,nj->n", e, info, e))
+            info = info * np.minimum(1.0, huber / m)[:, None, None]
+        HtW = np.swapaxes(H, -1, -2) @ info
+        return np.sum(HtW @ H, axis=0), np.einsum("nik,nk->i", HtW, e)
+
+    for it in range(iterations):
+        step = np.linalg.solve(*normal(R, omega, huber_k if it else None))
+        R, omega = R * Rotation.from_rotvec(step[:3]), omega + (step[3:] if k == 6 else 0.0)
+    return R, omega, normal(R, omega, None)[0]
+
+
+@pytest.mark.parametrize("fit_rate, huber_k", [(True, 3.0), (True, None), (False, 3.0)])
+def test_the_compiled_position_fit_equals_its_normal_equations_written_out(fit_rate, huber_k):
+    from rollingstar.estimators.attitude.frame_fit import fit_positions
+    from rollingstar.estimators.attitude.star_covariance import direction_covariance
+
+    rng = np.random.default_rng(7)
+    cam = PinholeCamera(focal_length_m=0.025, pixel_size_m=5.5e-6, width=1024, height=1024, k1=-0.05)
+    n = 25
+    x, y = rng.uniform(0, 1023, n), rng.uniform(0, 1023, n)
+    cov = np.einsum("nij,nkj->nik", a := rng.normal(0, 0.08, (n, 2, 2)), a) + 1e-4 * np.eye(2)
+    d = direction_covariance(cam, x, y, cov)
+    truth, omega = Rotation.from_rotvec([0.4, -1.1, 2.0]), np.radians([2.0, -1.0, 4.0])
+    dt = rng.uniform(-0.025, 0.025, n)
+    ref = np.stack([truth.apply(Rotation.from_rotvec(omega * t).apply(b)) for b, t in zip(d.body, dt)])
+    ref[5] = Rotation.from_rotvec([0.0, 2e-3, 0.0]).apply(ref[5])  # a wrong identification the Huber weight bounds
+    start = truth * Rotation.from_rotvec([2e-3, -1e-3, 3e-3])
+    omega0 = np.zeros(3) if fit_rate else omega
+    R, w, info = fit_positions(start, omega0, ref, dt, d, 4, fit_rate, huber_k)
+    R_ref, w_ref, info_ref = _reference_position_fit(start, omega0, ref, dt, d, 4, 6 if fit_rate else 3, huber_k)
+    assert (R_ref.inv() * R).magnitude() < 1e-12
+    np.testing.assert_allclose(w, w_ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(info, 0.5 * (info_ref + info_ref.T), rtol=1e-9)
+    assert info.shape == ((6, 6) if fit_rate else (3, 3))
