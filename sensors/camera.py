@@ -153,8 +153,7 @@ class PinholeCamera:
             return self._project_wide(w)
         wz = w[..., 2]
         in_front = wz > 0
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv = np.where(in_front, 1.0 / wz, np.nan)
+        inv = np.divide(1.0, wz, out=np.full(wz.shape, np.nan), where=in_front)
         x = self.cx - self.focal_px * w[..., 0] * inv
         y = self.cy - self.focal_px * w[..., 1] * inv
         if self.distorted:
@@ -208,7 +207,8 @@ class PinholeCamera:
             safe = np.where(r > 0, r, 1.0)
             sin = np.sin(theta)
             return np.stack([-sin * dx / safe, -sin * dy / safe, np.cos(theta)], axis=-1)
-        w = np.stack([-(x - self.cx), -(y - self.cy), np.full(np.broadcast(x, y).shape, self.focal_px)], axis=-1)
+        w = np.empty(np.broadcast_shapes(x.shape, y.shape) + (3,))
+        w[..., 0], w[..., 1], w[..., 2] = -(x - self.cx), -(y - self.cy), self.focal_px
         return w / np.linalg.norm(w, axis=-1, keepdims=True)
 
     def projection_jacobian(self, w_cam) -> np.ndarray:
@@ -221,10 +221,10 @@ class PinholeCamera:
             return -(g[..., None, None] * eye + w[..., :2, None] * dg[..., None, :])
         wx, wy, wz = w[..., 0], w[..., 1], w[..., 2]
         f = self.focal_px
-        zero = np.zeros_like(wz)
-        row_x = np.stack([-f / wz, zero, f * wx / wz**2], axis=-1)
-        row_y = np.stack([zero, -f / wz, f * wy / wz**2], axis=-1)
-        jac = np.stack([row_x, row_y], axis=-2)
+        jac = np.zeros(w.shape[:-1] + (2, 3))
+        jac[..., 0, 0] = jac[..., 1, 1] = -f / wz
+        jac[..., 0, 2] = f * wx / wz**2
+        jac[..., 1, 2] = f * wy / wz**2
         if self.distorted:  # chain rule through the radial map at the ideal pixel
             xn, yn = -wx / wz, -wy / wz
             r2 = xn * xn + yn * yn

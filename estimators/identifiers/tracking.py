@@ -14,7 +14,7 @@ from rollingstar.estimators.centroiders.window_gyro import FastGyroIntegrator
 from rollingstar.estimators.data import FrameData, default_sigma_px
 from rollingstar.estimators.identifiers.base import Identifier
 from rollingstar.sensors.conventions import S_PER_NS, attitude_from_radec_roll
-from rollingstar.sensors.so3 import cross, skew, wahba
+from rollingstar.sensors.so3 import rotate_by_rotvec, skew, wahba
 
 ARCSEC = np.pi / (180.0 * 3600.0)
 #: Extra radius (rad) of the catalogue cone the tracker caches and reuses between frames.
@@ -107,18 +107,6 @@ class BodyMotion:
         return self.omega * dt + 0.5 * self.alpha * dt * dt
 
 
-def rotate(rotvec: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """``Exp(rotvec_i) w_i`` (n, 3) by Rodrigues' formula (:func:`rollingstar.sensors.so3.rotate_by_rotvec`
-    with the fast cross product: a few tens of stars per call, where numpy's overhead dominates)."""
-    th = np.sqrt(np.einsum("ij,ij->i", rotvec, rotvec))[:, None]
-    small = th < 1e-8
-    safe = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th**2 / 6.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
-    kxv = cross(rotvec, w)
-    return w + a * kxv + b * cross(rotvec, kxv)
-
-
 def predict_at_rows(w0: np.ndarray, motion: BodyMotion, project, timing, t0_ns: int, row_times: bool = True,
                     iterations: int = 2, t_start: np.ndarray | None = None):
     """Pixel positions of directions ``w0`` (camera frame at the motion's origin, (n, 3)) seen at their
@@ -132,7 +120,7 @@ def predict_at_rows(w0: np.ndarray, motion: BodyMotion, project, timing, t0_ns: 
     rows_max = float(timing.rows - 1)
     steps = iterations if row_times and timing.effective_line_delay_ns > 0 and not motion.static else 0
     for k in range(steps + 1):
-        w = w0 if motion.static else rotate(-motion.phi(t), w0)
+        w = w0 if motion.static else rotate_by_rotvec(-motion.phi(t), w0)
         x, y, front = project(w)
         if k < steps:
             t = timing.row_mid_exposure_ns(t0_ns, np.clip(np.nan_to_num(y, nan=rows_max / 2), 0.0, rows_max))
@@ -402,7 +390,7 @@ class TrackingIdentifier(Identifier):
             ends = np.array([t0_ns, timing.frame_reference_ns(t0_ns), timing.frame_end_ns(t0_ns)], dtype=np.int64)
             phi = motion.phi(ends)
             sweep = float(max(np.linalg.norm(phi[0] - phi[1]), np.linalg.norm(phi[2] - phi[1])))
-            center = R @ rotate(phi[1:2], np.array([[0.0, 0.0, 1.0]]))[0]
+            center = R @ rotate_by_rotvec(phi[1], np.array([0.0, 0.0, 1.0]))
             stars = self._cone_cached(center, self._radius + sweep)
         idx = stars
         w0 = self.context.catalog.unit_icrs[idx] @ R  # R^T r for every star
@@ -472,7 +460,7 @@ class TrackingIdentifier(Identifier):
         back by its own time: ``R^T r_i = Exp(phi(t_i)) b_i``."""
         body = self.context.camera.unproject(det.x[matched_det], det.y[matched_det])
         if not motion.static:
-            body = rotate(motion.phi(det.t_ns[matched_det]), body)
+            body = rotate_by_rotvec(motion.phi(det.t_ns[matched_det]), body)
         return wahba(self.context.catalog.unit_icrs[cat_idx], body)
 
     @staticmethod

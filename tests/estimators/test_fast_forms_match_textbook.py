@@ -8,7 +8,9 @@ the textbook forms.
 - the KF predict/update equal the matrix forms ``F X``, ``F P F^T + q G G^T`` and the Joseph form
   ``(I - K H) P (I - K H)^T + r K K^T`` with ``K = P H^T (H P H^T + r I)^-1``;
 - the compiled edge-bias fixed point equals its vectorised numpy form, and the clipped-spot
-  sigma with its per-count cache equals the Bessel sums evaluated spot by spot.
+  sigma with its per-count cache equals the Bessel sums evaluated spot by spot;
+- the compiled rotations of ``sensors/so3.py`` equal scipy's ``Rotation`` on every broadcast
+  shape, and the compiled robust noise sigma equals its definition written with numpy.
 """
 from __future__ import annotations
 
@@ -209,3 +211,54 @@ def test_wahba_by_svd_matches_scipy_align_vectors():
         got = wahba(ref, body, w)
         np.testing.assert_allclose(got, expected.as_matrix(), atol=1e-10)
         assert np.isclose(np.linalg.det(got), 1.0)
+
+
+@pytest.mark.parametrize("shapes", [((40, 3), (40, 3)), ((3,), (40, 3)), ((40, 3), (3,)), ((5, 7, 3), (7, 3)),
+                                    ((3,), (3,)), ((0, 3), (0, 3))])
+def test_compiled_rotations_match_scipy_on_every_broadcast_shape(shapes):
+    from rollingstar.sensors.so3 import rotate_at_rate, rotate_by_rotvec
+
+    rng = np.random.default_rng(11)
+    rotvec = rng.normal(size=shapes[0]) * rng.choice([0.0, 1e-12, 1e-5, 1.0, 3.0], size=shapes[0][:-1] + (1,))
+    v = rng.normal(size=shapes[1])
+    out = rotate_by_rotvec(rotvec, v)
+    shape = np.broadcast_shapes(*shapes)
+    r, w = (np.array(np.broadcast_to(a, shape)).reshape(-1, 3) for a in (rotvec, v))  # scipy wants writable arrays
+    expected = Rotation.from_rotvec(r).apply(w) if len(r) else w
+    assert out.shape == shape
+    np.testing.assert_allclose(out.reshape(-1, 3), expected, rtol=0, atol=1e-14)
+    if shapes[1] == (40, 3):
+        omega, dt = rng.normal(size=3), rng.normal(size=40)
+        np.testing.assert_allclose(rotate_at_rate(omega, v, dt), Rotation.from_rotvec(omega * dt[:, None]).apply(v),
+                                   rtol=0, atol=1e-14)
+        np.testing.assert_allclose(rotate_at_rate(omega, v, 0.3), Rotation.from_rotvec(0.3 * omega).apply(v),
+                                   rtol=0, atol=1e-14)
+        assert rotate_at_rate(np.zeros(3), v, dt) is v
+
+
+def _robust_sigma_numpy(r):
+    """The definition of ``cog.robust_sigma`` (its docstring) written with numpy."""
+    med = np.median(r)
+    dev = np.abs(r - med)
+    s0 = 1.482602218505602 * np.median(dev)
+    if s0 <= 0:
+        return max(0.0, np.percentile(r, 84.134) - med)
+    s1 = np.std(r[dev < 5.0 * s0])
+    if s1 <= 0:
+        return s0
+    return np.sqrt(np.mean((r[dev < 3.0 * s1] - med) ** 2)) / 0.98658
+
+
+def test_compiled_robust_sigma_matches_its_definition():
+    from rollingstar.estimators.centroiders.cog import robust_sigma
+
+    rng = np.random.default_rng(4)
+    for k in range(120):
+        n = int(rng.integers(1, 9000))
+        r = rng.poisson(rng.uniform(0.05, 300), n).astype(float) + (rng.normal(0, 2, n) if k % 2 else 0.0)
+        if k % 5 == 0:
+            r[: n // 2 + 1] = 0.0  # more than half one value: the one-sided branch
+        if k % 7 == 0:
+            r[0] = np.inf  # a hot pixel read as infinity stays out of the clipped moments
+        assert robust_sigma(r) == pytest.approx(_robust_sigma_numpy(r), rel=1e-12, abs=1e-300)
+    assert np.isnan(robust_sigma(np.array([1.0, np.nan, 2.0]))) and np.isnan(robust_sigma(np.zeros(0)))
