@@ -52,13 +52,14 @@ def _rows(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple]:
 def rotate_by_rotvec(rotvec: np.ndarray, v: np.ndarray) -> np.ndarray:
     """``Exp(rotvec) v`` for broadcastable (..., 3) arrays (module docstring; series below 1e-8 rad)."""
     r, w, shape = _rows(rotvec, v)
-    return _rotate_by_rotvec(r, w).reshape(shape)
+    return rotate_rows(r, w).reshape(shape)
 
 
 @njit(cache=True, nogil=True)
-def _rotate_by_rotvec(rotvec, v):  # pragma: no cover - compiled
-    """:func:`rotate_by_rotvec` row by row (m, 3). Compiled: the trackers and the diagnosis rotate a
-    few tens of stars per call, where a dozen numpy calls' overhead was ~20x the arithmetic."""
+def rotate_rows(rotvec, v):  # pragma: no cover - compiled
+    """:func:`rotate_by_rotvec` row by row on (m, 3) arrays, callable from other compiled code.
+    Compiled: the trackers and the diagnosis rotate a few tens of stars per call, where a dozen
+    numpy calls' overhead was several times the arithmetic."""
     out = np.empty_like(v)
     for i in range(v.shape[0]):
         p0, p1, p2 = rotvec[i, 0], rotvec[i, 1], rotvec[i, 2]
@@ -86,7 +87,7 @@ def rotate_at_rate(omega, w: np.ndarray, dt_s: np.ndarray) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def _rotate_at_rate(omega, w, dt_s):  # pragma: no cover - compiled
-    """:func:`rotate_at_rate` star by star (compiled for the reason of :func:`_rotate_by_rotvec`)."""
+    """:func:`rotate_at_rate` star by star (compiled for the reason of :func:`rotate_rows`)."""
     norm = np.sqrt(omega[0] * omega[0] + omega[1] * omega[1] + omega[2] * omega[2])
     k0, k1, k2 = omega[0] / norm, omega[1] / norm, omega[2] / norm
     out = np.empty_like(w)

@@ -262,3 +262,29 @@ def test_compiled_robust_sigma_matches_its_definition():
             r[0] = np.inf  # a hot pixel read as infinity stays out of the clipped moments
         assert robust_sigma(r) == pytest.approx(_robust_sigma_numpy(r), rel=1e-12, abs=1e-300)
     assert np.isnan(robust_sigma(np.array([1.0, np.nan, 2.0]))) and np.isnan(robust_sigma(np.zeros(0)))
+
+
+def test_compiled_check_rate_fit_matches_least_squares_on_the_stacked_rows():
+    from rollingstar.estimators.identifiers.integrity import fit_rate
+    from rollingstar.sensors.so3 import skew
+
+    rng = np.random.default_rng(9)
+    n = 30
+    body = np.column_stack([rng.normal(0, 0.1, (n, 2)), np.ones(n)])
+    body /= np.linalg.norm(body, axis=1, keepdims=True)
+    dt, omega, R = rng.uniform(-0.03, 0.03, n), np.radians([4.0, -7.0, 2.0]), Rotation.random(random_state=9)
+    ref = R.apply(Rotation.from_rotvec(omega * dt[:, None]).apply(body)) + rng.normal(0, 1e-5, (n, 3))
+    rw = rng.uniform(0.5, 2.0, n)
+    start = (R * Rotation.from_rotvec([1e-3, -2e-3, 5e-4])).as_matrix()
+    phi = np.zeros((n, 3))
+    total = np.zeros(3)
+    for _ in range(2):  # the two linearised steps, each by least squares on the stacked rows
+        w = Rotation.from_rotvec(phi).inv().apply(ref @ start)
+        S = skew(w)
+        A = np.concatenate([S, S * dt[:, None, None]], axis=2).reshape(-1, 6) * np.repeat(rw, 3)[:, None]
+        sol = np.linalg.lstsq(A, (body - w).reshape(-1) * np.repeat(rw, 3), rcond=None)[0]
+        phi, total = phi + sol[:3] + dt[:, None] * sol[3:], total + sol[3:]
+    got_phi, got_omega = fit_rate(start, body, ref, dt, rw)
+    np.testing.assert_allclose(got_phi, phi, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(got_omega, total, rtol=0, atol=1e-11)
+    np.testing.assert_allclose(got_omega, omega, rtol=0, atol=2e-3)  # and it finds the rate
