@@ -32,49 +32,72 @@ _FAST = {"reassoc", "contract", "arcp", "afn", "nsz"}
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _model(p, k, v, c, se, exposure, ld, grad):  # pragma: no cover - compiled
-    """Star ``k``'s model at pixel (column ``c``, row ``v``): ``mu - b`` and its Jacobian in ``grad``."""
-    x, y, vx, vy, flux = p[k, 0], p[k, 1], p[k, 2], p[k, 3], p[k, 4]
-    ux, uy, speed = star_geometry(vx, vy)
-    dt = (v - y) * ld
-    g, gdx, gdy, gvx, gvy = pixel_profile(c - x - vx * dt, v - y - vy * dt, ux, uy, speed, exposure, se)
-    grad[0] = -flux * gdx
-    grad[1] = flux * (gdx * vx * ld - gdy * (1.0 - vy * ld))
-    grad[2] = flux * (gvx - gdx * dt)
-    grad[3] = flux * (gvy - gdy * dt)
-    grad[4] = g
-    grad[5] = 1.0
-    return flux * g
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _star_normal(p, k, r0, c0, nrows, ncols, image, saturation, noise2, inv_gain, se, exposure, ld, hess, grad_sum,
-                 grad):  # pragma: no cover - compiled
-    """Star ``k``'s ``J^T W J`` into ``hess`` (6, 6) and ``J^T W r`` into ``grad_sum`` (6,) (both
-    zeroed first); returns its chi-square and the pixels used."""
+def _star_normal(p, k, r0, c0, nrows, ncols, image, saturation, noise2, inv_gain, se, exposure, ld, hess,
+                 grad_sum):  # pragma: no cover - compiled
+    """Star ``k``'s ``J^T W J`` into ``hess`` (6, 6) and ``J^T W r`` into ``grad_sum`` (6,); returns
+    its chi-square and the pixels used. The model ``mu - b = F G`` at pixel (column ``c``, row
+    ``v``), ``G`` the unit-flux profile at the row's segment midpoint, and its Jacobian ``d`` in
+    ``(x, y, vx, vy, F, b)``. The 21 sums of the lower triangle are scalars (registers) rather than
+    array elements, and the star's direction and speed are computed once per star, not per pixel."""
     height, width = image.shape
-    hess[:, :] = 0.0
-    grad_sum[:] = 0.0
+    x, y, vx, vy, flux, background = p[k, 0], p[k, 1], p[k, 2], p[k, 3], p[k, 4], p[k, 5]
+    ux, uy, speed = star_geometry(vx, vy)
     chi2 = 0.0
     used = 0
+    h00 = h10 = h11 = h20 = h21 = h22 = h30 = h31 = h32 = h33 = h40 = h41 = h42 = h43 = h44 = 0.0
+    h50 = h51 = h52 = h53 = h54 = h55 = s0 = s1 = s2 = s3 = s4 = s5 = 0.0
     for i in range(max(r0, 0), min(r0 + nrows, height)):
+        v = float(i)
+        dt = (v - y) * ld
         for j in range(max(c0, 0), min(c0 + ncols, width)):
             raw = float(image[i, j])
             if raw >= saturation:
                 continue
-            star = _model(p, k, float(i), float(j), se, exposure, ld, grad)
+            g, gdx, gdy, gvx, gvy = pixel_profile(float(j) - x - vx * dt, v - y - vy * dt, ux, uy, speed, exposure, se)
+            d0 = -flux * gdx
+            d1 = flux * (gdx * vx * ld - gdy * (1.0 - vy * ld))
+            d2 = flux * (gvx - gdx * dt)
+            d3 = flux * (gvy - gdy * dt)
+            star = flux * g
             w = 1.0 / (noise2 + max(star, 0.0) * inv_gain)
-            r = raw - star - p[k, 5]
+            r = raw - star - background
             chi2 += r * r * w
             used += 1
-            for a in range(6):
-                ga = grad[a] * w
-                grad_sum[a] += ga * r
-                for b in range(a + 1):
-                    hess[a, b] += ga * grad[b]
+            a0, a1, a2, a3, a4 = d0 * w, d1 * w, d2 * w, d3 * w, g * w
+            s0 += a0 * r
+            s1 += a1 * r
+            s2 += a2 * r
+            s3 += a3 * r
+            s4 += a4 * r
+            s5 += w * r
+            h00 += a0 * d0
+            h10 += a1 * d0
+            h11 += a1 * d1
+            h20 += a2 * d0
+            h21 += a2 * d1
+            h22 += a2 * d2
+            h30 += a3 * d0
+            h31 += a3 * d1
+            h32 += a3 * d2
+            h33 += a3 * d3
+            h40 += a4 * d0
+            h41 += a4 * d1
+            h42 += a4 * d2
+            h43 += a4 * d3
+            h44 += a4 * g
+            h50 += a0
+            h51 += a1
+            h52 += a2
+            h53 += a3
+            h54 += a4
+            h55 += w
+    lower = (h00, h10, h11, h20, h21, h22, h30, h31, h32, h33, h40, h41, h42, h43, h44, h50, h51, h52, h53, h54, h55)
+    m = 0
     for a in range(6):
-        for b in range(a):
-            hess[b, a] = hess[a, b]
+        for b in range(a + 1):
+            hess[a, b] = hess[b, a] = lower[m]
+            m += 1
+    grad_sum[0], grad_sum[1], grad_sum[2], grad_sum[3], grad_sum[4], grad_sum[5] = s0, s1, s2, s3, s4, s5
     return chi2, used
 
 
@@ -87,10 +110,9 @@ def normal_equations(p, row0, col0, nrows, ncols, image, saturation, noise2, inv
     grad_sum = np.zeros((n, 6))
     chi2 = np.zeros(n)
     used = np.zeros(n, dtype=np.int64)
-    grad = np.empty(6)
     for k in range(n):
         chi2[k], used[k] = _star_normal(p, k, row0[k], col0[k], nrows, ncols, image, saturation, noise2, inv_gain,
-                                        se, exposure, ld, hess[k], grad_sum[k], grad)
+                                        se, exposure, ld, hess[k], grad_sum[k])
     return hess, grad_sum, chi2, used
 
 
@@ -160,7 +182,6 @@ def levenberg_marquardt(p, row0, col0, nrows, ncols, image, saturation, noise2, 
     grad_sum = np.zeros((n, 6))
     chi2 = np.zeros(n)
     used = np.zeros(n, dtype=np.int64)
-    grad = np.empty(6)
     trial = np.empty((1, 6))
     t_hess = np.zeros((6, 6))
     t_grad = np.zeros(6)
@@ -168,7 +189,7 @@ def levenberg_marquardt(p, row0, col0, nrows, ncols, image, saturation, noise2, 
     g = np.empty(6)
     for k in range(n):
         chi2[k], used[k] = _star_normal(p, k, row0[k], col0[k], nrows, ncols, image, saturation, noise2, inv_gain, se,
-                                        exposure, ld, hess[k], grad_sum[k], grad)
+                                        exposure, ld, hess[k], grad_sum[k])
         lam = 1e-3
         for it in range(iterations):
             frozen = it < frozen_iterations
@@ -194,7 +215,7 @@ def levenberg_marquardt(p, row0, col0, nrows, ncols, image, saturation, noise2, 
             if trial[0, 4] <= 0.0:
                 trial[0, 4] = 0.5 * p[k, 4]
             t_chi2, t_used = _star_normal(trial, 0, row0[k], col0[k], nrows, ncols, image, saturation, noise2,
-                                          inv_gain, se, exposure, ld, t_hess, t_grad, grad)
+                                          inv_gain, se, exposure, ld, t_hess, t_grad)
             prior_now = ((p[k, 2] - v_mean[k, 0]) ** 2 + (p[k, 3] - v_mean[k, 1]) ** 2) * v_weight[k]
             prior_trial = ((trial[0, 2] - v_mean[k, 0]) ** 2 + (trial[0, 3] - v_mean[k, 1]) ** 2) * v_weight[k]
             if t_chi2 + prior_trial < chi2[k] + prior_now:
