@@ -23,11 +23,12 @@ def predicted_directions(R: Rotation, omega: np.ndarray, ref: np.ndarray, dt: np
 
 
 def apply_step(R: Rotation, omega: np.ndarray, step: np.ndarray) -> tuple[Rotation, np.ndarray]:
-    """``R Exp(delta)`` and ``omega + eps`` for ``step = (delta[, eps])``."""
+    """``R Exp(delta)`` and ``omega + eps`` for ``step = (delta[, eps])`` (the quaternion product of
+    :func:`_quat_step`: scipy's composition of two ``Rotation`` objects costs several times more)."""
     omega = np.array(omega, dtype=float)
     if step.size == 6:
         omega = omega + step[3:]
-    return R * Rotation.from_rotvec(step[:3]), omega
+    return Rotation.from_quat(_quat_step(R.as_quat(), np.ascontiguousarray(step[:3], dtype=float))), omega
 
 
 def fit_positions(R: Rotation, omega: np.ndarray, ref: np.ndarray, dt: np.ndarray, d, iterations: int,

@@ -288,3 +288,28 @@ def test_compiled_check_rate_fit_matches_least_squares_on_the_stacked_rows():
     np.testing.assert_allclose(got_phi, phi, rtol=0, atol=1e-13)
     np.testing.assert_allclose(got_omega, total, rtol=0, atol=1e-11)
     np.testing.assert_allclose(got_omega, omega, rtol=0, atol=2e-3)  # and it finds the rate
+
+
+def test_compiled_tangent_covariance_matches_the_matrix_forms():
+    from rollingstar.estimators.attitude.star_covariance import direction_covariance, direction_jacobian, tangent_basis
+    from rollingstar.sensors.camera import PinholeCamera
+
+    rng = np.random.default_rng(12)
+    cam = PinholeCamera(focal_length_m=0.012, pixel_size_m=4e-6, width=1280, height=960, k1=-0.15, k2=0.02)
+    n = 40
+    x, y = rng.uniform(0, 1279, n), rng.uniform(0, 959, n)
+    a = rng.normal(0, 0.2, (n, 2, 2))
+    cov_px = a @ np.swapaxes(a, 1, 2) + 1e-3 * np.eye(2)
+    d = direction_covariance(cam, x, y, cov_px)
+    body, J = direction_jacobian(cam, x, y)
+    E = tangent_basis(body)
+    M = np.swapaxes(E, 1, 2) @ J
+    sigma = M @ cov_px @ np.swapaxes(M, 1, 2)
+    np.testing.assert_allclose(d.cov, 0.5 * (sigma + np.swapaxes(sigma, 1, 2)), rtol=1e-12, atol=0)
+    for got, expected in ((d.info, np.linalg.inv(d.cov)), (d.whiten, np.linalg.inv(np.linalg.cholesky(d.cov)))):
+        scale = np.abs(expected).max(axis=(1, 2), keepdims=True)  # LAPACK leaves ~1e-16 where 0 is exact
+        np.testing.assert_allclose(got / scale, expected / scale, rtol=0, atol=1e-12)
+    bad = cov_px.copy()
+    bad[7] = [[1.0, 2.0], [2.0, 1.0]]  # indefinite: refused as numpy's Cholesky refuses it
+    with pytest.raises(np.linalg.LinAlgError):
+        direction_covariance(cam, x, y, bad)
