@@ -110,7 +110,7 @@ class StarTable:
 
     def take(self, index) -> "StarTable":
         """Rows selected by an integer index or boolean mask (copies)."""
-        return StarTable(**{f.name: np.asarray(getattr(self, f.name))[index].copy() for f in fields(self)})
+        return StarTable(*(np.asarray(getattr(self, name))[index].copy() for name in _STAR_COLUMNS))
 
     def with_columns(self, **columns) -> "StarTable":
         """A copy with some columns replaced (shapes checked)."""
@@ -142,6 +142,9 @@ class StarTable:
     def identified(self) -> np.ndarray:
         """Boolean mask of stars with a catalogue identification."""
         return self.catalog_id >= 0
+
+
+_STAR_COLUMNS = tuple(f.name for f in fields(StarTable))  # in the constructor's order
 
 
 @dataclass(frozen=True)
