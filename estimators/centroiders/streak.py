@@ -28,6 +28,10 @@ from rollingstar.sensors.so3 import rotate_at_rate
 from rollingstar.sensors.streak_model import effective_sigma, streak_mu
 
 SLOW_STREAK_PX = 1.0  # an expected streak shorter than this starts its fit at rest
+# the sky that entered through an edge is searched once it has moved in this far since the edge's
+# last search: a new star is found within 8 px of the edge, where a tracked frame's 24 px window
+# still holds it (a slow drift is searched every few frames instead of every frame)
+NEW_SKY_PX = 8.0
 LONG_STREAK_PX = 16.0  # streaks at least this long are detected on 4 x 4 bins, shorter ones on 2 x 2
 MARGIN_SIGMAS = 3.0  # PSF widths around the expected streak in a fit window (besides half a detection bin)
 FIT_TOLERANCE_PX = 1e-3  # the fit stops when no star's position step exceeds this,
@@ -528,7 +532,7 @@ class StreakCentroider(Centroider):
     def _new_sky(self, f: _Frame, camera, omega, dt: float):
         """Stars in the sky that entered the detector since an edge was last searched: the matched
         filter with the expected motion over a strip along each edge the sky moved in through, as
-        deep as the sky's shift since (summed over frames until it exceeds ``SLOW_STREAK_PX``: a
+        deep as the sky's shift since (summed over frames until it exceeds ``NEW_SKY_PX``: a
         slow drift is searched every few frames) plus a fit window's half size (the largest along
         the edge), in ``detect_tile_px`` segments of one kernel each."""
         H, W = self._shape
@@ -548,7 +552,7 @@ class StreakCentroider(Centroider):
             inward = (vx if axis == 1 else vy) * dt * (1.0 if edge == 0.0 else -1.0)
             reach = 0.5 * np.hypot(vx, vy) * self._exposure + MARGIN_SIGMAS * self._se + self.params.track_margin_px
             entered = self._inflow.get((axis, edge), 0.0) + max(float(np.max(inward)), 0.0)
-            if entered <= SLOW_STREAK_PX:
+            if entered <= NEW_SKY_PX:
                 self._inflow[(axis, edge)] = entered
                 continue
             self._inflow[(axis, edge)] = 0.0

@@ -450,11 +450,13 @@ def window_covariance(vals: np.ndarray, saturated: np.ndarray, bg: np.ndarray, n
     form costs ~120 us of per-call overhead on a handful of spots) and the clipping term of
     saturated spots in numpy."""
     cov = model_covariance(vals, np.asarray(noise, dtype=float), float(threshold_sigma), float(gain or 0.0))
-    if saturated.any():
-        flux = vals[2]
+    sat = np.flatnonzero(saturated)
+    if sat.size:  # the clipping term, zero for the others, of the saturated spots alone
+        flux = vals[2, sat]
+        limit = np.broadcast_to(saturation - np.asarray(bg, dtype=float), saturated.shape)[sat]
         with np.errstate(invalid="ignore", divide="ignore"):
-            shape = spot_shape(vals[9:12], flux, threshold_sigma * noise)
-            cov = cov + clipping_covariance(shape, flux, vals[5], saturated, saturation - bg)
+            shape = spot_shape(vals[9:12, sat], flux, threshold_sigma * np.broadcast_to(noise, saturated.shape)[sat])
+            cov[:, sat] += clipping_covariance(shape, flux, vals[5, sat], np.ones(sat.size, dtype=bool), limit)
     return cov
 
 
