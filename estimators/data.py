@@ -273,11 +273,21 @@ class FrameData:
     psf_sigma_px: float | None = None
 
     def evolve(self, **changes) -> "FrameData":
-        """A new frame with some fields replaced (frames are immutable)."""
-        return replace(self, **changes)
+        """A new frame with some fields replaced (frames are immutable). ``dataclasses.replace``
+        without its re-run of ``__init__``: stages evolve each frame a dozen times."""
+        unknown = changes.keys() - _FRAME_FIELDS
+        if unknown:
+            raise TypeError(f"FrameData has no field(s) {sorted(unknown)}")
+        new = object.__new__(FrameData)
+        new.__dict__.update(self.__dict__)
+        new.__dict__.update(changes)
+        return new
 
     def flagged(self, flag: str) -> "FrameData":
-        return replace(self, flags=self.flags + (flag,))
+        return self.evolve(flags=self.flags + (flag,))
+
+
+_FRAME_FIELDS = frozenset(f.name for f in fields(FrameData))
 
 
 @dataclass(frozen=True)

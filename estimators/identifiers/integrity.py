@@ -87,7 +87,8 @@ def check_identification(stars: StarTable | None, unmatched: StarTable | None, c
     k = ident.n
     if k < 2:
         return IdentificationCheck(1.0, n, k, 0, float("nan"), float(bound), False, f"too_few_matches({k}<2)")
-    sigma = np.nanmedian(np.where(ident.sigma_px > 0, ident.sigma_px, np.nan)) if np.isfinite(ident.sigma_px).any() else np.nan
+    stated = ident.sigma_px[ident.sigma_px > 0]  # the stars' own sigmas (NaN: none stated)
+    sigma = float(np.median(stated)) if stated.size and np.isfinite(stated).any() else np.nan
     cov = ident.position_covariance(sigma if np.isfinite(sigma) else DEFAULT_CENTROID_SIGMA_PX)
     resid, attitude, dx = fit_residuals(ident, camera, omega_rad_s, cov)
     floor = max(min_gate_px, 3.0 * (sigma if np.isfinite(sigma) else DEFAULT_CENTROID_SIGMA_PX))
