@@ -37,6 +37,7 @@ from functools import partial
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 from scipy.spatial.transform import Rotation
 
 from rollingstar.estimators.attitude.frame_fit import apply_step, predicted_directions
@@ -146,21 +147,47 @@ class _Blocks:
     def __init__(self, pv, A, nuis, pixels: _Pixels):
         M, g, self.chi2, used = pixels.normal_equations(pv, nuis)
         self.dof = np.maximum(used - 6, 1)
-        self.n_inv = np.linalg.inv(M[:, 4:, 4:])
         self.C = M[:, :4, 4:]
         self.g_nuis = g[:, 4:]
-        CN = self.C @ self.n_inv
-        S = M[:, :4, :4] - CN @ np.swapaxes(self.C, 1, 2)
-        s = g[:, :4] - np.einsum("nij,nj->ni", CN, self.g_nuis)
-        At = np.swapaxes(A, 1, 2)
-        self.normal = At @ S @ A
-        self.rhs = np.einsum("nij,nj->ni", At, s)
+        self.n_inv, self.normal, self.rhs = _reduced_normal(M, g, np.ascontiguousarray(A, dtype=float))
 
     def nuisance_step(self, A: np.ndarray, step: np.ndarray) -> np.ndarray:
         """``N^-1 (n - C^T A step)`` per star: the flux and background step that goes with ``step``."""
         k = step.size
         moved = np.einsum("nij,j->ni", A[:, :, :k], step)
         return np.einsum("nij,nj->ni", self.n_inv, self.g_nuis - np.einsum("nji,nj->ni", self.C, moved))
+
+
+@njit(cache=True, nogil=True)
+def _reduced_normal(M, g, A):  # pragma: no cover - compiled
+    """Per star the nuisance block's inverse ``N^-1``, ``A^T S A`` and ``A^T s`` (:class:`_Blocks`),
+    the 2 x 2 inverse and the Schur complement written out (compiled: a dozen stacked small-matrix
+    numpy calls per linearisation cost more than the pixels' sums of a slow frame). Raises
+    ``LinAlgError`` when a star's flux and background are not determined (a singular ``N``)."""
+    n = M.shape[0]
+    n_inv, normal, rhs = np.empty((n, 2, 2)), np.zeros((n, 6, 6)), np.zeros((n, 6))
+    CN, S, s, SA = np.empty((4, 2)), np.empty((4, 4)), np.empty(4), np.empty((4, 6))
+    for j in range(n):
+        a, b, c, d = M[j, 4, 4], M[j, 4, 5], M[j, 5, 4], M[j, 5, 5]
+        det = a * d - b * c
+        if det == 0.0 or not np.isfinite(det):
+            raise np.linalg.LinAlgError("Singular matrix")
+        n_inv[j, 0, 0], n_inv[j, 0, 1], n_inv[j, 1, 0], n_inv[j, 1, 1] = d / det, -b / det, -c / det, a / det
+        for p in range(4):
+            CN[p, 0] = M[j, p, 4] * n_inv[j, 0, 0] + M[j, p, 5] * n_inv[j, 1, 0]
+            CN[p, 1] = M[j, p, 4] * n_inv[j, 0, 1] + M[j, p, 5] * n_inv[j, 1, 1]
+        for p in range(4):
+            s[p] = g[j, p] - (CN[p, 0] * g[j, 4] + CN[p, 1] * g[j, 5])
+            for q in range(4):
+                S[p, q] = M[j, p, q] - (CN[p, 0] * M[j, q, 4] + CN[p, 1] * M[j, q, 5])
+        for p in range(4):
+            for v in range(6):
+                SA[p, v] = S[p, 0] * A[j, 0, v] + S[p, 1] * A[j, 1, v] + S[p, 2] * A[j, 2, v] + S[p, 3] * A[j, 3, v]
+        for u in range(6):
+            rhs[j, u] = A[j, 0, u] * s[0] + A[j, 1, u] * s[1] + A[j, 2, u] * s[2] + A[j, 3, u] * s[3]
+            for v in range(6):
+                normal[j, u, v] = A[j, 0, u] * SA[0, v] + A[j, 1, u] * SA[1, v] + A[j, 2, u] * SA[2, v] + A[j, 3, u] * SA[3, v]
+    return n_inv, normal, rhs
 
 
 def _initial_nuisance(pv: np.ndarray, pixels: _Pixels) -> tuple[np.ndarray, np.ndarray]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Literal, NamedTuple
 
 import numpy as np
+from numba import njit
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
@@ -484,12 +485,10 @@ class StreakCentroider(Centroider):
         if x.size < MIN_STARS_FOR_RATE or dt <= 0:
             return omega
         A = rotation_jacobian(camera, x, y) * dt
-        r = np.column_stack([fx - x, fy - y])
-        keep = np.ones(x.size, dtype=bool)
-        for _ in range(2):
-            d_omega = np.linalg.lstsq(A[keep].reshape(-1, 3), r[keep].reshape(-1), rcond=None)[0]
-            miss = np.hypot(*(r - A @ d_omega).T)
-            keep = miss <= 3.0 * max(1.4826 * np.median(miss), 0.05)
+        try:
+            d_omega = _robust_rate_step(A, np.column_stack([fx - x, fy - y]))
+        except np.linalg.LinAlgError:  # the kept stars do not determine a rate change: none is made
+            return omega
         return np.asarray(omega, dtype=float) + d_omega
 
     def _moved(self, camera, x, y, omega, dt: float):
@@ -902,6 +901,34 @@ def _misfit_scale(chi2: np.ndarray, used: np.ndarray) -> np.ndarray:
     dof = np.maximum(used - 6, 1)
     reduced = chi2 / dof
     return np.where(reduced > 1.0 + 3.0 * np.sqrt(2.0 / dof), reduced, 1.0)
+
+
+@njit(cache=True, nogil=True)
+def _robust_rate_step(A, r):  # pragma: no cover - compiled
+    """``d_omega`` minimising ``sum |r_i - A_i d_omega|^2`` (``A`` (m, 2, 3), ``r`` (m, 2)) by its
+    normal equations, then again without the stars that miss by more than 3 robust sigmas (at
+    least 0.05 px). Compiled: two small least-squares problems per tracked frame, where numpy's
+    calls cost ~10x the arithmetic."""
+    m = A.shape[0]
+    keep = np.ones(m, dtype=np.bool_)
+    miss = np.zeros(m)
+    d = np.zeros(3)
+    for _ in range(2):
+        N, b = np.zeros((3, 3)), np.zeros(3)
+        for i in range(m):
+            if keep[i]:
+                for row in range(2):
+                    for a in range(3):
+                        b[a] += A[i, row, a] * r[i, row]
+                        for c in range(3):
+                            N[a, c] += A[i, row, a] * A[i, row, c]
+        d = np.linalg.solve(N, b)
+        for i in range(m):
+            ex = r[i, 0] - (A[i, 0, 0] * d[0] + A[i, 0, 1] * d[1] + A[i, 0, 2] * d[2])
+            ey = r[i, 1] - (A[i, 1, 0] * d[0] + A[i, 1, 1] * d[1] + A[i, 1, 2] * d[2])
+            miss[i] = np.sqrt(ex * ex + ey * ey)
+        keep = miss <= 3.0 * max(1.4826 * np.median(miss), 0.05)
+    return d
 
 
 def _first_of_each(x: np.ndarray, y: np.ndarray) -> np.ndarray:

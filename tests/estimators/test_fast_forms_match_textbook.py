@@ -313,3 +313,41 @@ def test_compiled_tangent_covariance_matches_the_matrix_forms():
     bad[7] = [[1.0, 2.0], [2.0, 1.0]]  # indefinite: refused as numpy's Cholesky refuses it
     with pytest.raises(np.linalg.LinAlgError):
         direction_covariance(cam, x, y, bad)
+
+
+def test_compiled_schur_complement_matches_the_matrix_forms():
+    from rollingstar.estimators.attitude.pixel_bundle import _reduced_normal
+
+    rng = np.random.default_rng(13)
+    n = 25
+    J = rng.normal(size=(n, 40, 6))
+    M = np.swapaxes(J, 1, 2) @ J  # per star J^T W J of (x, y, vx, vy, F, b)
+    g = rng.normal(size=(n, 6))
+    A = rng.normal(size=(n, 4, 6))
+    n_inv, normal, rhs = _reduced_normal(M, g, A)
+    N_inv = np.linalg.inv(M[:, 4:, 4:])
+    CN = M[:, :4, 4:] @ N_inv
+    S = M[:, :4, :4] - CN @ np.swapaxes(M[:, :4, 4:], 1, 2)
+    s = g[:, :4] - np.einsum("nij,nj->ni", CN, g[:, 4:])
+    np.testing.assert_allclose(n_inv, N_inv, rtol=1e-10)
+    np.testing.assert_allclose(normal, np.swapaxes(A, 1, 2) @ S @ A, rtol=1e-9, atol=1e-9 * np.abs(normal).max())
+    np.testing.assert_allclose(rhs, np.einsum("nji,nj->ni", A, s), rtol=1e-9, atol=1e-9 * np.abs(rhs).max())
+    M[3, 4:, 4:] = 0.0  # a star whose flux and background its pixels do not determine
+    with pytest.raises(np.linalg.LinAlgError):
+        _reduced_normal(M, g, A)
+
+
+def test_compiled_robust_rate_step_matches_least_squares_without_outliers():
+    from rollingstar.estimators.centroiders.streak import _robust_rate_step
+
+    rng = np.random.default_rng(14)
+    A = rng.normal(size=(30, 2, 3))
+    r = A @ np.array([1e-3, -2e-3, 5e-4]) + rng.normal(0, 0.02, (30, 2))
+    r[[4, 9]] += 3.0  # two stars that moved by themselves
+    keep = np.ones(30, dtype=bool)
+    for _ in range(2):
+        d = np.linalg.lstsq(A[keep].reshape(-1, 3), r[keep].reshape(-1), rcond=None)[0]
+        miss = np.hypot(*(r - A @ d).T)
+        keep = miss <= 3.0 * max(1.4826 * np.median(miss), 0.05)
+    assert not keep[4] and not keep[9]
+    np.testing.assert_allclose(_robust_rate_step(A, r), d, rtol=1e-10, atol=1e-15)
