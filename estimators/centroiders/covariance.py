@@ -167,6 +167,8 @@ def clipping_covariance(shape: SpotShape, flux: np.ndarray, n_saturated: np.ndar
     n_sat = np.where(sat, n_saturated, 0)
     iso = clipped_cog_sigma_px(flux, n_sat, saturation_above_bg) ** 2
     streak = sat & (shape.length > STREAK_LENGTH_WIDTHS * shape.width)
+    if not streak.any():  # round spots: the streak terms are zero
+        return _along_across(iso, iso, shape)
     length = np.where(streak, np.maximum(shape.length, 1.0), 1.0)
     flux_streak = np.where(streak, flux, 0.0)
     across = clipped_streak_variance(flux_streak / length, n_sat / length, saturation_above_bg)
