@@ -16,6 +16,14 @@ from rollingstar.sensors import build
 _INT_COLUMNS = ("t_ns", "row_time_ns", "catalog_id", "npix")
 
 
+# The optional StarTable columns' "unknown" value, dtype and row width (None: one value per star).
+_DEFAULTS = {"flux": (np.nan, float, None), "peak": (np.nan, float, None), "npix": (0, np.int64, None),
+             "saturated": (False, bool, None), "snr": (np.nan, float, None), "sigma_px": (np.nan, float, None),
+             "cov_xx": (np.nan, float, None), "cov_xy": (np.nan, float, None), "cov_yy": (np.nan, float, None),
+             "vx": (np.nan, float, None), "vy": (np.nan, float, None), "catalog_id": (-1, np.int64, None),
+             "ref_icrs": (np.nan, float, 3)}
+
+
 @dataclass(frozen=True, eq=False)
 class StarTable:
     """Per-star columns of one frame; every array has length ``n`` (``ref_icrs`` is (n, 3)).
@@ -72,31 +80,17 @@ class StarTable:
             "t_ns": t_ns,
             "row_time_ns": t_ns.copy() if row_time_ns is None else np.broadcast_to(np.asarray(row_time_ns, dtype=np.int64), (n,)).copy(),
         }
-        defaults = {
-            "flux": np.full(n, np.nan),
-            "peak": np.full(n, np.nan),
-            "npix": np.zeros(n, dtype=np.int64),
-            "saturated": np.zeros(n, dtype=bool),
-            "snr": np.full(n, np.nan),
-            "sigma_px": np.full(n, np.nan),
-            "cov_xx": np.full(n, np.nan),
-            "cov_xy": np.full(n, np.nan),
-            "cov_yy": np.full(n, np.nan),
-            "vx": np.full(n, np.nan),
-            "vy": np.full(n, np.nan),
-            "catalog_id": np.full(n, -1, dtype=np.int64),
-            "ref_icrs": np.full((n, 3), np.nan),
-        }
-        unknown = set(columns) - set(defaults)
+        unknown = set(columns) - _DEFAULTS.keys()
         if unknown:
             raise TypeError(f"unknown StarTable columns: {sorted(unknown)}")
-        for name, default in defaults.items():
+        for name, (fill, dtype, width) in _DEFAULTS.items():
+            shape = (n,) if width is None else (n, width)
             value = columns.get(name)
             if value is None:
-                values[name] = default
+                values[name] = np.full(shape, fill, dtype=dtype)
             else:
-                arr = np.asarray(value, dtype=default.dtype)
-                values[name] = np.broadcast_to(arr, default.shape).copy()
+                arr = np.asarray(value, dtype=dtype)
+                values[name] = arr.copy() if arr.shape == shape else np.broadcast_to(arr, shape).copy()
         return cls(**values)
 
     @classmethod
