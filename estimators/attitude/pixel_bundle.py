@@ -15,13 +15,20 @@ by their Schur complement (each star's ``(F, b)`` couples only to itself):
     S_j = G_j - C_j N_j^-1 C_j^T,  s_j = g_j - C_j N_j^-1 n_j
     (sum A_j^T S_j A_j) theta_step = sum A_j^T s_j
 
-iterated until a step under the strict screen moves no parameter by more than ``CONVERGED_SIGMAS``
-of its sigma (at most ``pixel_iterations``), with ``G, C, N`` the (position-and-velocity,
+iterated (at most ``pixel_iterations`` times), with ``G, C, N`` the (position-and-velocity,
 nuisance) blocks of ``J^T W J``, ``g, n`` those of ``J^T W r``, and ``A_j = d(x_j, y_j, vx_j,
-vy_j) / d theta``. The information ``sum A_j^T S_j A_j`` is the Fisher information of ``theta`` in
-the pixels (the frame-level pixel bound); the one returned, and the screen the outlier count
-comes from, are the last linearisation's, less than ``CONVERGED_SIGMAS`` from the solution (the
-information changes over a PSF width, the step is a few hundredths of a pixel).
+vy_j) / d theta``, until a step under the strict screen moves no parameter by more than
+``CONVERGED_SIGMAS`` of its sigma, or is predicted to leave a next step under
+``PREDICTED_SIGMAS``. Gauss-Newton converges quadratically: the model is linear to within
+``(d / s)^2`` of a step that moves the stars' images by ``d`` px (position, and each streak end:
+velocity times half the exposure), ``s`` the PSF's effective sigma, so the next step is about the
+step times ``d / s`` (:func:`_contraction`). A step of a few sigmas that moves the stars by
+hundredths of a pixel ends the iterations (``tests/estimators/test_rs_bundle.py``: iterating on
+from there moves no attitude or rate component by 0.1 of its sigma, at 0 to 10 deg/s). The
+information ``sum A_j^T S_j A_j`` is the Fisher information of ``theta`` in the pixels (the
+frame-level pixel bound); the one returned, and the screen the outlier count comes from, are the
+last linearisation's, a step of a few hundredths of a pixel from the solution (the information
+changes over a PSF width).
 A window cut by the detector's edge keeps the pixels it has. A star with fewer than
 ``MIN_LIVE_PIXELS`` live pixels, or one the model does not explain (non-positive flux, or a
 reduced chi-square above ``MAX_STAR_CHI2`` at the current step, above ``START_STAR_CHI2`` at the
@@ -50,11 +57,9 @@ from rollingstar.sensors.streak_model import effective_sigma
 
 MAX_STAR_CHI2 = 2.0  # reduced chi-square above which a star's pixels contradict the model (a right one: 1 +- 0.1)
 # A step under the strict screen below this fraction of every parameter's sigma ends the
-# iterations: Gauss-Newton converges quadratically, so what such a step leaves is of the order of
-# (step / model scale)^2, a few hundredths of a sigma for stars ~1 px wide and sigmas of ~0.05 px
-# (the step from a maximum-likelihood centroid start is this small; from a thresholded CoG start
-# it is not, and the iterations go on)
+# iterations, or one whose successor is predicted (module docstring) below PREDICTED_SIGMAS
 CONVERGED_SIGMAS = 0.5
+PREDICTED_SIGMAS = 0.05
 MIN_LIVE_PIXELS = 12  # fewest live pixels of a star's window for it to take part
 START_STAR_CHI2 = 100.0  # the same at the starting point, where the positions may still be off by a pixel
 MIN_EXPLAINED_FRACTION = 0.5  # of the usable stars the model must explain, else the position solution stands
@@ -190,6 +195,16 @@ def _reduced_normal(M, g, A):  # pragma: no cover - compiled
     return n_inv, normal, rhs
 
 
+def _contraction(A: np.ndarray, step: np.ndarray, pixels: _Pixels) -> float:
+    """``d / s``: the largest move ``d`` (px) of a star's image by ``step`` (its position, and its
+    streak's ends: the velocity change times half the exposure) over the PSF's effective sigma
+    ``s``, the factor by which Gauss-Newton's next step is smaller than this one (module docstring)."""
+    move = np.einsum("nij,j->ni", A[:, :, : step.size], step)
+    d = max(float(np.max(np.hypot(move[:, 0], move[:, 1]))),
+            0.5 * pixels.exposure_s * float(np.max(np.hypot(move[:, 2], move[:, 3]))))
+    return d / pixels.se
+
+
 def _initial_nuisance(pv: np.ndarray, pixels: _Pixels) -> tuple[np.ndarray, np.ndarray]:
     """Per-star flux and background (ADU) by weighted linear least squares on the predicted spot
     shape (one exact step from unit flux and zero background: the model is linear in both), and
@@ -275,8 +290,10 @@ def refine_on_pixels(frame, context, camera, stars, R: Rotation, omega, info, fi
             return (*start, info, frame.flags + ("pixel_step_skipped:singular_information",))
         nuis = nuis + b.nuisance_step(A[usable], step)
         R, omega = apply_step(R, omega, step)
-        if np.array_equal(keep, strict) and np.all(np.abs(step) <= CONVERGED_SIGMAS * np.sqrt(np.diag(np.linalg.inv(normal)))):
-            break
+        if np.array_equal(keep, strict):
+            in_sigmas = float(np.max(np.abs(step) / np.sqrt(np.diag(np.linalg.inv(normal)))))
+            if in_sigmas <= CONVERGED_SIGMAS or in_sigmas * _contraction(A[usable][keep], step, pixels) <= PREDICTED_SIGMAS:
+                break
     dropped = int((~keep).sum()) + int((~usable).sum())
     flags = frame.flags + ((f"pixel_outliers:{dropped}",) if dropped else ())
     return R, np.asarray(omega, dtype=float), 0.5 * (normal + normal.T), flags
