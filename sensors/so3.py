@@ -127,3 +127,26 @@ def wahba(ref: np.ndarray, body: np.ndarray, weights: np.ndarray | None = None) 
     u, _, vt = np.linalg.svd(B)
     d = np.sign(np.linalg.det(u @ vt))
     return (u * np.array([1.0, 1.0, d])) @ vt
+
+
+@njit(cache=True, nogil=True)
+def quat_from_matrix(m):  # pragma: no cover - compiled
+    """The unit quaternion (x, y, z, w) of the rotation matrix ``m`` (3, 3), by the largest of the
+    four diagonal combinations (Shepperd 1978; the sign is not normalised). Written by hand because
+    ``scipy.spatial.transform.Rotation.from_matrix`` costs ~0.1 ms a call for one matrix, more than
+    the whole position fit it would start."""
+    t = m[0, 0] + m[1, 1] + m[2, 2]
+    q = np.empty(4)
+    if t >= m[0, 0] and t >= m[1, 1] and t >= m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + t)
+        q[0], q[1], q[2], q[3] = (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s
+    elif m[0, 0] >= m[1, 1] and m[0, 0] >= m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q[0], q[1], q[2], q[3] = 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s
+    elif m[1, 1] >= m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q[0], q[1], q[2], q[3] = (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s
+    else:
+        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q[0], q[1], q[2], q[3] = (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s
+    return q / np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])

@@ -9,7 +9,7 @@ from numba import njit
 from scipy.spatial.transform import Rotation
 
 from rollingstar.sensors.conventions import S_PER_NS
-from rollingstar.sensors.so3 import rotate_at_rate, skew
+from rollingstar.sensors.so3 import quat_from_matrix, rotate_at_rate, skew
 
 
 def star_times(stars, t_ref_ns: int) -> np.ndarray:
@@ -31,9 +31,10 @@ def apply_step(R: Rotation, omega: np.ndarray, step: np.ndarray) -> tuple[Rotati
     return Rotation.from_quat(_quat_step(R.as_quat(), np.ascontiguousarray(step[:3], dtype=float))), omega
 
 
-def fit_positions(R: Rotation, omega: np.ndarray, ref: np.ndarray, dt: np.ndarray, d, iterations: int,
+def fit_positions(R: Rotation | np.ndarray, omega: np.ndarray, ref: np.ndarray, dt: np.ndarray, d, iterations: int,
                   fit_rate: bool, huber_k: float | None = None) -> tuple[Rotation, np.ndarray, np.ndarray]:
-    """Gauss-Newton fit of the attitude at ``t_ref`` and the rate to the stars' directions. Each
+    """Gauss-Newton fit of the attitude at ``t_ref`` and the rate to the stars' directions, from ``R``
+    (a ``Rotation`` or a camera -> ICRS rotation matrix). Each
     iteration solves the normal equations ``(sum w_i H_i^T W_i H_i) step = sum w_i H_i^T W_i e_i``:
     ``e_i`` the tangent-plane residual of star ``i`` (``d``: the stars'
     :class:`~rollingstar.estimators.attitude.star_covariance.DirectionCovariance`), ``H_i`` its
@@ -46,7 +47,8 @@ def fit_positions(R: Rotation, omega: np.ndarray, ref: np.ndarray, dt: np.ndarra
 
     Compiled (:func:`_position_fit`): the fit of a frame's few tens of stars is some ten small
     array operations per iteration, and numpy's per-call overhead was most of its time."""
-    q, omega, normal = _position_fit(np.asarray(R.as_quat(), dtype=float), np.array(omega, dtype=float),
+    q0 = np.asarray(R.as_quat(), dtype=float) if isinstance(R, Rotation) else quat_from_matrix(np.asarray(R, dtype=float))
+    q, omega, normal = _position_fit(q0, np.array(omega, dtype=float),
                                      np.ascontiguousarray(ref, dtype=float), np.ascontiguousarray(dt, dtype=float),
                                      np.ascontiguousarray(d.body, dtype=float), np.ascontiguousarray(d.basis, dtype=float),
                                      np.ascontiguousarray(d.info, dtype=float), int(iterations), 6 if fit_rate else 3,

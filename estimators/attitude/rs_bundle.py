@@ -40,7 +40,7 @@ from rollingstar.estimators.attitude.pixel_bundle import measure_psf, refine_on_
 from rollingstar.estimators.attitude.robust import RobustParams, apply_robust
 from rollingstar.estimators.attitude.star_covariance import direction_covariance
 from rollingstar.estimators.data import AttitudeEstimate, FrameData, RateEstimate, default_sigma_px, frame_camera
-from rollingstar.sensors.so3 import rotate_at_rate
+from rollingstar.sensors.so3 import rotate_at_rate, wahba
 
 DEFAULT_PSF_SIGMA_PX = 1.0  # the pixel model's PSF sigma on frames before one is measured
 MAX_PSF_REMEASURES = 2  # measurements after a misfit frame (a camera whose PSF the model cannot draw misfits on)
@@ -99,7 +99,7 @@ class RsBundleSolver(AttitudeSolver):
         ref = stars.ref_icrs / np.linalg.norm(stars.ref_icrs, axis=1, keepdims=True)
         d = direction_covariance(camera, stars.x, stars.y, stars.position_covariance(self._sigma_px))
         body0 = rotate_at_rate(omega0, d.body, dt)
-        R0, _ = Rotation.align_vectors(ref, body0)
+        R0 = wahba(ref, body0)  # the start: Wahba's problem on the directions at the start rate
         huber = HUBER_K if p.pixels and frame.image is not None else None  # a robust start for the pixel step
         R, omega, info = fit_positions(R0, omega0, ref, dt, d, p.iterations + (2 if huber else 0), fit_rate, huber)
         flags = frame.flags

@@ -351,3 +351,14 @@ def test_compiled_robust_rate_step_matches_least_squares_without_outliers():
         keep = miss <= 3.0 * max(1.4826 * np.median(miss), 0.05)
     assert not keep[4] and not keep[9]
     np.testing.assert_allclose(_robust_rate_step(A, r), d, rtol=1e-10, atol=1e-15)
+
+
+def test_compiled_quaternion_from_matrix_matches_scipy_near_every_branch():
+    from rollingstar.sensors.so3 import quat_from_matrix
+
+    rotations = list(Rotation.random(500, random_state=21))
+    rotations += [Rotation.from_rotvec(v) for v in ([np.pi, 0, 0], [0, np.pi, 0], [0, 0, np.pi],
+                                                     [0, np.pi - 1e-9, 0], [0, 0, 0], [1e-12, 0, 0])]
+    for r in rotations:
+        q, expected = quat_from_matrix(r.as_matrix()), r.as_quat()
+        assert min(np.abs(q - expected).max(), np.abs(q + expected).max()) < 1e-14  # q and -q: one rotation
