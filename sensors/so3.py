@@ -120,13 +120,29 @@ def quat_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 def wahba(ref: np.ndarray, body: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
     """The rotation matrix ``R`` minimising ``sum w_i |ref_i - R body_i|^2`` (Wahba's problem by
     SVD, Markley 1988): ``Rotation.align_vectors(ref, body, weights).as_matrix()`` without its
-    per-call overhead (65 against 17 microseconds on 36 vectors), for callers that need only the
-    matrix (the identification check, the tracker's refit; building a ``Rotation`` from it with
-    ``Rotation.from_matrix`` costs what the SVD saves)."""
-    B = (ref if weights is None else ref * np.asarray(weights, dtype=float)[:, None]).T @ body
+    per-call overhead, for callers that need the matrix (the identification check, the tracker's
+    refit, the start of ``rs-bundle``'s fit; :func:`quat_from_matrix` gives its quaternion
+    without ``Rotation.from_matrix``'s overhead). ``rollingstar bench perf --only chain`` measures
+    the chain these run in."""
+    ref, body = np.asarray(ref, dtype=float), np.asarray(body, dtype=float)
+    w = np.ones(len(ref)) if weights is None else np.asarray(weights, dtype=float)
+    return _wahba(ref, body, w)
+
+
+@njit(cache=True, nogil=True)
+def _wahba(ref, body, weights):  # pragma: no cover - compiled
+    """:func:`wahba` (compiled: the tracker and the identification check solve it on every frame,
+    where numpy's calls around the 3 x 3 SVD cost several times the SVD)."""
+    B = np.zeros((3, 3))
+    for i in range(ref.shape[0]):
+        for a in range(3):
+            for b in range(3):
+                B[a, b] += weights[i] * ref[i, a] * body[i, b]
     u, _, vt = np.linalg.svd(B)
     d = np.sign(np.linalg.det(u @ vt))
-    return (u * np.array([1.0, 1.0, d])) @ vt
+    for a in range(3):
+        u[a, 2] *= d
+    return u @ vt
 
 
 @njit(cache=True, nogil=True)
