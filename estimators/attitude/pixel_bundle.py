@@ -50,7 +50,7 @@ from scipy.spatial.transform import Rotation
 from rollingstar.estimators.attitude.frame_fit import apply_step, predicted_directions
 from rollingstar.estimators.centroiders.cog import robust_sigma
 from rollingstar.estimators.centroiders.psf_width import measure_psf_sigma, star_windows
-from rollingstar.estimators.centroiders.streak_kernel import normal_equations, nuisance_equations
+from rollingstar.estimators.centroiders.streak_kernel import normal_equations, normal_equations_at_fitted_nuisance
 from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.so3 import skew
 from rollingstar.sensors.streak_model import effective_sigma
@@ -133,12 +133,13 @@ class _Pixels(NamedTuple):
         return normal_equations(p, self.row0, self.col0, self.nrows, self.ncols, self.image, self.saturation,
                                 self.noise2, self.inv_gain, self.se, self.exposure_s, self.ld_s)
 
-    def nuisance_equations(self, pv: np.ndarray, nuis: np.ndarray):
-        """The flux-and-background block of :meth:`normal_equations` alone, and the pixels used
-        (:func:`rollingstar.estimators.centroiders.streak_kernel.nuisance_equations`)."""
-        p = np.ascontiguousarray(np.column_stack([pv, nuis]), dtype=float)
-        return nuisance_equations(p, self.row0, self.col0, self.nrows, self.ncols, self.image, self.saturation,
-                                  self.noise2, self.inv_gain, self.se, self.exposure_s, self.ld_s)
+    def at_fitted_nuisance(self, pv: np.ndarray):
+        """Each star's flux and background fitted on its predicted profile, and
+        :meth:`normal_equations` there: ``(nuis (n, 2), J^T W J, J^T W r, chi-square, live pixels)``
+        (:func:`rollingstar.estimators.centroiders.streak_kernel.normal_equations_at_fitted_nuisance`)."""
+        return normal_equations_at_fitted_nuisance(
+            np.ascontiguousarray(pv[:, :4], dtype=float), self.row0, self.col0, self.nrows, self.ncols, self.image,
+            self.saturation, self.noise2, self.inv_gain, self.se, self.exposure_s, self.ld_s)
 
     def take(self, keep: np.ndarray) -> "_Pixels":
         return self._replace(row0=np.ascontiguousarray(self.row0[keep]), col0=np.ascontiguousarray(self.col0[keep]))
@@ -149,8 +150,9 @@ class _Blocks:
     normal ``A^T S A`` and right-hand side ``A^T s`` in ``theta``, the pieces that update the
     nuisances, and the chi-square of its pixels."""
 
-    def __init__(self, pv, A, nuis, pixels: _Pixels):
-        M, g, self.chi2, used = pixels.normal_equations(pv, nuis)
+    def __init__(self, M, g, chi2, used, A):
+        """From one linearisation's per-star normal equations (:meth:`_Pixels.normal_equations`)."""
+        self.chi2 = chi2
         self.dof = np.maximum(used - 6, 1)
         self.C = M[:, :4, 4:]
         self.g_nuis = g[:, 4:]
@@ -205,17 +207,6 @@ def _contraction(A: np.ndarray, step: np.ndarray, pixels: _Pixels) -> float:
     return d / pixels.se
 
 
-def _initial_nuisance(pv: np.ndarray, pixels: _Pixels) -> tuple[np.ndarray, np.ndarray]:
-    """Per-star flux and background (ADU) by weighted linear least squares on the predicted spot
-    shape (one exact step from unit flux and zero background: the model is linear in both), and
-    each star's live pixels."""
-    start = np.column_stack([np.ones(len(pv)), np.zeros(len(pv))])
-    N, h, used = pixels.nuisance_equations(pv, start)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        step = np.linalg.solve(N + 1e-12 * np.eye(2), h[..., None])[..., 0]
-    return start + step, used
-
-
 def _frame_pixels(frame, context, pv: np.ndarray, psf_sigma_px: float, window_sigmas: float) -> _Pixels:
     """The frame's pixels and each star's window
     (:func:`~rollingstar.estimators.centroiders.psf_width.star_windows`) for the pixel model of PSF
@@ -258,18 +249,18 @@ def refine_on_pixels(frame, context, camera, stars, R: Rotation, omega, info, fi
     kin = _kinematics(frame, context, camera, stars, t_ref)
     pv, A, _, t = kin(R, omega)
     pixels = _frame_pixels(frame, context, pv, psf_sigma_px, params.window_sigmas)
-    nuis, live = _initial_nuisance(pv, pixels)
-    usable = live >= MIN_LIVE_PIXELS
+    nuis, *first = pixels.at_fitted_nuisance(pv)  # the start's flux and background, and its linearisation
+    usable = first[3] >= MIN_LIVE_PIXELS
     if not usable.any():
         return R, omega, info, frame.flags + ("pixel_step_skipped:no_live_pixels",)
-    pixels, nuis = pixels.take(usable), nuis[usable]
+    pixels, nuis, first = pixels.take(usable), nuis[usable], [a[usable] for a in first]
     k = 6 if fit_rate else 3
     start = (R, omega)
     for it in range(params.pixel_iterations + 1):
         if it:  # the first iteration's kinematics are the ones computed above
             pv, A, _, t = kin(R, omega, t_ns=t, passes=1)
         try:
-            b = _Blocks(pv[usable], A[usable], nuis, pixels)
+            b = _Blocks(*(pixels.normal_equations(pv[usable], nuis) if it else first), A[usable])
         except np.linalg.LinAlgError:  # a star's flux and background not determined by its pixels
             return (*start, info, frame.flags + ("pixel_step_skipped:singular_information",))
         # a loose screen at the start, the strict one after every step (a star the start left out

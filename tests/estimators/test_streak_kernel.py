@@ -1,9 +1,14 @@
-"""The compiled normal equations of the streak fit against sums written out from the smear model, and
-the flux-and-background kernel against their block."""
+"""The compiled normal equations of the streak fit against sums written out from the smear model, the
+flux-and-background kernel against their block, and the fused kernel (flux and background fitted,
+then the normal equations there) against the two run one after the other."""
 import numpy as np
 import pytest
 
-from rollingstar.estimators.centroiders.streak_kernel import normal_equations, nuisance_equations
+from rollingstar.estimators.centroiders.streak_kernel import (
+    normal_equations,
+    normal_equations_at_fitted_nuisance,
+    nuisance_equations,
+)
 from rollingstar.sensors.streak_model import effective_sigma, streak_mu_jac
 
 PSF, EXPOSURE, LD = 1.0, 0.0449, 43.9e-6
@@ -59,3 +64,19 @@ def test_the_nuisance_kernel_is_the_flux_and_background_block(case):
     np.testing.assert_allclose(N, H[:, 4:, 4:], rtol=1e-9)
     np.testing.assert_allclose(h, g[:, 4:], rtol=1e-9, atol=1e-9 * np.abs(h).max())
     assert np.array_equal(used, used_n)
+
+
+def test_the_fused_kernel_fits_flux_and_background_then_sums_there(case):
+    p, row0, col0, nr, nc, image = case
+    tail = (row0, col0, nr, nc, image, SAT, NOISE2, INV_GAIN, effective_sigma(PSF), EXPOSURE, LD)
+    start = np.column_stack([p[:, :4], np.ones(len(p)), np.zeros(len(p))])
+    N, h, used = nuisance_equations(start, *tail)
+    nuis = start[:, 4:] + np.linalg.solve(N + 1e-12 * np.eye(2), h[..., None])[..., 0]
+    H, g, chi2, used_h = normal_equations(np.column_stack([p[:, :4], nuis]), *tail)
+    got = normal_equations_at_fitted_nuisance(np.ascontiguousarray(p[:, :4]), *tail)
+    np.testing.assert_allclose(got[0], nuis, rtol=1e-10)
+    np.testing.assert_allclose(got[0][:, 0], p[:, 4] / 0.97, rtol=0.02)  # the flux the image was drawn with
+    np.testing.assert_allclose(got[1], H, rtol=1e-9, atol=1e-9 * np.abs(H).max())
+    np.testing.assert_allclose(got[2], g, rtol=1e-9, atol=1e-9 * np.abs(g).max())
+    np.testing.assert_allclose(got[3], chi2, rtol=1e-9)
+    assert np.array_equal(got[4], used) and np.array_equal(used, used_h)
