@@ -43,6 +43,8 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _rows(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple]:
     """``a`` and ``b`` (..., 3) broadcast against each other as (m, 3) rows, and the broadcast shape."""
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    if a.shape[-1:] != (3,) or b.shape[-1:] != (3,):
+        raise ValueError(f"expected vectors (..., 3), got shapes {a.shape} and {b.shape}")
     if a.shape == b.shape and a.ndim == 2:
         return a, b, a.shape
     shape = np.broadcast_shapes(a.shape, b.shape)
@@ -60,7 +62,7 @@ def rotate_rows(rotvec, v):  # pragma: no cover - compiled
     """:func:`rotate_by_rotvec` row by row on (m, 3) arrays, callable from other compiled code.
     Compiled: the trackers and the diagnosis rotate a few tens of stars per call, where a dozen
     numpy calls' overhead was several times the arithmetic."""
-    out = np.empty_like(v)
+    out = np.empty(v.shape)
     for i in range(v.shape[0]):
         p0, p1, p2 = rotvec[i, 0], rotvec[i, 1], rotvec[i, 2]
         th = np.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
@@ -82,15 +84,20 @@ def rotate_at_rate(omega, w: np.ndarray, dt_s: np.ndarray) -> np.ndarray:
     if not omega.any():
         return w
     w, dt_s = np.asarray(w, dtype=float), np.asarray(dt_s, dtype=float)
-    return _rotate_at_rate(omega, w, dt_s if dt_s.ndim else np.full(w.shape[0], float(dt_s)))
+    n = np.broadcast_shapes(w.shape[:1], dt_s.shape)  # numpy's broadcasting of the rows and the times
+    if w.shape[1:] != (3,) or len(n) != 1:
+        raise ValueError(f"rotate_at_rate: expected w (n, 3) and dt_s (n,), got {w.shape} and {dt_s.shape}")
+    return _rotate_at_rate(omega, np.broadcast_to(w, n + (3,)), np.broadcast_to(dt_s, n))
 
 
 @njit(cache=True, nogil=True)
 def _rotate_at_rate(omega, w, dt_s):  # pragma: no cover - compiled
     """:func:`rotate_at_rate` star by star (compiled for the reason of :func:`rotate_rows`)."""
     norm = np.sqrt(omega[0] * omega[0] + omega[1] * omega[1] + omega[2] * omega[2])
+    if norm == 0.0:  # a rate whose square underflows: no rotation
+        return w.copy()
     k0, k1, k2 = omega[0] / norm, omega[1] / norm, omega[2] / norm
-    out = np.empty_like(w)
+    out = np.empty(w.shape)
     for i in range(w.shape[0]):
         t = norm * dt_s[i]
         c, s = np.cos(t), np.sin(t)
@@ -125,7 +132,9 @@ def wahba(ref: np.ndarray, body: np.ndarray, weights: np.ndarray | None = None) 
     without ``Rotation.from_matrix``'s overhead). ``rollingstar bench perf --only chain`` measures
     the chain these run in."""
     ref, body = np.asarray(ref, dtype=float), np.asarray(body, dtype=float)
-    w = np.ones(len(ref)) if weights is None else np.asarray(weights, dtype=float)
+    if ref.ndim != 2 or ref.shape[1:] != (3,) or body.shape != ref.shape:
+        raise ValueError(f"wahba: expected ref and body (n, 3) alike, got {ref.shape} and {body.shape}")
+    w = np.ones(len(ref)) if weights is None else np.broadcast_to(np.asarray(weights, dtype=float), (len(ref),))
     return _wahba(ref, body, w)
 
 

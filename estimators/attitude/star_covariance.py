@@ -92,18 +92,19 @@ def direction_covariance(camera, x, y, cov_px) -> DirectionCovariance:
     """The tangent-plane covariance of each star's direction from its pixel covariance ``cov_px``
     (n, 2, 2) px^2 (module docstring: ``Sigma = E^T J C J^T E``)."""
     body, E, J = _direction_basis_jacobian(camera, x, y)
-    cov, info, whiten, ok = _tangent_covariance(np.ascontiguousarray(E), np.ascontiguousarray(J, dtype=float),
-                                                np.ascontiguousarray(np.asarray(cov_px, dtype=float).reshape(-1, 2, 2)))
-    if not ok.all():  # not positive definite (or not finite): numpy's error, as for any Cholesky
-        np.linalg.cholesky(cov[~ok])
+    C = np.ascontiguousarray(np.broadcast_to(np.asarray(cov_px, dtype=float), (len(body), 2, 2)))
+    cov, info, whiten, ok = _tangent_covariance(np.ascontiguousarray(E), np.ascontiguousarray(J, dtype=float), C)
+    if not ok.all():  # numpy's error for a covariance its Cholesky factorisation refuses
+        raise np.linalg.LinAlgError(f"Matrix is not positive definite (star {int(np.flatnonzero(~ok)[0])})")
     return DirectionCovariance(body, E, cov, info, whiten)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _tangent_covariance(E, J, C):  # pragma: no cover - compiled
     """Per star ``Sigma = M C M^T`` with ``M = E^T J`` (2 x 2), its inverse and the whitening
     ``L^-1`` (``L L^T = Sigma``), each 2 x 2 written out; and whether ``Sigma`` is positive
-    definite. Compiled: a dozen stacked 2 x 2 numpy operations per frame cost ~50x their arithmetic."""
+    definite (both Cholesky pivots positive and finite). Compiled: a dozen stacked 2 x 2 numpy
+    operations per frame cost ~50x their arithmetic."""
     n = E.shape[0]
     cov, info, whiten = np.zeros((n, 2, 2)), np.zeros((n, 2, 2)), np.zeros((n, 2, 2))
     ok = np.zeros(n, dtype=np.bool_)
@@ -121,11 +122,12 @@ def _tangent_covariance(E, J, C):  # pragma: no cover - compiled
         off = 0.5 * (s[0, 1] + s[1, 0])
         cov[i, 0, 0], cov[i, 0, 1], cov[i, 1, 0], cov[i, 1, 1] = s[0, 0], off, off, s[1, 1]
         det = s[0, 0] * s[1, 1] - off * off
-        ok[i] = s[0, 0] > 0 and det > 0
         info[i, 0, 0], info[i, 0, 1], info[i, 1, 0], info[i, 1, 1] = s[1, 1] / det, -off / det, -off / det, s[0, 0] / det
         l00 = np.sqrt(s[0, 0])
         l10 = off / l00
-        l11 = np.sqrt(s[1, 1] - l10 * l10)
+        pivot = s[1, 1] - l10 * l10
+        ok[i] = s[0, 0] > 0 and pivot > 0 and np.isfinite(pivot) and np.isfinite(det)
+        l11 = np.sqrt(pivot)
         whiten[i, 0, 0], whiten[i, 1, 0], whiten[i, 1, 1] = 1.0 / l00, -l10 / (l00 * l11), 1.0 / l11
     return cov, info, whiten, ok
 

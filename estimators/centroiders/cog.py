@@ -378,7 +378,7 @@ def robust_sigma(resid: np.ndarray) -> float:
     return float(_robust_sigma(r))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _robust_sigma(r):  # pragma: no cover - compiled
     """:func:`robust_sigma` of pixels without NaN. Compiled: two medians and two clipped moments of
     a few thousand pixels, twice per tracked frame, where numpy's temporary copies and calls cost

@@ -484,12 +484,8 @@ class StreakCentroider(Centroider):
         how a tracked frame of them follows a changing rate."""
         if x.size < MIN_STARS_FOR_RATE or dt <= 0:
             return omega
-        A = rotation_jacobian(camera, x, y) * dt
-        try:
-            d_omega = _robust_rate_step(A, np.column_stack([fx - x, fy - y]))
-        except np.linalg.LinAlgError:  # the kept stars do not determine a rate change: none is made
-            return omega
-        return np.asarray(omega, dtype=float) + d_omega
+        A = np.ascontiguousarray(rotation_jacobian(camera, x, y) * dt)
+        return np.asarray(omega, dtype=float) + _robust_rate_step(A, np.column_stack([fx - x, fy - y]))
 
     def _moved(self, camera, x, y, omega, dt: float):
         """Where stars seen at ``(x, y)`` (their own rows' mid-exposure) are at this frame's: the line of
@@ -905,24 +901,23 @@ def _misfit_scale(chi2: np.ndarray, used: np.ndarray) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def _robust_rate_step(A, r):  # pragma: no cover - compiled
-    """``d_omega`` minimising ``sum |r_i - A_i d_omega|^2`` (``A`` (m, 2, 3), ``r`` (m, 2)) by its
-    normal equations, then again without the stars that miss by more than 3 robust sigmas (at
-    least 0.05 px). Compiled: two small least-squares problems per tracked frame, where numpy's
-    calls cost ~10x the arithmetic."""
+    """``d_omega`` minimising ``sum |r_i - A_i d_omega|^2`` (``A`` (m, 2, 3), ``r`` (m, 2)) by least
+    squares (minimum norm when the stars leave it undetermined, as ``numpy.linalg.lstsq``), then
+    again without the stars that miss by more than 3 robust sigmas (at least 0.05 px). Compiled:
+    two small least-squares problems per tracked frame, where numpy's calls cost ~10x the
+    arithmetic."""
     m = A.shape[0]
     keep = np.ones(m, dtype=np.bool_)
     miss = np.zeros(m)
     d = np.zeros(3)
     for _ in range(2):
-        N, b = np.zeros((3, 3)), np.zeros(3)
-        for i in range(m):
-            if keep[i]:
-                for row in range(2):
-                    for a in range(3):
-                        b[a] += A[i, row, a] * r[i, row]
-                        for c in range(3):
-                            N[a, c] += A[i, row, a] * A[i, row, c]
-        d = np.linalg.solve(N, b)
+        kept = np.flatnonzero(keep)
+        rows, rhs = np.zeros((2 * kept.size, 3)), np.zeros(2 * kept.size)
+        for j in range(kept.size):
+            for row in range(2):
+                rows[2 * j + row] = A[kept[j], row]
+                rhs[2 * j + row] = r[kept[j], row]
+        d = np.linalg.lstsq(rows, rhs, rcond=2.220446049250313e-16 * max(rows.shape[0], 3))[0]
         for i in range(m):
             ex = r[i, 0] - (A[i, 0, 0] * d[0] + A[i, 0, 1] * d[1] + A[i, 0, 2] * d[2])
             ey = r[i, 1] - (A[i, 1, 0] * d[0] + A[i, 1, 1] * d[1] + A[i, 1, 2] * d[2])

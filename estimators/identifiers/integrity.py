@@ -174,33 +174,33 @@ def fit_rate(R: Rotation | np.ndarray, body: np.ndarray, ref: np.ndarray, dt: np
     ``w_i = (R Exp(phi_i))^T r_i`` and each star's rows scaled by ``root_weights``, by its normal
     equations. Returns the per-star rotation vectors ``phi_i = delta + omega dt_i`` (n, 3) and the
     body rate ``omega`` (3,), rad/s in the camera frame."""
-    return _fit_rate(np.ascontiguousarray(np.asarray(ref, dtype=float) @ _matrix(R)),
-                     np.ascontiguousarray(body, dtype=float), np.ascontiguousarray(dt, dtype=float),
-                     np.ascontiguousarray(root_weights, dtype=float), int(steps))
+    v = np.ascontiguousarray(np.asarray(ref, dtype=float) @ _matrix(R))
+    n = (len(v),)
+    return _fit_rate(v, np.ascontiguousarray(np.broadcast_to(np.asarray(body, dtype=float), v.shape)),
+                     np.ascontiguousarray(np.broadcast_to(np.asarray(dt, dtype=float), n)),
+                     np.ascontiguousarray(np.broadcast_to(np.asarray(root_weights, dtype=float), n)), int(steps))
 
 
 @njit(cache=True, nogil=True)
 def _fit_rate(v, body, dt, root_weights, steps):  # pragma: no cover - compiled
-    """:func:`fit_rate` from ``v_i = R^T r_i``. Compiled: a check runs on every tracked frame, and the
-    numpy form's skew matrices, stacking and least-squares call cost ~10x its arithmetic."""
+    """:func:`fit_rate` from ``v_i = R^T r_i``: each step the least-squares solution (minimum norm
+    when the stars leave it undetermined, as ``numpy.linalg.lstsq``) of the stacked rows.
+    Compiled: a check runs on every tracked frame, and the numpy form's skew matrices, stacking
+    and calls cost ~10x its arithmetic."""
     n = v.shape[0]
     phi, omega = np.zeros((n, 3)), np.zeros(3)
+    A, b = np.zeros((3 * n, 6)), np.zeros(3 * n)
     for _ in range(steps):
         w = rotate_rows(-phi, v)
-        normal, rhs = np.zeros((6, 6)), np.zeros(6)
-        A = np.zeros((3, 6))
         for i in range(n):
-            q = root_weights[i] * root_weights[i]
-            A[0, 1], A[0, 2], A[1, 0], A[1, 2], A[2, 0], A[2, 1] = -w[i, 2], w[i, 1], w[i, 2], -w[i, 0], -w[i, 1], w[i, 0]
+            q = root_weights[i]
+            rows = ((0.0, -w[i, 2], w[i, 1]), (w[i, 2], 0.0, -w[i, 0]), (-w[i, 1], w[i, 0], 0.0))  # [w]x
             for r in range(3):
                 for c in range(3):
-                    A[r, 3 + c] = A[r, c] * dt[i]
-            for a in range(6):
-                rhs[a] += q * (A[0, a] * (body[i, 0] - w[i, 0]) + A[1, a] * (body[i, 1] - w[i, 1])
-                               + A[2, a] * (body[i, 2] - w[i, 2]))
-                for b in range(6):
-                    normal[a, b] += q * (A[0, a] * A[0, b] + A[1, a] * A[1, b] + A[2, a] * A[2, b])
-        sol = np.linalg.solve(normal, rhs)
+                    A[3 * i + r, c] = q * rows[r][c]
+                    A[3 * i + r, 3 + c] = q * rows[r][c] * dt[i]
+                b[3 * i + r] = q * (body[i, r] - w[i, r])
+        sol = np.linalg.lstsq(A, b, rcond=2.220446049250313e-16 * 3 * n)[0]
         for i in range(n):
             for c in range(3):
                 phi[i, c] += sol[c] + dt[i] * sol[3 + c]

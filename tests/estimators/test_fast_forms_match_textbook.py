@@ -290,6 +290,26 @@ def test_compiled_check_rate_fit_matches_least_squares_on_the_stacked_rows():
     np.testing.assert_allclose(got_omega, omega, rtol=0, atol=2e-3)  # and it finds the rate
 
 
+def test_compiled_check_rate_fit_is_the_minimum_norm_solution_when_the_stars_leave_it_undetermined():
+    from rollingstar.estimators.identifiers.integrity import fit_rate
+    from rollingstar.sensors.so3 import skew
+
+    rng = np.random.default_rng(9)
+    n = 5
+    body = np.column_stack([rng.normal(0, 0.1, (n, 2)), np.ones(n)])
+    body /= np.linalg.norm(body, axis=1, keepdims=True)
+    dt = np.array([-0.01, -0.01, -0.01, -0.01, 0.02])
+    R = Rotation.random(random_state=9)
+    ref = R.apply(Rotation.from_rotvec(np.radians([4.0, -7.0, 2.0]) * dt[:, None]).apply(body))
+    rw = np.r_[np.ones(4), 0.0]  # the one star at its own time weighs nothing: the rate is undetermined
+    w = ref @ R.as_matrix()
+    S = skew(w)
+    A = np.concatenate([S, S * dt[:, None, None]], axis=2).reshape(-1, 6) * np.repeat(rw, 3)[:, None]
+    sol = np.linalg.lstsq(A, (body - w).reshape(-1) * np.repeat(rw, 3), rcond=None)[0]
+    _, got = fit_rate(R.as_matrix(), body, ref, dt, rw, steps=1)
+    np.testing.assert_allclose(got, sol[3:], rtol=0, atol=1e-9)
+
+
 def test_compiled_tangent_covariance_matches_the_matrix_forms():
     from rollingstar.estimators.attitude.star_covariance import direction_covariance, direction_jacobian, tangent_basis
     from rollingstar.sensors.camera import PinholeCamera
@@ -362,3 +382,29 @@ def test_compiled_quaternion_from_matrix_matches_scipy_near_every_branch():
     for r in rotations:
         q, expected = quat_from_matrix(r.as_matrix()), r.as_quat()
         assert min(np.abs(q - expected).max(), np.abs(q + expected).max()) < 1e-14  # q and -q: one rotation
+
+
+def test_compiled_forms_keep_numpys_answers_on_degenerate_input():
+    from rollingstar.estimators.attitude.star_covariance import direction_covariance
+    from rollingstar.estimators.centroiders.cog import robust_sigma
+    from rollingstar.sensors.camera import PinholeCamera
+    from rollingstar.sensors.so3 import rotate_at_rate, wahba
+
+    w = np.random.default_rng(3).normal(size=(4, 3))
+    omega = np.array([0.3, -0.2, 0.1])
+    expected = Rotation.from_rotvec(omega * 0.5).apply(w)
+    np.testing.assert_allclose(rotate_at_rate(omega, w, np.array([0.5])), expected, atol=1e-14)  # times broadcast
+    np.testing.assert_allclose(rotate_at_rate(omega, w[:1], np.array([0.5, 0.5])), expected[[0, 0]], atol=1e-14)
+    np.testing.assert_array_equal(rotate_at_rate(np.array([1e-170, 0.0, 0.0]), w, np.ones(4)), w)  # rate underflows
+    with pytest.raises(ValueError):
+        wahba(w[:3], w[:2])
+    assert np.isnan(robust_sigma(np.array([np.inf, np.inf])))
+    cam = PinholeCamera(focal_length_m=0.025, pixel_size_m=5.5e-6, width=1024, height=1024)
+    x, y = np.array([100.0, 500.0, 900.0]), np.array([200.0, 600.0, 300.0])
+    np.testing.assert_allclose(direction_covariance(cam, x, y, 0.04 * np.eye(2)).cov,  # one covariance for all
+                               direction_covariance(cam, x, y, np.tile(0.04 * np.eye(2), (3, 1, 1))).cov)
+    for singular in (np.zeros((2, 2)), np.diag([0.04, 0.0])):  # refused, as numpy's Cholesky refuses them
+        cov = np.tile(0.04 * np.eye(2), (3, 1, 1))
+        cov[1] = singular
+        with pytest.raises(np.linalg.LinAlgError):
+            direction_covariance(cam, x, y, cov)

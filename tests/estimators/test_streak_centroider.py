@@ -268,11 +268,9 @@ def test_tracked_round_spots_are_the_cog_centroids_of_the_full_frame():
 @pytest.mark.parametrize("cog_below_px", [0.0, 3.0])
 def test_a_slow_drift_is_searched_once_enough_sky_has_entered(cog_below_px):
     """0.2 deg/s: under a pixel of sky enters per frame. The strip is searched once the entered sky
-    adds up to ``NEW_SKY_PX``, so a star that drifts in through the edge is found by tracking (no
-    periodic full search here) within two frames of being that far in, wherever a full search of
+    adds up to ``NEW_SKY_PX`` (8 px), so a star that drifts in through the edge is found by
+    tracking (no periodic full search here) by the time it is 16 px in, wherever a full search of
     the frame finds it. The stars come in through the edge, cut by it, as a sky does."""
-    from rollingstar.estimators.centroiders.streak import NEW_SKY_PX
-
     vy = 0.2 * PX_PER_S_PER_DEG_S
     ctx, frames, truth = _moving_sky(np.random.default_rng(8), vy, 50, row_offset=2.0, top_px=-4.0)
     tracked = StreakCentroider(cog_below_px=cog_below_px, full_search_frames=0)
@@ -285,7 +283,7 @@ def test_a_slow_drift_is_searched_once_enough_sky_has_entered(cog_below_px):
         if k:
             assert tracked.last_mode == "tracked", k
         ja, jb = set(_matched(a, x, y, 1.5)[0]), set(_matched(b, x, y, 1.5)[0])
-        missing = {j for j in jb - ja if y[j] > 6 + NEW_SKY_PX + 2 * vy * 0.06}  # in by NEW_SKY_PX two frames ago
+        missing = {j for j in jb - ja if y[j] > 16.0}  # 8 px of inflow after it shows, and two frames
         assert not missing, f"frame {k}: tracking misses {[(round(x[j]), round(y[j])) for j in missing]}"
         entered |= {(round(x[j]), round(y[j] - vy * (frame.t0_ns - frames[0].t0_ns) * 1e-9)) for j in ja if k
                     and y[j] < 10}
