@@ -395,6 +395,21 @@ def _robust_sigma(r):  # pragma: no cover - compiled
     return np.sqrt(np.mean((sel - med) ** 2)) / 0.98658
 
 
+def median(values) -> float:
+    """``numpy.median`` of ``values`` (NaN when empty or when any value is NaN), compiled: numpy's
+    copy-and-partition costs several times the selection on the few thousand pixels (or few tens
+    of stars) the trackers take a median of every frame."""
+    r = np.asarray(values, dtype=float).ravel()
+    if r.size == 0 or np.isnan(r).any():
+        return float("nan")
+    return float(_median(r))
+
+
+@njit(cache=True, nogil=True)
+def _median(r):  # pragma: no cover - compiled
+    return np.median(r)
+
+
 _MIN_STAT_SAMPLES = 16384
 
 

@@ -15,6 +15,7 @@ from rollingstar.estimators.centroiders.cog import (
     _interp_matrix,
     _subsample_step,
     _tile_medians,
+    median,
     robust_sigma,
 )
 from rollingstar.estimators.centroiders.covariance import effective_gain, isotropic_sigma
@@ -281,6 +282,7 @@ class StreakCentroider(Centroider):
         self._background = None
         self._sample_grid = None  # (map, stride, the map on the tracked frames' sample grid)
         self._corner_jacobian = None  # (camera, rotation_jacobian at the corners and centre)
+        self._edges = None  # (camera, edge segments, rotation_jacobian at their centres)
         self.last_mode = ""  # how the last frame was centroided: tracked, full, cold or cog (diagnostics)
         self._kernels = {}
         p = self.params
@@ -510,7 +512,7 @@ class StreakCentroider(Centroider):
         step = max(1, int(np.sqrt(raw.size / TRACKED_SAMPLE_PX)))
         sub = raw[::step, ::step].astype(float)
         resid = sub - self._background_on_sample(raw.shape, step)
-        level = float(np.median(resid))
+        level = median(resid)
         noise = max(robust_sigma(resid - level), self.params.noise_floor_adu)
         background = self._background._replace(tiles=self._background.tiles + level)
         return _Frame(raw, background, noise, self._saturation(raw), 1.0 / self._gain if self._gain else 0.0)
@@ -530,20 +532,12 @@ class StreakCentroider(Centroider):
         deep as the sky's shift since (summed over frames until it exceeds ``NEW_SKY_PX``: a
         slow drift is searched every few frames) plus a fit window's half size (the largest along
         the edge), in ``detect_tile_px`` segments of one kernel each."""
-        H, W = self._shape
         t = self.params.detect_tile_px
         xs, ys = [], []
-        edges = []  # (axis, size, across, edge, segment starts, segment centres on the edge)
-        for axis, size, across in ((1, W, H), (0, H, W)):  # left/right edges (columns), then top/bottom (rows)
-            starts = np.arange(0, across, t)
-            centres = np.minimum(starts + t / 2.0, across - 1.0)
-            for edge in (0.0, size - 1.0):
-                px, py = (np.full(starts.size, edge), centres) if axis == 1 else (centres, np.full(starts.size, edge))
-                edges.append((axis, size, across, edge, starts, px, py))
-        # the image velocity of every edge segment in one call (four would cost four times the overhead)
-        v = image_velocity(camera, np.concatenate([e[5] for e in edges]), np.concatenate([e[6] for e in edges]), omega)
+        edges, jac = self._edge_segments(camera)
+        v = jac @ np.asarray(omega, dtype=float)  # the image velocity of every edge segment
         cuts = np.cumsum([e[4].size for e in edges])[:-1]
-        for (axis, size, across, edge, starts, _, _), vx, vy in zip(edges, np.split(v[0], cuts), np.split(v[1], cuts)):
+        for (axis, size, across, edge, starts, _, _), vx, vy in zip(edges, np.split(v[:, 0], cuts), np.split(v[:, 1], cuts)):
             inward = (vx if axis == 1 else vy) * dt * (1.0 if edge == 0.0 else -1.0)
             reach = 0.5 * np.hypot(vx, vy) * self._exposure + MARGIN_SIGMAS * self._se + self.params.track_margin_px
             entered = self._inflow.get((axis, edge), 0.0) + max(float(np.max(inward)), 0.0)
@@ -561,6 +555,25 @@ class StreakCentroider(Centroider):
                 xs.append(x)
                 ys.append(y)
         return (np.concatenate(xs), np.concatenate(ys)) if xs else (np.zeros(0), np.zeros(0))
+
+    def _edge_segments(self, camera):
+        """The detector's edges cut in ``detect_tile_px`` segments, as ``(axis, size, across, edge,
+        segment starts, segment centres x, y)``, left and right edges (columns) then top and bottom
+        (rows), and the rotation Jacobian at the segments' centres (n, 2, 3) (computed once per camera)."""
+        if self._edges is not None and self._edges[0] is camera:
+            return self._edges[1], self._edges[2]
+        H, W = self._shape
+        t = self.params.detect_tile_px
+        edges = []
+        for axis, size, across in ((1, W, H), (0, H, W)):
+            starts = np.arange(0, across, t)
+            centres = np.minimum(starts + t / 2.0, across - 1.0)
+            for edge in (0.0, size - 1.0):
+                px, py = (np.full(starts.size, edge), centres) if axis == 1 else (centres, np.full(starts.size, edge))
+                edges.append((axis, size, across, edge, starts, px, py))
+        jac = rotation_jacobian(camera, np.concatenate([e[5] for e in edges]), np.concatenate([e[6] for e in edges]))
+        self._edges = (camera, edges, jac)
+        return edges, jac
 
     def _bin(self, vx: float, vy: float) -> int:
         """Detection bin of a streak of velocity ``(vx, vy)``: 4 x 4 for long streaks, else 2 x 2."""

@@ -49,6 +49,7 @@ from numba import njit
 from scipy.spatial.transform import Rotation
 from scipy.special import bdtrc, chdtrc
 
+from rollingstar.estimators.centroiders.cog import median
 from rollingstar.estimators.data import DEFAULT_CENTROID_SIGMA_PX, FrameData, IdentificationCheck, StarTable
 from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.so3 import rotate_by_rotvec, rotate_rows, wahba
@@ -88,7 +89,7 @@ def check_identification(stars: StarTable | None, unmatched: StarTable | None, c
     if k < 2:
         return IdentificationCheck(1.0, n, k, 0, float("nan"), float(bound), False, f"too_few_matches({k}<2)")
     stated = ident.sigma_px[ident.sigma_px > 0]  # the stars' own sigmas (NaN: none stated)
-    sigma = float(np.median(stated)) if stated.size and np.isfinite(stated).any() else np.nan
+    sigma = median(stated) if stated.size and np.isfinite(stated).any() else np.nan
     cov = ident.position_covariance(sigma if np.isfinite(sigma) else DEFAULT_CENTROID_SIGMA_PX)
     resid, attitude, dx = fit_residuals(ident, camera, omega_rad_s, cov)
     floor = max(min_gate_px, 3.0 * (sigma if np.isfinite(sigma) else DEFAULT_CENTROID_SIGMA_PX))
@@ -108,7 +109,7 @@ def check_identification(stars: StarTable | None, unmatched: StarTable | None, c
     chi2_dof = float(z2.sum() / dof) if dof > 0 else float("nan")
     # the majority's scale: a star's z^2 has ~2 (1 - fitted / 2k) degrees of freedom; the median of
     # chi^2 with 2 degrees of freedom is 2 ln 2
-    scale = float(np.median(z2) / (2.0 * np.log(2.0) * max(dof, 1) / (2.0 * k)))
+    scale = float(median(z2) / (2.0 * np.log(2.0) * max(dof, 1) / (2.0 * k)))
     check = IdentificationCheck(prob, n, k, n_pred, gate, float(bound), True, "", chi2_dof, max(dof, 0), scale,
                                 int(np.count_nonzero(z2 > OUTLIER_Z2)))
     if chance > bound:

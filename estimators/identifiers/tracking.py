@@ -10,6 +10,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
+from rollingstar.estimators.centroiders.cog import median
 from rollingstar.estimators.centroiders.window_gyro import FastGyroIntegrator
 from rollingstar.estimators.data import FrameData, default_sigma_px
 from rollingstar.estimators.identifiers.base import Identifier
@@ -414,7 +415,7 @@ class TrackingIdentifier(Identifier):
             idx, px, py, _, _ = self.predict_frame(frame.t0_ns, fit, motion, t_start=pt, stars=idx)
             first = self._match(det, px, py, self.params.gate_px)
             resid = np.hypot(det.x[first[0]] - px[first[1]], det.y[first[0]] - py[first[1]])
-            gate = max(self.params.refine_gate_px, 5.0 * 1.4826 * float(np.median(resid))) if resid.size else self.params.gate_px
+            gate = max(self.params.refine_gate_px, 5.0 * 1.4826 * median(resid)) if resid.size else self.params.gate_px
             matched_det, matched_star = self._match(det, px, py, min(gate, self.params.gate_px))
         det = frame.stars  # the detections as given (those no direction images were only kept from matching)
         n = det.n
