@@ -5,6 +5,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+from numba import njit
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
@@ -154,15 +155,10 @@ def match_mahalanobis(dpos: np.ndarray, dcov: np.ndarray, ppos: np.ndarray, pcov
     if fin.size == 0 or ppos.shape[0] == 0:
         return empty, empty
     if fin.size * ppos.shape[0] <= BRUTE_FORCE_PAIRS:  # every pair at once (a frame's few tens of stars)
-        r = dpos[fin, None, :] - ppos[None, :, :]
-        s = dcov[fin, None] + pcov[None]
-        det = s[..., 0, 0] * s[..., 1, 1] - s[..., 0, 1] * s[..., 1, 0]
-        d2 = (s[..., 1, 1] * r[..., 0] ** 2 - 2.0 * s[..., 0, 1] * r[..., 0] * r[..., 1] + s[..., 0, 0] * r[..., 1] ** 2) / det
-        d2[(d2 > chi2_gate) | (r[..., 0] ** 2 + r[..., 1] ** 2 > gate_px * gate_px)] = np.inf
-        rows = np.arange(fin.size)
-        j = np.argmin(d2, axis=1)
-        both = np.isfinite(d2[rows, j]) & (np.argmin(d2, axis=0)[j] == rows)
-        return fin[both], j[both]
+        i, j = _mutual_nearest(np.ascontiguousarray(dpos[fin], dtype=float), np.ascontiguousarray(dcov[fin], dtype=float),
+                               np.ascontiguousarray(ppos, dtype=float), np.ascontiguousarray(pcov, dtype=float),
+                               float(chi2_gate), float(gate_px))
+        return fin[i], j
     pairs = cKDTree(dpos[fin]).sparse_distance_matrix(cKDTree(ppos), gate_px, output_type="ndarray")
     if pairs.size == 0:
         return empty, empty
@@ -180,6 +176,38 @@ def match_mahalanobis(dpos: np.ndarray, dcov: np.ndarray, ppos: np.ndarray, pcov
     both = np.intersect1d(best_i, best_j)
     out = np.argsort(i[both], kind="stable")
     return i[both][out], j[both][out]
+
+
+@njit(cache=True, nogil=True)
+def _mutual_nearest(dpos, dcov, ppos, pcov, chi2_gate, gate_px):  # pragma: no cover - compiled
+    """:func:`match_mahalanobis` over every pair: the candidate test and the mutual nearest
+    neighbours (first index on ties, as ``numpy.argmin``). Compiled: a tracked frame matches
+    twice, and the pairwise arrays' dozen numpy temporaries cost ~5x the arithmetic."""
+    n, m = dpos.shape[0], ppos.shape[0]
+    d2 = np.full((n, m), np.inf)
+    for a in range(n):
+        for b in range(m):
+            rx, ry = dpos[a, 0] - ppos[b, 0], dpos[a, 1] - ppos[b, 1]
+            s00, s01 = dcov[a, 0, 0] + pcov[b, 0, 0], dcov[a, 0, 1] + pcov[b, 0, 1]
+            s10, s11 = dcov[a, 1, 0] + pcov[b, 1, 0], dcov[a, 1, 1] + pcov[b, 1, 1]
+            d = (s11 * rx * rx - 2.0 * s01 * rx * ry + s00 * ry * ry) / (s00 * s11 - s01 * s10)
+            if not (d > chi2_gate or rx * rx + ry * ry > gate_px * gate_px):
+                d2[a, b] = d
+    best_pred = np.zeros(n, dtype=np.intp)
+    for a in range(n):
+        for b in range(1, m):
+            if d2[a, b] < d2[a, best_pred[a]]:
+                best_pred[a] = b
+    best_det = np.zeros(m, dtype=np.intp)
+    for b in range(m):
+        for a in range(1, n):
+            if d2[a, b] < d2[best_det[b], b]:
+                best_det[b] = a
+    keep = np.zeros(n, dtype=np.bool_)
+    for a in range(n):
+        keep[a] = np.isfinite(d2[a, best_pred[a]]) and best_det[best_pred[a]] == a
+    rows = np.flatnonzero(keep)
+    return rows, best_pred[rows]
 
 
 class TrackingIdentifier(Identifier):

@@ -408,3 +408,33 @@ def test_compiled_forms_keep_numpys_answers_on_degenerate_input():
         cov[1] = singular
         with pytest.raises(np.linalg.LinAlgError):
             direction_covariance(cam, x, y, cov)
+
+
+def _mutual_nearest_numpy(dpos, dcov, ppos, pcov, chi2_gate, gate_px):
+    """Every pair's Mahalanobis distance, gated, and the mutual nearest neighbours (numpy form)."""
+    r = dpos[:, None, :] - ppos[None, :, :]
+    s = dcov[:, None] + pcov[None]
+    det = s[..., 0, 0] * s[..., 1, 1] - s[..., 0, 1] * s[..., 1, 0]
+    d2 = (s[..., 1, 1] * r[..., 0] ** 2 - 2.0 * s[..., 0, 1] * r[..., 0] * r[..., 1] + s[..., 0, 0] * r[..., 1] ** 2) / det
+    d2[(d2 > chi2_gate) | (r[..., 0] ** 2 + r[..., 1] ** 2 > gate_px * gate_px)] = np.inf
+    rows = np.arange(len(dpos))
+    j = np.argmin(d2, axis=1)
+    both = np.isfinite(d2[rows, j]) & (np.argmin(d2, axis=0)[j] == rows)
+    return rows[both], j[both]
+
+
+def test_compiled_mutual_nearest_matches_the_pairwise_numpy_form():
+    from rollingstar.estimators.identifiers.tracking import match_mahalanobis
+
+    rng = np.random.default_rng(15)
+    for k in range(200):
+        n, m = int(rng.integers(1, 40)), int(rng.integers(1, 50))
+        ppos = rng.uniform(0, 200, (m, 2))
+        dpos = np.concatenate([ppos[: min(n, m)] + rng.normal(0, 1, (min(n, m), 2)), rng.uniform(0, 200, (max(n - m, 0), 2))])
+        if k % 5 == 0 and n > 2:
+            dpos[2] = dpos[1]  # a tie: the first index wins, as numpy.argmin
+        a, b = rng.normal(0, 0.5, (n, 2, 2)), rng.normal(0, 0.5, (m, 2, 2))
+        dcov, pcov = a @ np.swapaxes(a, 1, 2) + 0.1 * np.eye(2), b @ np.swapaxes(b, 1, 2) + 0.1 * np.eye(2)
+        got = match_mahalanobis(dpos, dcov, ppos, pcov, 9.21, 5.0)
+        expected = _mutual_nearest_numpy(dpos, dcov, ppos, pcov, 9.21, 5.0)
+        assert np.array_equal(got[0], expected[0]) and np.array_equal(got[1], expected[1]), k
