@@ -60,7 +60,7 @@ class RsBundleParams(RobustParams):
                          "recordings) with the rolling-shutter smear model; False: positions only.")
     pixel_iterations: int = Field(default=8, ge=1, le=30, description="Most Gauss-Newton iterations of the pixel "
                                   "step (it stops earlier once a step, or the one predicted after it, is a small "
-                                  "fraction of every parameter's sigma: pixel_bundle's docstring).")
+                                  "fraction of every parameter's sigma).")
     psf_sigma_px: float | None = Field(default=None, gt=0, description="Gaussian PSF sigma of the pixel model "
                                        "(px); None: measured from the first frame's stars, and again (twice at "
                                        "most) after a frame whose stars the model does not explain.")
