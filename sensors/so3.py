@@ -135,23 +135,21 @@ def wahba(ref: np.ndarray, body: np.ndarray, weights: np.ndarray | None = None) 
     if ref.ndim != 2 or ref.shape[1:] != (3,) or body.shape != ref.shape:
         raise ValueError(f"wahba: expected ref and body (n, 3) alike, got {ref.shape} and {body.shape}")
     w = np.ones(len(ref)) if weights is None else np.broadcast_to(np.asarray(weights, dtype=float), (len(ref),))
-    return _wahba(ref, body, w)
+    u, _, vt = np.linalg.svd(_wahba_B(ref, body, w))
+    d = np.sign(np.linalg.det(u @ vt))
+    return (u * np.array([1.0, 1.0, d])) @ vt
 
 
 @njit(cache=True, nogil=True)
-def _wahba(ref, body, weights):  # pragma: no cover - compiled
-    """:func:`wahba` (compiled: the tracker and the identification check solve it on every frame,
-    where numpy's calls around the 3 x 3 SVD cost several times the SVD)."""
+def _wahba_B(ref, body, weights):  # pragma: no cover - compiled
+    """``B = sum w_i ref_i body_i^T`` (compiled: the trackers and the identification check form it
+    on every frame; the 3 x 3 SVD stays numpy's)."""
     B = np.zeros((3, 3))
     for i in range(ref.shape[0]):
         for a in range(3):
             for b in range(3):
                 B[a, b] += weights[i] * ref[i, a] * body[i, b]
-    u, _, vt = np.linalg.svd(B)
-    d = np.sign(np.linalg.det(u @ vt))
-    for a in range(3):
-        u[a, 2] *= d
-    return u @ vt
+    return B
 
 
 @njit(cache=True, nogil=True)

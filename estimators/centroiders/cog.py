@@ -375,24 +375,43 @@ def robust_sigma(resid: np.ndarray) -> float:
     r = np.asarray(resid, dtype=float).ravel()
     if r.size == 0 or np.isnan(r).any():  # no scatter to measure (numpy's median would give NaN too)
         return float("nan")
-    return float(_robust_sigma(r))
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _robust_sigma(r):  # pragma: no cover - compiled
-    """:func:`robust_sigma` of pixels without NaN. Compiled: two medians and two clipped moments of
-    a few thousand pixels, twice per tracked frame, where numpy's temporary copies and calls cost
-    more than the selections themselves."""
-    med = np.median(r)
+    med = float(_median(r))
+    if not np.isfinite(med):  # most pixels infinite: no scatter to measure
+        return float("nan")
     dev = np.abs(r - med)
-    s0 = _MAD_TO_SIGMA * np.median(dev)
+    s0 = _MAD_TO_SIGMA * float(_median(dev))
     if s0 <= 0:
-        return max(0.0, np.percentile(r, 84.134) - med)
-    s1 = np.std(r[dev < 5.0 * s0])
+        return max(0.0, float(np.percentile(r, 84.134)) - med)
+    clipped = float(_clipped_sigma(r, med, s0))
+    return s0 if clipped < 0 else clipped
+
+
+@njit(cache=True, nogil=True)
+def _clipped_sigma(r, med, s0):  # pragma: no cover - compiled
+    """The clipped-std steps of :func:`robust_sigma`: the standard deviation ``s1`` of the pixels
+    within ``5 s0`` of the median, then the RMS about the median of those within ``3 s1`` over
+    0.98658; -1 when ``s1`` is 0 (the caller keeps ``s0``), NaN for an empty selection. Compiled:
+    three passes over a few thousand pixels, where numpy's masks and copies cost twice as much."""
+    n, total = 0, 0.0
+    for x in r:
+        if abs(x - med) < 5.0 * s0:
+            n += 1
+            total += x
+    if n == 0:
+        return np.nan
+    mean, var = total / n, 0.0
+    for x in r:
+        if abs(x - med) < 5.0 * s0:
+            var += (x - mean) * (x - mean)
+    s1 = np.sqrt(var / n)
     if s1 <= 0:
-        return s0
-    sel = r[dev < 3.0 * s1]
-    return np.sqrt(np.mean((sel - med) ** 2)) / 0.98658
+        return -1.0
+    k, sq = 0, 0.0
+    for x in r:
+        if abs(x - med) < 3.0 * s1:
+            k += 1
+            sq += (x - med) * (x - med)
+    return np.sqrt(sq / k) / 0.98658 if k else np.nan
 
 
 def median(values) -> float:
@@ -407,6 +426,8 @@ def median(values) -> float:
 
 @njit(cache=True, nogil=True)
 def _median(r):  # pragma: no cover - compiled
+    """``numpy.median`` of a 1-D float array without NaN (numba's selection: no sort, no copy
+    beyond its one working array)."""
     return np.median(r)
 
 

@@ -182,31 +182,36 @@ def fit_rate(R: Rotation | np.ndarray, body: np.ndarray, ref: np.ndarray, dt: np
                      np.ascontiguousarray(np.broadcast_to(np.asarray(root_weights, dtype=float), n)), int(steps))
 
 
-@njit(cache=True, nogil=True)
-def _fit_rate(v, body, dt, root_weights, steps):  # pragma: no cover - compiled
+def _fit_rate(v, body, dt, root_weights, steps):
     """:func:`fit_rate` from ``v_i = R^T r_i``: each step the least-squares solution (minimum norm
-    when the stars leave it undetermined, as ``numpy.linalg.lstsq``) of the stacked rows.
-    Compiled: a check runs on every tracked frame, and the numpy form's skew matrices, stacking
-    and calls cost ~10x its arithmetic."""
-    n = v.shape[0]
-    phi, omega = np.zeros((n, 3)), np.zeros(3)
-    A, b = np.zeros((3 * n, 6)), np.zeros(3 * n)
+    when the stars leave it undetermined) of the stacked rows :func:`_rate_rows` writes."""
+    phi, omega = np.zeros((len(v), 3)), np.zeros(3)
     for _ in range(steps):
-        w = rotate_rows(-phi, v)
-        for i in range(n):
-            q = root_weights[i]
-            rows = ((0.0, -w[i, 2], w[i, 1]), (w[i, 2], 0.0, -w[i, 0]), (-w[i, 1], w[i, 0], 0.0))  # [w]x
-            for r in range(3):
-                for c in range(3):
-                    A[3 * i + r, c] = q * rows[r][c]
-                    A[3 * i + r, 3 + c] = q * rows[r][c] * dt[i]
-                b[3 * i + r] = q * (body[i, r] - w[i, r])
-        sol = np.linalg.lstsq(A, b, rcond=2.220446049250313e-16 * 3 * n)[0]
-        for i in range(n):
-            for c in range(3):
-                phi[i, c] += sol[c] + dt[i] * sol[3 + c]
-        omega += sol[3:]
+        A, b = _rate_rows(v, body, dt, root_weights, phi)
+        sol = np.linalg.lstsq(A, b, rcond=None)[0]
+        phi = phi + sol[:3][None, :] + dt[:, None] * sol[3:][None, :]
+        omega = omega + sol[3:]
     return phi, omega
+
+
+@njit(cache=True, nogil=True)
+def _rate_rows(v, body, dt, root_weights, phi):  # pragma: no cover - compiled
+    """The rows ``[w_i]x [I, dt_i I]`` and right-hand sides ``b_i - w_i`` of :func:`fit_rate`'s step
+    at ``phi``, ``w_i = Exp(-phi_i) v_i``, each star's scaled by its root weight. Compiled: a check
+    runs on every tracked frame, and the numpy form's skew matrices and stacking cost several times
+    their arithmetic (the least squares stay numpy's)."""
+    n = v.shape[0]
+    w = rotate_rows(-phi, v)
+    A, b = np.zeros((3 * n, 6)), np.zeros(3 * n)
+    for i in range(n):
+        q = root_weights[i]
+        rows = ((0.0, -w[i, 2], w[i, 1]), (w[i, 2], 0.0, -w[i, 0]), (-w[i, 1], w[i, 0], 0.0))  # [w]x
+        for r in range(3):
+            for c in range(3):
+                A[3 * i + r, c] = q * rows[r][c]
+                A[3 * i + r, 3 + c] = q * rows[r][c] * dt[i]
+            b[3 * i + r] = q * (body[i, r] - w[i, r])
+    return A, b
 
 
 def _matrix(R: Rotation | np.ndarray) -> np.ndarray:
