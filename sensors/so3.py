@@ -156,7 +156,7 @@ def _wahba_B(ref, body, weights):  # pragma: no cover - compiled
 def quat_from_matrix(m):  # pragma: no cover - compiled
     """The unit quaternion (x, y, z, w) of the rotation matrix ``m`` (3, 3), by the largest of the
     four diagonal combinations (Shepperd 1978; the sign is not normalised). Written by hand because
-    ``scipy.spatial.transform.Rotation.from_matrix`` costs ~0.1 ms a call for one matrix, more than
+    ``scipy.spatial.transform.Rotation.from_matrix`` costs more per call for one matrix than
     the whole position fit it would start."""
     t = m[0, 0] + m[1, 1] + m[2, 2]
     q = np.empty(4)
@@ -173,3 +173,26 @@ def quat_from_matrix(m):  # pragma: no cover - compiled
         s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
         q[0], q[1], q[2], q[3] = (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s
     return q / np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+
+
+@njit(cache=True, nogil=True)
+def quat_to_matrix(q):  # pragma: no cover - compiled
+    """Rotation matrix of the unit quaternion ``q`` (x, y, z, w)."""
+    x, y, z, w = q[0], q[1], q[2], q[3]
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+@njit(cache=True, nogil=True)
+def quat_times_exp(q, delta):  # pragma: no cover - compiled
+    """``q Exp(delta)`` (scalar-last quaternions; the rotation ``R Exp(delta)``), renormalised: the
+    product of :func:`quat_multiply` written for one quaternion in compiled code (the bundle's
+    position fit and pixel step update their attitude with it)."""
+    th = np.sqrt(delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2)
+    s = 0.5 - th * th / 48.0 if th < 1e-6 else np.sin(0.5 * th) / th
+    px, py, pz, pw = q[0], q[1], q[2], q[3]
+    qx, qy, qz, qw = s * delta[0], s * delta[1], s * delta[2], np.cos(0.5 * th)
+    out = np.array([pw * qx + px * qw + py * qz - pz * qy, pw * qy - px * qz + py * qw + pz * qx,
+                    pw * qz + px * qy - py * qx + pz * qw, pw * qw - px * qx - py * qy - pz * qz])
+    return out / np.sqrt(np.sum(out * out))

@@ -9,7 +9,7 @@ from numba import njit
 from scipy.spatial.transform import Rotation
 
 from rollingstar.sensors.conventions import S_PER_NS
-from rollingstar.sensors.so3 import quat_from_matrix, rotate_at_rate, skew
+from rollingstar.sensors.so3 import quat_from_matrix, quat_times_exp, quat_to_matrix, rotate_at_rate, skew
 
 
 def star_times(stars, t_ref_ns: int) -> np.ndarray:
@@ -24,11 +24,12 @@ def predicted_directions(R: Rotation, omega: np.ndarray, ref: np.ndarray, dt: np
 
 def apply_step(R: Rotation, omega: np.ndarray, step: np.ndarray) -> tuple[Rotation, np.ndarray]:
     """``R Exp(delta)`` and ``omega + eps`` for ``step = (delta[, eps])`` (the quaternion product of
-    :func:`_quat_step`: scipy's composition of two ``Rotation`` objects costs several times more)."""
+    :func:`rollingstar.sensors.so3.quat_times_exp`: scipy's composition of two ``Rotation`` objects
+    costs several times more)."""
     omega = np.array(omega, dtype=float)
     if step.size == 6:
         omega = omega + step[3:]
-    return Rotation.from_quat(_quat_step(R.as_quat(), np.ascontiguousarray(step[:3], dtype=float))), omega
+    return Rotation.from_quat(quat_times_exp(R.as_quat(), np.ascontiguousarray(step[:3], dtype=float))), omega
 
 
 def fit_positions(R: Rotation | np.ndarray, omega: np.ndarray, ref: np.ndarray, dt: np.ndarray, d, iterations: int,
@@ -57,31 +58,10 @@ def fit_positions(R: Rotation | np.ndarray, omega: np.ndarray, ref: np.ndarray, 
 
 
 @njit(cache=True, nogil=True)
-def _quat_matrix(q):  # pragma: no cover - compiled
-    """Rotation matrix of the unit quaternion ``q`` (x, y, z, w)."""
-    x, y, z, w = q[0], q[1], q[2], q[3]
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
-@njit(cache=True, nogil=True)
-def _quat_step(q, delta):  # pragma: no cover - compiled
-    """``q Exp(delta)`` (scalar-last quaternions; the rotation ``R Exp(delta)``), renormalised."""
-    th = np.sqrt(delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2)
-    s = 0.5 - th * th / 48.0 if th < 1e-6 else np.sin(0.5 * th) / th
-    px, py, pz, pw = q[0], q[1], q[2], q[3]
-    qx, qy, qz, qw = s * delta[0], s * delta[1], s * delta[2], np.cos(0.5 * th)
-    out = np.array([pw * qx + px * qw + py * qz - pz * qy, pw * qy - px * qz + py * qw + pz * qx,
-                    pw * qz + px * qy - py * qx + pz * qw, pw * qw - px * qx - py * qy - pz * qz])
-    return out / np.sqrt(np.sum(out * out))
-
-
-@njit(cache=True, nogil=True)
 def _position_normal(q, omega, ref, dt, body, basis, info, k, huber_k):  # pragma: no cover - compiled
     """Normal equations of :func:`fit_positions` at ``(q, omega)``; ``huber_k < 0``: unweighted.
     Written out in scalars: numba's ``@`` on 2 x 3 arrays calls BLAS, slower than the loops."""
-    R = _quat_matrix(q)
+    R = quat_to_matrix(q)
     rate = np.sqrt(omega[0] ** 2 + omega[1] ** 2 + omega[2] ** 2)
     axis = -omega / rate if rate > 0 else np.zeros(3)
     normal, rhs = np.zeros((k, k)), np.zeros(k)
@@ -120,7 +100,7 @@ def _position_fit(q, omega, ref, dt, body, basis, info, iterations, k, huber_k):
     for it in range(iterations):
         normal, rhs = _position_normal(q, omega, ref, dt, body, basis, info, k, huber_k if it else -1.0)
         step = np.linalg.solve(normal, rhs)
-        q = _quat_step(q, step[:3])
+        q = quat_times_exp(q, step[:3])
         if k == 6:
             omega = omega + step[3:]
     normal, _ = _position_normal(q, omega, ref, dt, body, basis, info, k, -1.0)

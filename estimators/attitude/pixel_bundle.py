@@ -259,8 +259,9 @@ def refine_on_pixels(frame, context, camera, stars, R: Rotation, omega, info, fi
     for it in range(params.pixel_iterations + 1):
         if it:  # the first iteration's kinematics are the ones computed above
             pv, A, _, t = kin(R, omega, t_ns=t, passes=1)
+        Au = A[usable]
         try:
-            b = _Blocks(*(pixels.normal_equations(pv[usable], nuis) if it else first), A[usable])
+            b = _Blocks(*(pixels.normal_equations(pv[usable], nuis) if it else first), Au)
         except np.linalg.LinAlgError:  # a star's flux and background not determined by its pixels
             return (*start, info, frame.flags + ("pixel_step_skipped:singular_information",))
         # a loose screen at the start, the strict one after every step (a star the start left out
@@ -279,11 +280,11 @@ def refine_on_pixels(frame, context, camera, stars, R: Rotation, omega, info, fi
             step = np.linalg.solve(normal, np.sum(b.rhs[keep][:, :k], axis=0))
         except np.linalg.LinAlgError:
             return (*start, info, frame.flags + ("pixel_step_skipped:singular_information",))
-        nuis = nuis + b.nuisance_step(A[usable], step)
+        nuis = nuis + b.nuisance_step(Au, step)
         R, omega = apply_step(R, omega, step)
         if np.array_equal(keep, strict):
             in_sigmas = float(np.max(np.abs(step) / np.sqrt(np.diag(np.linalg.inv(normal)))))
-            if in_sigmas <= CONVERGED_SIGMAS or in_sigmas * _contraction(A[usable][keep], step, pixels) <= PREDICTED_SIGMAS:
+            if in_sigmas <= CONVERGED_SIGMAS or in_sigmas * _contraction(Au[keep], step, pixels) <= PREDICTED_SIGMAS:
                 break
     dropped = int((~keep).sum()) + int((~usable).sum())
     flags = frame.flags + ((f"pixel_outliers:{dropped}",) if dropped else ())

@@ -438,3 +438,14 @@ def test_compiled_mutual_nearest_matches_the_pairwise_numpy_form():
         got = match_mahalanobis(dpos, dcov, ppos, pcov, 9.21, 5.0)
         expected = _mutual_nearest_numpy(dpos, dcov, ppos, pcov, 9.21, 5.0)
         assert np.array_equal(got[0], expected[0]) and np.array_equal(got[1], expected[1]), k
+
+
+def test_compiled_quaternion_step_and_matrix_match_scipy():
+    from rollingstar.sensors.so3 import quat_times_exp, quat_to_matrix
+
+    rng = np.random.default_rng(22)
+    for r in Rotation.random(200, random_state=22):
+        delta = rng.normal(size=3) * rng.choice([0.0, 1e-9, 1e-4, 0.5, 3.0])
+        got, expected = quat_times_exp(r.as_quat(), delta), (r * Rotation.from_rotvec(delta)).as_quat()
+        assert min(np.abs(got - expected).max(), np.abs(got + expected).max()) < 1e-14
+        np.testing.assert_allclose(quat_to_matrix(r.as_quat()), r.as_matrix(), rtol=0, atol=1e-15)
