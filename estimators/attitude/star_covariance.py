@@ -104,7 +104,7 @@ def _tangent_covariance(E, J, C):  # pragma: no cover - compiled
     """Per star ``Sigma = M C M^T`` with ``M = E^T J`` (2 x 2), its inverse and the whitening
     ``L^-1`` (``L L^T = Sigma``), each 2 x 2 written out; and whether ``Sigma`` is positive
     definite (both Cholesky pivots positive and finite). Compiled: a dozen stacked 2 x 2 numpy
-    operations per frame cost ~50x their arithmetic."""
+    operations per frame cost far more in calls than in arithmetic."""
     n = E.shape[0]
     cov, info, whiten = np.zeros((n, 2, 2)), np.zeros((n, 2, 2)), np.zeros((n, 2, 2))
     ok = np.zeros(n, dtype=np.bool_)

@@ -391,7 +391,7 @@ def _clipped_sigma(r, med, s0):  # pragma: no cover - compiled
     """The clipped-std steps of :func:`robust_sigma`: the standard deviation ``s1`` of the pixels
     within ``5 s0`` of the median, then the RMS about the median of those within ``3 s1`` over
     0.98658; -1 when ``s1`` is 0 (the caller keeps ``s0``), NaN for an empty selection. Compiled:
-    three passes over a few thousand pixels, where numpy's masks and copies cost twice as much."""
+    three passes over a few thousand pixels, without numpy's masks and copies."""
     n, total = 0, 0.0
     for x in r:
         if abs(x - med) < 5.0 * s0:

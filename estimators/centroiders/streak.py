@@ -917,7 +917,7 @@ def _robust_rate_step(A, r):  # pragma: no cover - compiled
     """``d_omega`` minimising ``sum |r_i - A_i d_omega|^2`` (``A`` (m, 2, 3), ``r`` (m, 2)) by least
     squares (minimum norm when the stars leave it undetermined, as ``numpy.linalg.lstsq``), then
     again without the stars that miss by more than 3 robust sigmas (at least 0.05 px). Compiled:
-    two small least-squares problems per tracked frame, where numpy's calls cost ~10x the
+    two small least-squares problems per tracked frame, where numpy's calls cost more than the
     arithmetic."""
     m = A.shape[0]
     keep = np.ones(m, dtype=np.bool_)

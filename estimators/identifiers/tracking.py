@@ -182,7 +182,7 @@ def match_mahalanobis(dpos: np.ndarray, dcov: np.ndarray, ppos: np.ndarray, pcov
 def _mutual_nearest(dpos, dcov, ppos, pcov, chi2_gate, gate_px):  # pragma: no cover - compiled
     """:func:`match_mahalanobis` over every pair: the candidate test and the mutual nearest
     neighbours (first index on ties, as ``numpy.argmin``). Compiled: a tracked frame matches
-    twice, and the pairwise arrays' dozen numpy temporaries cost ~5x the arithmetic."""
+    twice, and the pairwise arrays' dozen numpy temporaries cost more than the arithmetic."""
     n, m = dpos.shape[0], ppos.shape[0]
     d2 = np.full((n, m), np.inf)
     for a in range(n):
