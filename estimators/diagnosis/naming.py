@@ -68,12 +68,13 @@ def name_effects(location: Location, sensor: SensorModel, cands: dict[str, Candi
     data, nuis0 = location.data, location.nuisance
     blocks = data.blocks()
     first = selection.forward_stepwise(location.problem, options.min_delta_bic)
-    model, rounds = select_nonlinear(data, sensor, nuis0, cands, [st["name"] for st in first], blocks, options)
+    refits = Refits(data, sensor, nuis0)
+    model, rounds = select_nonlinear(refits, cands, [st["name"] for st in first], blocks, options)
     # the selection statistics on the problem linearised at the final model, selected effects added back
     problem, _ = linear_problem(data.obs, model.prediction, cands, model.effects, data.train, blocks,
                                 add_back={c.name: (th - c.defaults) / c.scales for c, th in zip(model.chosen, model.fit["thetas"])})
     sel = selection.select(problem, n_boot=options.n_boot, seed=options.seed, min_delta_bic=options.min_delta_bic)
-    drop_one, method = drop_one_delta_bic(data, sensor, nuis0, model.chosen, model.fit, options.min_delta_bic)
+    drop_one, method = drop_one_delta_bic(refits, model.chosen, model.fit, options.min_delta_bic)
     pooled = pooled_inclusion(problem, sel, model.names)
     weak = [n for n in model.names if (options.n_boot > 0 and pooled[n] < MIN_INCLUSION)
             or drop_one.get(n, 0.0) < options.min_delta_bic]  # or no longer earning its place nonlinearly
@@ -81,8 +82,8 @@ def name_effects(location: Location, sensor: SensorModel, cands: dict[str, Candi
     if weak:
         weak_rows = [{"name": n, "delta_bic_nonlinear": drop_one.get(n), "inclusion_probability": sel["inclusion"].get(n),
                       "inclusion_with_aliases": pooled[n]} for n in weak]
-        model = refit_named(data, sensor, nuis0, cands, [n for n in model.names if n not in weak])
-        drop_one, method = drop_one_delta_bic(data, sensor, nuis0, model.chosen, model.fit, options.min_delta_bic)
+        model = refit_named(refits, cands, [n for n in model.names if n not in weak])
+        drop_one, method = drop_one_delta_bic(refits, model.chosen, model.fit, options.min_delta_bic)
     screened = [row["name"] for row in sel["screen"]]
     correlations = {g: {h: selection.canonical_correlation(selection.design(problem, [g]), selection.design(problem, [h]))
                         for h in screened if h != g} for g in model.names if g in problem.groups}
@@ -97,6 +98,28 @@ def pooled_inclusion(problem: selection.LinearProblem, sel: dict, names: list[st
                     and selection.canonical_correlation(selection.design(problem, [n]), selection.design(problem, [h]))
                     > selection.CORR_LIMIT] for n in names}
     return {n: selection.pooled_inclusion(sel["bootstrap_sets"], n, alias_of[n]) for n in names}
+
+
+class Refits:
+    """The nonlinear refits of one naming, each made once.
+
+    Within one :func:`name_effects` the data, sensor model and starting nuisance are fixed, so a
+    refit is decided by the effects and the parameters it starts from. Backward elimination's last
+    pass and :func:`drop_one_delta_bic` refit the same subsets from the same fit; the second asks
+    here and gets the first's answer (a refit is deterministic).
+    """
+
+    def __init__(self, data: Dataset, sensor: SensorModel, nuis0: Nuisance):
+        self.data, self.sensor, self.nuis0 = data, sensor, nuis0
+        self.fits: dict[tuple, dict] = {}
+
+    def __call__(self, chosen: list[Candidate], warm: dict | None = None) -> dict:
+        """:func:`refit_chi2` of ``chosen`` from ``warm`` (name -> theta; the others from their defaults)."""
+        starts = [np.asarray(warm[c.name], dtype=float).tobytes() if warm and c.name in warm else None for c in chosen]
+        key = tuple(zip((c.name for c in chosen), starts))
+        if key not in self.fits:
+            self.fits[key] = refit_chi2(self.data, self.sensor, self.nuis0, chosen, warm)
+        return self.fits[key]
 
 
 def refit_chi2(data: Dataset, sensor: SensorModel, nuis0: Nuisance, chosen: list[Candidate],
@@ -122,25 +145,30 @@ def with_nuisance(data: Dataset, sensor: SensorModel, nuis0: Nuisance, names: li
     return NonlinearFit(names, chosen, fit, chain, nuis1, pred1)
 
 
-def refit_named(data: Dataset, sensor: SensorModel, nuis0: Nuisance, cands: dict[str, Candidate],
-                names: list[str]) -> NonlinearFit:
+def refit_named(refits: Refits, cands: dict[str, Candidate], names: list[str]) -> NonlinearFit:
     """Refit the effects ``names`` from their defaults."""
     chosen = [cands[n] for n in names]
-    return with_nuisance(data, sensor, nuis0, names, chosen, refit_chi2(data, sensor, nuis0, chosen))
+    return with_nuisance(refits.data, refits.sensor, refits.nuis0, names, chosen, refits(chosen))
 
 
-def select_nonlinear(data: Dataset, sensor: SensorModel, nuis0: Nuisance, cands: dict[str, Candidate],
-                     names: list[str], blocks: np.ndarray, options: DiagnoseOptions) -> tuple[NonlinearFit, list[dict]]:
+def select_nonlinear(refits: Refits, cands: dict[str, Candidate], names: list[str], blocks: np.ndarray,
+                     options: DiagnoseOptions) -> tuple[NonlinearFit, list[dict]]:
     """Refine a linear selection with the nonlinear model: backward elimination by nonlinear
     delta BIC, then forward stepwise on the problem re-linearised at the fitted model; repeat
-    until nothing changes (at most :data:`MAX_ROUNDS`). Returns the fit and the changes made."""
-    rounds = []
+    until nothing changes (at most :data:`MAX_ROUNDS`). Returns the fit and the changes made.
+
+    An effect the nonlinear elimination dropped is not offered to the later forward steps: the
+    linearised step overstates what it earns (that is why the refit dropped it), and offered again
+    it comes back every round and is dropped again, until the rounds run out."""
+    data, sensor, nuis0 = refits.data, refits.sensor, refits.nuis0
+    rounds, dropped_once = [], set()
     for _ in range(MAX_ROUNDS):
-        fit = refit_chi2(data, sensor, nuis0, [cands[n] for n in names])
-        names, fit, dropped = backward_eliminate(data, sensor, nuis0, cands, names, fit, options.min_delta_bic)
+        fit = refits([cands[n] for n in names])
+        names, fit, dropped = backward_eliminate(refits, cands, names, fit, options.min_delta_bic)
         rounds += dropped
+        dropped_once |= {d["dropped"] for d in dropped}
         model = with_nuisance(data, sensor, nuis0, names, [cands[n] for n in names], fit)
-        others = {k: c for k, c in cands.items() if k not in names}
+        others = {k: c for k, c in cands.items() if k not in names and k not in dropped_once}
         prob, _ = linear_problem(data.obs, model.prediction, others, model.effects, data.train, blocks)
         steps = selection.forward_stepwise(prob, options.min_delta_bic)
         if steps:
@@ -148,11 +176,11 @@ def select_nonlinear(data: Dataset, sensor: SensorModel, nuis0: Nuisance, cands:
             rounds.append({"added": [st["name"] for st in steps]})
         if not dropped and not steps:
             return model, rounds
-    return refit_named(data, sensor, nuis0, cands, names), rounds
+    return refit_named(refits, cands, names), rounds
 
 
-def backward_eliminate(data: Dataset, sensor: SensorModel, nuis0: Nuisance, cands: dict[str, Candidate],
-                       names: list[str], fit: dict, min_delta_bic: float) -> tuple[list[str], dict, list[dict]]:
+def backward_eliminate(refits: Refits, cands: dict[str, Candidate], names: list[str], fit: dict,
+                       min_delta_bic: float) -> tuple[list[str], dict, list[dict]]:
     """Drop, one at a time, an effect whose nonlinear delta BIC is below the margin.
 
     Candidates are tried in the order of their Wald delta BIC (from the full fit's covariance, no
@@ -167,11 +195,11 @@ def backward_eliminate(data: Dataset, sensor: SensorModel, nuis0: Nuisance, cand
         chosen = [cands[n] for n in names]  # the names fit["thetas"] belong to
         warm = {c.name: t for c, t in zip(chosen, fit["thetas"])}
         worst = None
-        for n, wald in wald_delta_bic(chosen, fit, data.n_residuals):
+        for n, wald in wald_delta_bic(chosen, fit, refits.data.n_residuals):
             if wald >= WALD_SLACK * min_delta_bic:
                 break
-            f = refit_chi2(data, sensor, nuis0, [cands[m] for m in names if m != n], warm)
-            d = f["cost"] - fit["cost"] - len(cands[n].parameters) * np.log(data.n_residuals)
+            f = refits([cands[m] for m in names if m != n], warm)
+            d = f["cost"] - fit["cost"] - len(cands[n].parameters) * np.log(refits.data.n_residuals)
             if d < min_delta_bic:
                 worst, worst_bic, worst_fit = n, d, f
                 break
@@ -202,8 +230,8 @@ def wald_delta_bic(chosen: list[Candidate], fit: dict, n_residuals: int) -> list
     return sorted(out, key=lambda nw: nw[1])
 
 
-def drop_one_delta_bic(data: Dataset, sensor: SensorModel, nuis0: Nuisance, chosen: list[Candidate],
-                       fit: dict, min_delta_bic: float) -> tuple[dict[str, float], dict[str, str]]:
+def drop_one_delta_bic(refits: Refits, chosen: list[Candidate], fit: dict,
+                       min_delta_bic: float) -> tuple[dict[str, float], dict[str, str]]:
     """Delta BIC of each selected effect: chi2 without it minus chi2 with all, minus its penalty,
     and how it was computed.
 
@@ -213,13 +241,14 @@ def drop_one_delta_bic(data: Dataset, sensor: SensorModel, nuis0: Nuisance, chos
     other effect."""
     out, method = {}, {}
     warm = {c.name: t for c, t in zip(chosen, fit["thetas"])}
-    wald = dict(wald_delta_bic(chosen, fit, data.n_residuals))
+    n_res = refits.data.n_residuals
+    wald = dict(wald_delta_bic(chosen, fit, n_res))
     for c in chosen:
         if wald[c.name] >= WALD_SLACK * min_delta_bic:
             out[c.name], method[c.name] = wald[c.name], "wald"
             continue
         rest = [d for d in chosen if d is not c]
-        f = refit_chi2(data, sensor, nuis0, rest, warm)
-        out[c.name] = float(f["cost"] - fit["cost"] - len(c.parameters) * np.log(data.n_residuals))
+        f = refits(rest, warm)
+        out[c.name] = float(f["cost"] - fit["cost"] - len(c.parameters) * np.log(n_res))
         method[c.name] = "refit"
     return out, method

@@ -170,9 +170,12 @@ class Prediction:
 
 def camera_rotations(obs: Observations, nuis: Nuisance) -> Rotation:
     """Camera->ICRS attitude at every observation's time, ``R_k Exp(omega_k dt_i)`` (composed as
-    quaternions: :func:`rollingstar.sensors.so3.quat_multiply`)."""
-    step = Rotation.from_rotvec(nuis.omega[obs.frame] * obs.dt_s()[:, None]).as_quat()
-    return Rotation.from_quat(quat_multiply(nuis.attitude.as_quat()[obs.frame], step))
+    quaternions: :func:`rollingstar.sensors.so3.quat_multiply`; at rate zero the step is the
+    identity and is not composed)."""
+    q = nuis.attitude.as_quat()[obs.frame]
+    if np.any(nuis.omega):
+        q = quat_multiply(q, Rotation.from_rotvec(nuis.omega[obs.frame] * obs.dt_s()[:, None]).as_quat())
+    return Rotation.from_quat(q)
 
 
 def effect_context(obs: Observations, camera, timing, rot: Rotation, x, y, vx, vy, omega) -> EffectContext:
@@ -258,6 +261,14 @@ def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=(), 
         jac = pos_jac @ jac  # (n, 2, 2) @ (n, 2, 3)
     return Prediction(np.asarray(x, float), np.asarray(y, float), x0, y0, w, jac, v[:, 0], v[:, 1], omega, ctx, expo,
                       nuis, tuple(effects))
+
+
+def chain_positions(pred: Prediction, effects) -> tuple[np.ndarray, np.ndarray]:
+    """The positions ``predict(..., effects, attitude_jacobian=False)`` gives with the nuisance
+    ``pred`` was made with: only the chain runs again, on ``pred``'s ideal positions and context
+    (for callers that difference one chain against others at the same attitudes)."""
+    x, y = by_exposure(pred.ctx, pred.exposure_ns, lambda c: chain_predict(tuple(effects), c))
+    return np.asarray(x, float), np.asarray(y, float)
 
 
 def frame_normal(obs_frame: np.ndarray, n_frames: int, jac: np.ndarray, wts: np.ndarray, rhs: np.ndarray):

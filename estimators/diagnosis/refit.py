@@ -32,6 +32,7 @@ from rollingstar.estimators.diagnosis.observations import (
     Nuisance,
     Observations,
     Prediction,
+    chain_positions,
     fit_attitudes,
     frame_normal,
     predict,
@@ -97,7 +98,8 @@ def refit(obs: Observations, nuis: Nuisance, camera, timing, base_effects, candi
         return {"thetas": split_theta(candidates, z0), "sigmas": [np.full(len(c.parameters), np.nan) for c in candidates],
                 "corr": np.full((m, m), np.nan), "nuisance": nuis, "success": False, "cost": None}
     out_s, corr = _sigmas_and_corr(_inverse_normal(jac), candidates)
-    resid(z)  # leave the nuisance at the solution
+    if state.get("z") is None or not np.array_equal(state["z"], z):
+        resid(z)  # leave the nuisance at the solution (when the last evaluation was a trial elsewhere)
     return {"thetas": split_theta(candidates, z), "sigmas": out_s, "corr": corr, "nuisance": state["nuis"],
             "success": success, "cost": cost}
 
@@ -123,8 +125,8 @@ def projected_jacobian(obs: Observations, nuis: Nuisance, camera, timing, base_e
         zz[j] = z[j] + h if z[j] + h <= hi[j] else z[j] - h
         steps[j] = zz[j] - z[j]
         chains.append(chain_with(base_effects, candidates, split_theta(candidates, zz)))
-        pp = predict(obs, nuis, camera, timing, chains[-1], attitude_jacobian=False)
-        cols[:, 0, j], cols[:, 1, j] = (pp.x - base.x) / steps[j], (pp.y - base.y) / steps[j]
+        px, py = chain_positions(base, chains[-1]) if len(chains[-1]) else (base.x_ideal, base.y_ideal)
+        cols[:, 0, j], cols[:, 1, j] = (px - base.x) / steps[j], (py - base.y) / steps[j]
     idx = np.flatnonzero(mask)
     aj = whiten(obs, base.att_jac[idx], idx)
     p = project_frames(obs.frame[idx], obs.n_frames, aj, whiten(obs, cols[idx], idx))

@@ -282,19 +282,31 @@ class EffectContext:
                 kw[f.name] = v[idx] if not v.single else v
             else:
                 kw[f.name] = np.asarray(v)[idx]
-        return EffectContext(**kw)
+        if idx.ndim != 1:  # a scalar index: every field is broadcast to one observation again
+            return EffectContext(**kw)
+        # this context's fields are checked and broadcast already, and indexing by an array copies:
+        # the selection needs neither again (the effect chain and the diagnosis take thousands a run)
+        out = copy.copy(self)
+        for k, v in kw.items():
+            object.__setattr__(out, k, v)
+        return out
 
     def evolve(self, **changes) -> "EffectContext":
         """A copy with ``changes`` (e.g. new ideal positions ``x=..., y=...``). Only the changed
-        fields are broadcast again when the positions stay (the effect chain and the diagnosis
-        evolve contexts thousands of times per recording), so the copy shares its other arrays with
-        this context: a context's arrays are never written in place, here or by its users."""
-        if "x" in changes or "y" in changes:
-            return replace(self, **changes)
+        fields are broadcast again while the number of observations stays (the effect chain and the
+        diagnosis evolve contexts thousands of times per recording), so the copy shares its other
+        arrays with this context: a context's arrays are never written in place, here or by its
+        users. Positions of another length broadcast every field again."""
         unknown = set(changes) - set(self.__dataclass_fields__)
         if unknown:
             raise TypeError(f"EffectContext has no field(s) {', '.join(sorted(unknown))}")
         out = copy.copy(self)
+        if "x" in changes or "y" in changes:
+            x, y = (np.array(changes.pop(k, getattr(self, k)), dtype=float).reshape(-1) for k in ("x", "y"))
+            if not x.shape == y.shape == self.x.shape:
+                return replace(self, x=x, y=y, **changes)
+            object.__setattr__(out, "x", x)
+            object.__setattr__(out, "y", y)
         for k, v in changes.items():
             object.__setattr__(out, k, v)
         out._normalise(tuple(changes))

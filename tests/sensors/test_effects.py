@@ -3,6 +3,7 @@ differences of every forward model (hypothesis over positions and parameters), k
 detection-limit invariants and the generated doc."""
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -318,6 +319,69 @@ def test_context_take_selects_every_field():
     np.testing.assert_array_equal(sub.magnitude, ctx.magnitude[::3])
     np.testing.assert_array_equal(sub.covariates["temperature_c"], ctx.covariates["temperature_c"][::3])
     np.testing.assert_allclose(sub.attitude.as_quat(), ctx.attitude.as_quat()[::3])
+
+
+def _fields(ctx: EffectContext) -> dict:
+    return {f.name: getattr(ctx, f.name) for f in dataclasses.fields(ctx)}
+
+
+def _validated(ctx: EffectContext, **changes) -> EffectContext:
+    """The context built again through the constructor's checks and broadcasting."""
+    return EffectContext(**{**_fields(ctx), **changes})
+
+
+def _assert_same_context(a: EffectContext, b: EffectContext) -> None:
+    for k in _fields(a):
+        va, vb = getattr(a, k), getattr(b, k)
+        if k == "attitude":
+            np.testing.assert_array_equal(va.as_quat(), vb.as_quat())
+        elif k == "covariates":
+            assert va.keys() == vb.keys()
+            for name in va:
+                np.testing.assert_array_equal(va[name], vb[name])
+        elif isinstance(va, np.ndarray):
+            assert va.dtype == vb.dtype and va.shape == vb.shape, k
+            np.testing.assert_array_equal(va, vb)
+        else:
+            assert va is vb or va == vb, k
+
+
+@pytest.mark.parametrize("index", ["ints", "repeated", "mask"])
+def test_a_selection_is_the_context_built_from_the_selected_values_and_owns_them(index):
+    """``take`` skips the constructor's checks (the source was checked): it must give what the
+    constructor gives, in arrays of its own."""
+    ctx = full_context(n=50)
+    rng = np.random.default_rng(3)
+    idx = {"ints": rng.permutation(50)[:20], "repeated": np.tile(np.arange(50), 5), "mask": rng.random(50) < 0.5}[index]
+    sub = ctx.take(idx)
+    picked = {k: (v[idx] if isinstance(v, np.ndarray) or k == "attitude" else v) for k, v in _fields(ctx).items()}
+    picked["covariates"] = {name: c[idx] for name, c in ctx.covariates.items()}
+    _assert_same_context(sub, EffectContext(**picked))
+    for k in ("x", "y", "t_ns", "frame", "omega_rad_s", "unit_icrs"):
+        assert not np.shares_memory(getattr(sub, k), getattr(ctx, k)), k
+
+
+def test_a_scalar_selection_is_one_observation():
+    ctx = full_context(n=10)
+    one = ctx.take(3)
+    assert one.n == 1 and one.unit_icrs.shape == (1, 3) and one.x[0] == ctx.x[3]
+
+
+def test_new_positions_of_the_same_length_give_what_the_constructor_gives():
+    ctx = full_context(n=40)
+    x, y = ctx.x + 0.25, list(ctx.y - 1.0)
+    moved = ctx.evolve(x=x, y=y, magnitude=ctx.magnitude + 1)
+    _assert_same_context(moved, _validated(ctx, x=x, y=np.asarray(y), magnitude=ctx.magnitude + 1))
+    x[0] = -1e9  # the caller's array changes; the context keeps its own copy
+    assert moved.x[0] == ctx.x[0] + 0.25 and not np.shares_memory(moved.y, ctx.y)
+
+
+def test_positions_of_another_length_broadcast_every_field_again():
+    ctx = full_context(n=1).evolve(attitude=None)  # one rotation would not broadcast to four stars
+    spread = ctx.evolve(x=np.arange(4.0), y=np.arange(4.0))
+    assert spread.n == 4 and spread.unit_icrs.shape == (4, 3) and spread.t_ns.shape == (4,)
+    with pytest.raises(TypeError, match="no field"):
+        ctx.evolve(x=ctx.x, colour=1)
 
 
 # ---------------------------------------------------------------------------- validation, doc
