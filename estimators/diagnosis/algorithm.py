@@ -36,7 +36,13 @@ from rollingstar.estimators.diagnosis.gyro_channel import GyroData
 from rollingstar.estimators.diagnosis.inputs import DiagnoseOptions, SensorModel, sensor_model, sequence_moves
 from rollingstar.estimators.diagnosis.library import Candidate, library
 from rollingstar.estimators.diagnosis.locating import Location, check_parity, locate
-from rollingstar.estimators.diagnosis.modelling import EffectModel, known_noise, model_effects, updated_scenario
+from rollingstar.estimators.diagnosis.modelling import (
+    EffectModel,
+    known_noise,
+    model_effects,
+    updated_scenario,
+    with_stability,
+)
 from rollingstar.estimators.diagnosis.naming import Naming, name_effects
 from rollingstar.estimators.diagnosis.noise import NoiseCheck, combined, scaled
 from rollingstar.estimators.diagnosis.noise import measure as measure_noise
@@ -128,23 +134,28 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
             sensor = sensor_model(with_projection(scenario, choice), moves)
         done(PHASES[0])
         cands: dict[str, Candidate] = library(exclude=exclude_effects)
-        steps = _outlier_rounds(observations, attitudes, sensor, cands, gyro, options, choice)
+        # the stability refits change only the final model's report (each effect's confidence):
+        # the rounds run without them, and the model reported gets them once, at the end
+        per_round = replace(options, stability=False)
+        steps = _outlier_rounds(observations, attitudes, sensor, cands, gyro, per_round, choice)
         done(PHASES[1])
         data, noise = steps[0].data, None
         if known_noise(data):  # a noise estimated from the residuals has nothing to be measured against
             noise = measure_noise(data.obs, steps[2].prediction, data.train, data.att_mask, sensor.camera)
         if noise is not None and noise.applied:
-            steps = _outlier_rounds(scaled(observations, noise), attitudes, sensor, cands, gyro, options, choice)
+            steps = _outlier_rounds(scaled(observations, noise), attitudes, sensor, cands, gyro, per_round, choice)
         obs_used = scaled(observations, noise) if noise is not None and noise.applied else observations
         done(PHASES[2])
         shape = _describe(steps[0], steps[2], steps[3], sensor) if steps[3].unexplained else None
         done(PHASES[3])
         evidence, given, before = tuple(steps[3].evidence), sensor_model(sensor.scenario, moves), None
         if shape is not None and shape.correction is not None:
-            sensor, steps, shape = _corrected(shape, given.scenario, obs_used, attitudes, cands, gyro, options,
+            sensor, steps, shape = _corrected(shape, given.scenario, obs_used, attitudes, cands, gyro, per_round,
                                               given.moving, choice)
-            steps, noise = _noise_again(noise, steps, observations, attitudes, sensor, cands, gyro, options, choice)
+            steps, noise = _noise_again(noise, steps, observations, attitudes, sensor, cands, gyro, per_round, choice)
             before = _as_given(steps[0], given)
+        if options.stability:
+            steps = _with_stability(steps, sensor, cands, options)
         done(PHASES[4])
         check = None
         if reference is not None and options.reference_sigma_arcsec is not None:
@@ -175,6 +186,13 @@ def _corrected(shape: Description, given: ScenarioConfig, obs: Observations, att
             break
         shape = refined
     return sensor, steps, shape
+
+
+def _with_stability(steps: tuple, sensor: SensorModel, cands: dict[str, Candidate], options: DiagnoseOptions) -> tuple:
+    """The steps of the final round with the model's stability rows, verified again with them."""
+    location, naming, model, _, rounds = steps
+    model = with_stability(location.data, model, sensor)
+    return location, naming, model, verify(location, naming, model, sensor, cands, options), rounds
 
 
 def _noise_again(noise: NoiseCheck | None, steps: tuple, observations: Observations, attitudes: Rotation,

@@ -7,7 +7,7 @@ against its chi-square. :func:`updated_scenario` writes the named effects into t
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -63,10 +63,18 @@ def model_effects(data: Dataset, naming: Naming, sensor: SensorModel, options: D
             effects = refit_mod.chain_with(sensor.effects, chosen, fit["thetas"])
             nuis1, pred1 = fit_nuisance(data.obs, jf["nuisance"], sensor.camera, sensor.timing, effects,
                                         data.att_mask, sensor.moving)
-    stab = refit_mod.stability(data.obs, nuis1, pred1, sensor.camera, sensor.timing, sensor.effects, chosen,
-                               fit["thetas"], data.train) if (chosen and options.stability) else []
     tests, evidence = leftover_structure(data, pred1, sensor, chosen)
-    return EffectModel(chosen, fit, effects, nuis1, pred1, stab, tests, evidence)
+    model = EffectModel(chosen, fit, effects, nuis1, pred1, [], tests, evidence)
+    return with_stability(data, model, sensor) if options.stability else model
+
+
+def with_stability(data: Dataset, model: EffectModel, sensor: SensorModel) -> EffectModel:
+    """``model`` with its stability rows: the named effects refitted on subsets (:func:`.refit.stability`)."""
+    if not model.chosen:
+        return model
+    stab = refit_mod.stability(data.obs, model.nuisance, model.prediction, sensor.camera, sensor.timing, sensor.effects,
+                               model.chosen, model.fit["thetas"], data.train)
+    return replace(model, stability=stab)
 
 
 def leftover_structure(data: Dataset, pred: Prediction, sensor: SensorModel,

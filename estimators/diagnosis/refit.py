@@ -115,17 +115,22 @@ def projected_jacobian(obs: Observations, nuis: Nuisance, camera, timing, base_e
     increments differenced with each frame's attitude moved by the rotation its training stars
     would absorb of that column (first order of the attitude refit), as the refit does.
     """
-    effects = chain_with(base_effects, candidates, split_theta(candidates, z))
+    thetas = split_theta(candidates, z)
+    effects = chain_with(base_effects, candidates, thetas)
     base = predict(obs, nuis, camera, timing, effects) if base is None else base  # the residual's own prediction
     cols = np.empty((obs.n, 2, z.size))
     steps, chains = np.empty(z.size), []
+    owner = np.repeat(np.arange(len(candidates)), [len(c.parameters) for c in candidates])
+    first = np.concatenate([[0], np.cumsum([len(c.parameters) for c in candidates])])
     for j in range(z.size):
-        zz = z.copy()
         h = 1e-4 * max(1.0, abs(z[j]))
-        zz[j] = z[j] + h if z[j] + h <= hi[j] else z[j] - h
-        steps[j] = zz[j] - z[j]
-        chains.append(chain_with(base_effects, candidates, split_theta(candidates, zz)))
-        px, py = chain_positions(base, chains[-1]) if len(chains[-1]) else (base.x_ideal, base.y_ideal)
+        zj = z[j] + h if z[j] + h <= hi[j] else z[j] - h
+        steps[j] = zj - z[j]
+        k, at = owner[j], len(base_effects) + owner[j]  # only candidate k's instance changes
+        zk = z[first[k]:first[k + 1]].copy()
+        zk[j - first[k]] = zj
+        chains.append(effects[:at] + (candidates[k].instance(split_theta([candidates[k]], zk)[0]),) + effects[at + 1:])
+        px, py = chain_positions(base, chains[-1])
         cols[:, 0, j], cols[:, 1, j] = (px - base.x) / steps[j], (py - base.y) / steps[j]
     idx = np.flatnonzero(mask)
     aj = whiten(obs, base.att_jac[idx], idx)
