@@ -275,17 +275,27 @@ def frame_normal(obs_frame: np.ndarray, n_frames: int, jac: np.ndarray, wts: np.
     """Per-frame normal matrices ``sum J^T W J`` (F, 3, 3) and ``sum J^T W r`` (F, 3, m).
 
     ``jac`` (n, 2, 3), ``wts`` (n,) inverse variances or (n, 2, 2) information matrices
-    (:func:`star_weights`), ``rhs`` (n, 2, m). Vectorised with ``np.add.at`` over stars (no
+    (:func:`star_weights`), ``rhs`` (n, 2, m). Vectorised over stars (:func:`frame_sums`; no
     per-frame Python loop).
     """
     jw = jac * wts[:, None, None] if wts.ndim == 1 else wts @ jac
-    a = np.einsum("nki,nkj->nij", jw, jac)
-    b = np.einsum("nki,nkm->nim", jw, rhs)
-    big_a = np.zeros((n_frames, 3, 3))
-    big_b = np.zeros((n_frames, 3, rhs.shape[2]))
-    np.add.at(big_a, obs_frame, a)
-    np.add.at(big_b, obs_frame, b)
-    return big_a, big_b
+    # the sums over the two image axes written out: what einsum("nki,nkj->nij") computes, to the
+    # bit, in half its time on thousands of stars
+    a = jw[:, 0, :, None] * jac[:, 0, None, :] + jw[:, 1, :, None] * jac[:, 1, None, :]
+    b = jw[:, 0, :, None] * rhs[:, 0, None, :] + jw[:, 1, :, None] * rhs[:, 1, None, :]
+    return frame_sums(obs_frame, n_frames, a), frame_sums(obs_frame, n_frames, b)
+
+
+def frame_sums(obs_frame: np.ndarray, n_frames: int, values: np.ndarray) -> np.ndarray:
+    """``values`` (n, ...) summed per frame, (n_frames, ...): ``np.add.at(out, obs_frame, values)``.
+
+    One ``np.bincount`` over every element (frame-major bins): it adds each bin's values in the
+    stars' order as ``np.add.at`` does, so the sums are the same to the bit, and is several times
+    faster on thousands of stars."""
+    k = int(np.prod(values.shape[1:]))
+    flat = values.reshape(values.shape[0], k)
+    bins = (np.asarray(obs_frame)[:, None] * k + np.arange(k)).ravel()
+    return np.bincount(bins, weights=flat.ravel(), minlength=n_frames * k).reshape((n_frames,) + values.shape[1:])
 
 
 def solve_frames(big_a: np.ndarray, big_b: np.ndarray) -> np.ndarray:

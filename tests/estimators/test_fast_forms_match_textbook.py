@@ -449,3 +449,28 @@ def test_compiled_quaternion_step_and_matrix_match_scipy():
         got, expected = quat_times_exp(r.as_quat(), delta), (r * Rotation.from_rotvec(delta)).as_quat()
         assert min(np.abs(got - expected).max(), np.abs(got + expected).max()) < 1e-14
         np.testing.assert_allclose(quat_to_matrix(r.as_quat()), r.as_matrix(), rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("stars, trailing", [(0, (3, 3)), (1, (3, 1)), (40, (3, 3)), (3000, (3, 7)), (500, (3, 0))])
+def test_the_diagnosis_frame_sums_are_numpys_add_at_to_the_bit(stars, trailing):
+    """``frame_sums`` (one ``bincount``) and ``frame_normal`` (its products written out) against
+    ``np.add.at`` and ``einsum``, the forms they replace: equal bit for bit, frames in any order,
+    empty frames included."""
+    from rollingstar.estimators.diagnosis.observations import frame_normal, frame_sums
+
+    rng = np.random.default_rng(stars)
+    frames = 9
+    frame = rng.integers(0, frames - 2, stars)  # the last two frames have no stars
+    values = rng.normal(size=(stars,) + trailing) * 10.0 ** rng.integers(-8, 8, (stars,) + trailing)
+    expect = np.zeros((frames,) + trailing)
+    np.add.at(expect, frame, values)
+    np.testing.assert_array_equal(frame_sums(frame, frames, values), expect)
+    jac, rhs = rng.normal(size=(stars, 2, 3)) * 1e3, rng.normal(size=(stars, 2) + trailing[1:])
+    for wts in (rng.random(stars), rng.random((stars, 2, 2))):
+        jw = jac * wts[:, None, None] if wts.ndim == 1 else wts @ jac
+        a, b = np.zeros((frames, 3, 3)), np.zeros((frames, 3) + trailing[1:])
+        np.add.at(a, frame, np.einsum("nki,nkj->nij", jw, jac))
+        np.add.at(b, frame, np.einsum("nki,nkm->nim", jw, rhs))
+        got = frame_normal(frame, frames, jac, wts, rhs)
+        np.testing.assert_array_equal(got[0], a)
+        np.testing.assert_array_equal(got[1], b)
