@@ -292,7 +292,7 @@ def _outlier_rounds(observations: Observations, attitudes: Rotation, sensor: Sen
         verification = verify(location, naming, model, sensor, cands, options)
         last = (location, naming, model, verification)
         names = tuple(c.name for c in verification.named)
-        if not rejected or not names or names == gate_names:
+        if not rejected or not names or set(names) == set(gate_names):
             break
         gate_names = names
         gate = sensor_model(updated_scenario(sensor.scenario, verification.named, verification.thetas), sensor.moving)

@@ -73,3 +73,33 @@ def test_misidentified_stars_stay_out(strong_distortion):
     assert [c.name for c in d.verification.named] == ["radial_distortion"]
     k1, sigma = d.model.thetas[0][0], d.model.fit["sigmas"][0][0]
     assert abs(k1 - K1) < 4 * sigma, (k1, sigma)
+
+
+def test_a_round_naming_its_gates_effects_in_another_order_is_the_fixed_point(monkeypatch):
+    """The rounds stop when a round names the effects its gate held, whatever order the naming
+    lists them in (a set of effects, not a sequence)."""
+    from types import SimpleNamespace
+
+    from rollingstar.estimators.diagnosis import algorithm
+
+    namings = iter([["a", "b"], ["b", "a"], ["c"]])  # the third would run only if the order counted
+    stars = iter(range(10))
+
+    def locate(observations, attitudes, sensor, cands, gyro, options, gate):
+        k = next(stars)  # every round keeps other stars, so only the names can end the rounds
+        return SimpleNamespace(data=SimpleNamespace(n_rejected=1, obs=SimpleNamespace(n=5, x=np.full(5, k), y=np.zeros(5),
+                                                                                       heldout=np.zeros(5, bool))))
+
+    def verify(location, naming, model, sensor, cands, options):
+        return SimpleNamespace(named=[SimpleNamespace(name=n) for n in naming], thetas=[])
+
+    monkeypatch.setattr(algorithm, "locate", locate)
+    monkeypatch.setattr(algorithm, "name_effects", lambda location, sensor, cands, options: next(namings))
+    monkeypatch.setattr(algorithm, "model_effects", lambda data, naming, sensor, options: None)
+    monkeypatch.setattr(algorithm, "verify", verify)
+    monkeypatch.setattr(algorithm, "updated_scenario", lambda scenario, named, thetas: scenario)
+    monkeypatch.setattr(algorithm, "sensor_model", lambda scenario, moving: SimpleNamespace(scenario=scenario, moving=moving))
+    sensor = SimpleNamespace(scenario=None, moving=False, camera=None)
+    *_, verification, rounds = algorithm._outlier_rounds(SimpleNamespace(n=5), None, sensor, {}, None, None)
+    assert [c.name for c in verification.named] == ["b", "a"]
+    assert [r["gate"] for r in rounds] == [[], ["a", "b"]]
