@@ -166,9 +166,10 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def markdown_image(rows: list[dict]) -> str:
+def markdown_image(rows: list[dict], table_rows: list[dict]) -> str:
     """The recordings with the stars measured again on their images, against astrometry.net's own
-    in-sample residual of the same table."""
+    in-sample residual of the same table and against the diagnosis of the table's positions
+    (``table_rows``, the same recordings)."""
     def f(v, fmt="{:.3g}"):
         return "n/a" if v is None else fmt.format(v)
 
@@ -186,7 +187,13 @@ def markdown_image(rows: list[dict]) -> str:
                      f"{f(r['sigma_px'])} | {named} | {f(r['chi2_dof_after'])} | {f(r['heldout_rms_after_px'], '{:.3f}')} | "
                      f"{f(r['anet_residual_px'])} | {ratio} | {f(r['cpu_s'], '{:.2f}')} |")
     cpu = [r["cpu_s"] for r in rows]
+    table = {r["recording"]: r["heldout_rms_after_px"] for r in table_rows}
+    pairs = [(r["recording"], r["heldout_rms_after_px"], table.get(r["recording"])) for r in rows]
+    pairs = [(k, a, b) for k, a, b in pairs if a is not None and b is not None]
+    not_lower = [k for k, a, b in pairs if a >= b]
     lines += ["", *against(rows, "anet_residual_px", "astrometry.net's in-sample residual, stars measured again"),
+              f"- held-out RMS after lower than with the tables' positions: {len(pairs) - len(not_lower)} of "
+              f"{len(pairs)} recordings (not lower: {', '.join(not_lower) or 'none'})",
               f"- CPU seconds per diagnosis: median {np.median(cpu):.2f}, maximum {np.max(cpu):.2f} ({len(rows)} recordings)"]
     return "\n".join(lines)
 
@@ -224,7 +231,7 @@ def main() -> None:
     rows, image_rows = run(args.seed)
     if args.json:
         args.json.write_text(json.dumps({"table": rows, "image": image_rows}, indent=2))
-    md, md_image = markdown(rows), markdown_image(image_rows)
+    md, md_image = markdown(rows), markdown_image(image_rows, rows)
     if args.markdown:
         args.markdown.write_text(md + "\n")
     if args.markdown_image:
