@@ -157,18 +157,22 @@ def select_nonlinear(refits: Refits, cands: dict[str, Candidate], names: list[st
     delta BIC, then forward stepwise on the problem re-linearised at the fitted model; repeat
     until nothing changes (at most :data:`MAX_ROUNDS`). Returns the fit and the changes made.
 
-    An effect the nonlinear elimination dropped is not offered to the later forward steps: the
-    linearised step overstates what it earns (that is why the refit dropped it), and offered again
-    it comes back every round and is dropped again, until the rounds run out."""
+    The refinement also stops when the elimination comes back to a set of effects an earlier round's
+    elimination ended with: the linearised forward step re-adds effects the nonlinear refit then
+    drops again, a cycle in which every further round repeats one already made. That set, which
+    the nonlinear test accepted, is the result."""
     data, sensor, nuis0 = refits.data, refits.sensor, refits.nuis0
-    rounds, dropped_once = [], set()
+    rounds, kept = [], set()
     for _ in range(MAX_ROUNDS):
         fit = refits([cands[n] for n in names])
         names, fit, dropped = backward_eliminate(refits, cands, names, fit, options.min_delta_bic)
         rounds += dropped
-        dropped_once |= {d["dropped"] for d in dropped}
         model = with_nuisance(data, sensor, nuis0, names, [cands[n] for n in names], fit)
-        others = {k: c for k, c in cands.items() if k not in names and k not in dropped_once}
+        if frozenset(names) in kept:
+            rounds.append({"cycle": sorted(names)})
+            return model, rounds
+        kept.add(frozenset(names))
+        others = {k: c for k, c in cands.items() if k not in names}
         prob, _ = linear_problem(data.obs, model.prediction, others, model.effects, data.train, blocks)
         steps = selection.forward_stepwise(prob, options.min_delta_bic)
         if steps:

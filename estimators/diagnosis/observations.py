@@ -294,8 +294,9 @@ def frame_sums(obs_frame: np.ndarray, n_frames: int, values: np.ndarray) -> np.n
     faster on thousands of stars."""
     k = int(np.prod(values.shape[1:]))
     flat = values.reshape(values.shape[0], k)
-    bins = (np.asarray(obs_frame)[:, None] * k + np.arange(k)).ravel()
-    return np.bincount(bins, weights=flat.ravel(), minlength=n_frames * k).reshape((n_frames,) + values.shape[1:])
+    bins = (np.asarray(obs_frame, dtype=np.int64)[:, None] * k + np.arange(k)).ravel()
+    sums = np.bincount(bins, weights=flat.ravel(), minlength=n_frames * k).astype(float, copy=False)
+    return sums.reshape((n_frames,) + values.shape[1:])
 
 
 def solve_frames(big_a: np.ndarray, big_b: np.ndarray) -> np.ndarray:

@@ -1,6 +1,6 @@
-"""The naming step's bookkeeping: each nonlinear refit is made once per naming, an effect the
-nonlinear test dropped is not offered back by the linearised forward step, and the positions of
-another effect chain at the same attitudes are what a full prediction gives."""
+"""The naming step's bookkeeping: each nonlinear refit is made once per naming, the refinement stops
+when it cycles (and only then), and the positions of another effect chain at the same attitudes
+are what a full prediction gives."""
 from __future__ import annotations
 
 from types import SimpleNamespace
@@ -64,35 +64,54 @@ def test_the_drop_one_statistics_reuse_the_last_elimination_pass(monkeypatch):
     np.testing.assert_allclose(list(delta.values()), 100.0 - np.log(400))
 
 
-def test_an_effect_the_nonlinear_test_dropped_is_not_offered_again(monkeypatch):
-    """The linearised forward step here offers every candidate it is given (it overstates them all);
-    the nonlinear elimination keeps only ``a``. The refinement ends with ``a`` alone, and no round
-    adds back an effect an earlier round dropped."""
+def _scripted_refinement(monkeypatch, eliminate: dict, propose: dict):
+    """``select_nonlinear`` with a scripted nonlinear elimination (names in -> names kept) and a
+    scripted linearised forward step (names kept -> names it adds); returns its model, its rounds
+    and the sets the forward step was run from."""
     cands = {n: _cand(n) for n in "abcd"}
     refits, _ = _counting_refits(monkeypatch, lambda names: 100.0)
 
     def backward(refits, cands, names, fit, min_delta_bic):
-        gone = [n for n in names if n != "a"]
-        return ["a"], fit, [{"dropped": n, "delta_bic_nonlinear": -1.0} for n in gone]
+        kept = eliminate[frozenset(names)]
+        return kept, fit, [{"dropped": n, "delta_bic_nonlinear": -1.0} for n in names if n not in kept]
 
-    offered = []
+    forward_from = []
 
     def linear_problem(obs, pred, others, effects, mask, blocks):
-        offered.append(sorted(others))
-        return sorted(others), None
+        return (pred, set(others)), None
+
+    def forward(prob, min_delta_bic):
+        kept, offered = prob
+        forward_from.append(sorted(kept))
+        return [{"name": n} for n in propose.get(frozenset(kept), []) if n in offered]
 
     monkeypatch.setattr(naming, "backward_eliminate", backward)
     monkeypatch.setattr(naming, "with_nuisance", lambda data, sensor, nuis0, names, chosen, fit: SimpleNamespace(
-        names=names, prediction=None, effects=()))
+        names=names, prediction=list(names), effects=()))
     monkeypatch.setattr(naming, "linear_problem", linear_problem)
-    monkeypatch.setattr(naming.selection, "forward_stepwise", lambda prob, m: [{"name": n} for n in prob[:1]])
+    monkeypatch.setattr(naming.selection, "forward_stepwise", forward)
     model, rounds = naming.select_nonlinear(refits, cands, ["a", "b"], None, SimpleNamespace(min_delta_bic=10.0))
+    return model, rounds, forward_from
+
+
+def test_a_refinement_that_comes_back_to_a_set_it_kept_stops_there(monkeypatch):
+    """The linearised step re-adds ``b`` (it overstates it), the nonlinear elimination drops it
+    again: the second time the elimination ends on ``{a}`` the refinement stops with it."""
+    ab, a = frozenset("ab"), frozenset("a")
+    model, rounds, forward_from = _scripted_refinement(monkeypatch, {ab: ["a"]}, {a: ["b"]})
     assert model.names == ["a"]
-    assert offered == [["c", "d"], ["d"], []]
-    dropped_before = set()
-    for r in rounds:
-        assert not set(r.get("added", ())) & dropped_before, rounds
-        dropped_before |= {r["dropped"]} if "dropped" in r else set()
+    assert forward_from == [["a"]]  # one forward step; the second round found the cycle
+    assert rounds[-1] == {"cycle": ["a"]}
+
+
+def test_an_effect_dropped_early_comes_back_when_the_model_changes(monkeypatch):
+    """Without a cycle nothing is banned: ``b``, dropped while ``c`` was out of the model, is added
+    back once ``c`` is in and kept by the elimination."""
+    ab, a, ac, acb = frozenset("ab"), frozenset("a"), frozenset("ac"), frozenset("acb")
+    model, rounds, _ = _scripted_refinement(monkeypatch, {ab: ["a"], ac: ["a", "c"], acb: ["a", "c", "b"]},
+                                            {a: ["c"], ac: ["b"]})
+    assert model.names == ["a", "c", "b"]
+    assert [r for r in rounds if "added" in r] == [{"added": ["c"]}, {"added": ["b"]}]
 
 
 def test_another_chain_at_the_same_attitudes_gives_the_full_predictions_positions():

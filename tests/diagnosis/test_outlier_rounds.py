@@ -103,3 +103,22 @@ def test_a_round_naming_its_gates_effects_in_another_order_is_the_fixed_point(mo
     *_, verification, rounds = algorithm._outlier_rounds(SimpleNamespace(n=5), None, sensor, {}, None, None)
     assert [c.name for c in verification.named] == ["b", "a"]
     assert [r["gate"] for r in rounds] == [[], ["a", "b"]]
+
+
+def test_the_reported_model_carries_its_stability_rows(strong_distortion):
+    """The stability refits run once, for the model reported: its rows are those of the final
+    model's own subsets, and every named effect's ``stable`` flag is read from them."""
+    from dataclasses import replace
+
+    from rollingstar.estimators.diagnosis.algorithm import diagnose
+    from rollingstar.estimators.diagnosis.modelling import with_stability
+    from rollingstar.pipelines.diagnose import DiagnoseOptions
+
+    scenario, obs, att0 = strong_distortion
+    d = diagnose(obs, att0, scenario, None, DiagnoseOptions(n_boot=5, stability=True, resimulate=False))
+    rows = d.model.stability
+    assert rows and {r["effect"] for r in rows} == {c.name for c in d.model.chosen}
+    again = with_stability(d.location.data, replace(d.model, stability=[]), d.sensor).stability
+    assert again == rows
+    for e in d.verification.effects:
+        assert e["stable"] == all(r["stable"] is not False for r in rows if r["effect"] == e["name"])

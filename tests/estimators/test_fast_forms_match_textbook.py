@@ -464,7 +464,9 @@ def test_the_diagnosis_frame_sums_are_numpys_add_at_to_the_bit(stars, trailing):
     values = rng.normal(size=(stars,) + trailing) * 10.0 ** rng.integers(-8, 8, (stars,) + trailing)
     expect = np.zeros((frames,) + trailing)
     np.add.at(expect, frame, values)
-    np.testing.assert_array_equal(frame_sums(frame, frames, values), expect)
+    got = frame_sums(frame, frames, values)
+    assert got.dtype == expect.dtype and got.shape == expect.shape
+    np.testing.assert_array_equal(got, expect)
     jac, rhs = rng.normal(size=(stars, 2, 3)) * 1e3, rng.normal(size=(stars, 2) + trailing[1:])
     for wts in (rng.random(stars), rng.random((stars, 2, 2))):
         jw = jac * wts[:, None, None] if wts.ndim == 1 else wts @ jac
