@@ -10,6 +10,7 @@ a weak candidate and the rest refitted.
 """
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -157,22 +158,26 @@ def select_nonlinear(refits: Refits, cands: dict[str, Candidate], names: list[st
     delta BIC, then forward stepwise on the problem re-linearised at the fitted model; repeat
     until nothing changes (at most :data:`MAX_ROUNDS`). Returns the fit and the changes made.
 
-    The refinement also stops when the elimination comes back to a set of effects an earlier round's
-    elimination ended with: the linearised forward step re-adds effects the nonlinear refit then
-    drops again, a cycle in which every further round repeats one already made. That set, which
-    the nonlinear test accepted, is the result."""
+    The linearised forward step can overstate what an effect earns: it re-adds an effect the
+    nonlinear refit then drops again. An effect dropped twice is not offered again, and the
+    refinement stops when the elimination comes back to a set of effects an earlier round's
+    elimination ended with (a cycle, in which every further round repeats one already made); that
+    set, which the nonlinear test accepted, is the result. An effect dropped once still comes back
+    when the model has changed so that it earns its place."""
     data, sensor, nuis0 = refits.data, refits.sensor, refits.nuis0
-    rounds, kept = [], set()
+    rounds, kept, drops, added = [], set(), Counter(), False
     for _ in range(MAX_ROUNDS):
         fit = refits([cands[n] for n in names])
         names, fit, dropped = backward_eliminate(refits, cands, names, fit, options.min_delta_bic)
         rounds += dropped
+        drops.update(d["dropped"] for d in dropped)
         model = with_nuisance(data, sensor, nuis0, names, [cands[n] for n in names], fit)
         if frozenset(names) in kept:
-            rounds.append({"cycle": sorted(names)})
+            if added:  # what the forward step added was dropped again: a cycle
+                rounds.append({"cycle": sorted(names)})
             return model, rounds
         kept.add(frozenset(names))
-        others = {k: c for k, c in cands.items() if k not in names}
+        others = {k: c for k, c in cands.items() if k not in names and drops[k] < 2}
         prob, _ = linear_problem(data.obs, model.prediction, others, model.effects, data.train, blocks)
         steps = selection.forward_stepwise(prob, options.min_delta_bic)
         if steps:
@@ -180,6 +185,7 @@ def select_nonlinear(refits: Refits, cands: dict[str, Candidate], names: list[st
             rounds.append({"added": [st["name"] for st in steps]})
         if not dropped and not steps:
             return model, rounds
+        added = bool(steps)
     return refit_named(refits, cands, names), rounds
 
 

@@ -1,6 +1,7 @@
 """The naming step's bookkeeping: each nonlinear refit is made once per naming, the refinement stops
-when it cycles (and only then), and the positions of another effect chain at the same attitudes
-are what a full prediction gives."""
+when it cycles and does not offer an effect dropped twice again (an effect dropped once can come
+back), and the positions of another effect chain at the same attitudes are what a full
+prediction gives."""
 from __future__ import annotations
 
 from types import SimpleNamespace
@@ -102,6 +103,18 @@ def test_a_refinement_that_comes_back_to_a_set_it_kept_stops_there(monkeypatch):
     assert model.names == ["a"]
     assert forward_from == [["a"]]  # one forward step; the second round found the cycle
     assert rounds[-1] == {"cycle": ["a"]}
+
+
+def test_an_effect_dropped_twice_is_not_offered_again(monkeypatch):
+    """``b`` is dropped, re-added with ``c`` and dropped again: the linearised step that would add
+    it a third time is not given it, and the refinement ends on ``{a, c}`` (no cycle: the last
+    round added nothing)."""
+    ab, a, abc, ac = frozenset("ab"), frozenset("a"), frozenset("abc"), frozenset("ac")
+    model, rounds, forward_from = _scripted_refinement(
+        monkeypatch, {ab: ["a"], abc: ["a", "c"], ac: ["a", "c"]}, {a: ["b", "c"], ac: ["b"]})
+    assert model.names == ["a", "c"]
+    assert [r["dropped"] for r in rounds if "dropped" in r] == ["b", "b"]
+    assert not any("cycle" in r for r in rounds) and forward_from == [["a"], ["a", "c"]]
 
 
 def test_an_effect_dropped_early_comes_back_when_the_model_changes(monkeypatch):
