@@ -234,7 +234,7 @@ def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=(), 
     x, y = (x0, y0)
     expo = None if obs.exposure_ns is None else obs.exposure_ns[obs.frame]
     if len(effects) and not attitude_jacobian:
-        x, y = by_exposure(ctx, expo, lambda c: chain_predict(tuple(effects), c))
+        x, y = _run_chain(ctx, expo, effects)
     elif len(effects):
         effects = tuple(effects)
 
@@ -267,8 +267,13 @@ def chain_positions(pred: Prediction, effects) -> tuple[np.ndarray, np.ndarray]:
     """The positions ``predict(..., effects, attitude_jacobian=False)`` gives with the nuisance
     ``pred`` was made with: only the chain runs again, on ``pred``'s ideal positions and context
     (for callers that difference one chain against others at the same attitudes)."""
-    x, y = by_exposure(pred.ctx, pred.exposure_ns, lambda c: chain_predict(tuple(effects), c))
+    x, y = _run_chain(pred.ctx, pred.exposure_ns, effects)
     return np.asarray(x, float), np.asarray(y, float)
+
+
+def _run_chain(ctx: EffectContext, exposure_ns, effects) -> tuple[np.ndarray, np.ndarray]:
+    """The effect chain's positions of the context's ideal positions, per exposure group."""
+    return by_exposure(ctx, exposure_ns, lambda c: chain_predict(tuple(effects), c))
 
 
 def frame_normal(obs_frame: np.ndarray, n_frames: int, jac: np.ndarray, wts: np.ndarray, rhs: np.ndarray):
