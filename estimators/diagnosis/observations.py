@@ -31,14 +31,18 @@ so the rate comes from the attitude sequence across frames (:func:`rates_from_at
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from rollingstar.sensors.conventions import NS_PER_S
 from rollingstar.sensors.effects.base import EffectContext
+from rollingstar.sensors.effects.chain import entering as chain_entering
 from rollingstar.sensors.effects.chain import predict as chain_predict
+from rollingstar.sensors.effects.chain import resume as chain_resume
 from rollingstar.sensors.so3 import quat_multiply, skew
 
 POS_STEP_PX = 1e-3
@@ -173,17 +177,46 @@ def camera_rotations(obs: Observations, nuis: Nuisance) -> Rotation:
     quaternions: :func:`rollingstar.sensors.so3.quat_multiply`; at rate zero the step is the
     identity and is not composed)."""
     q = nuis.attitude.as_quat()[obs.frame]
-    if np.any(nuis.omega):
+    if nuis.omega.any():
         q = quat_multiply(q, Rotation.from_rotvec(nuis.omega[obs.frame] * obs.dt_s()[:, None]).as_quat())
     return Rotation.from_quat(q)
 
 
 def effect_context(obs: Observations, camera, timing, rot: Rotation, x, y, vx, vy, omega) -> EffectContext:
     """The per-observation :class:`rollingstar.sensors.effects.base.EffectContext` of the ideal positions."""
-    return EffectContext(camera=camera, x=x, y=y, t_ns=obs.t_ns, row=obs.y, t0_ns=obs.t0_ns[obs.frame],
-                         frame=obs.frame, magnitude=obs.magnitude, vx=vx, vy=vy, omega_rad_s=omega,
-                         attitude=rot, unit_icrs=obs.u_icrs, pm_rad_yr=obs.pm_rad_yr, timing=timing,
-                         t_start_ns=int(obs.t0_ns.min()) if obs.n_frames else 0)
+    return observation_contexts(obs, camera, timing)[0].evolve(x=x, y=y, vx=vx, vy=vy, omega_rad_s=omega, attitude=rot)
+
+
+def observation_contexts(obs: Observations, camera, timing) -> tuple[EffectContext, EffectContext]:
+    """The context fields that depend on the observations alone (times, rows, frames, magnitudes,
+    catalogue directions), for the stars and for ``len(POS_OFFSETS)`` copies of them (:func:`predict`'s
+    tiled chain). A prediction only evolves them with its positions, rates and attitudes; they are
+    made once per observations, camera and timing (kept on ``obs``: the diagnosis predicts the same
+    observations tens of thousands of times)."""
+    key = (id(camera), id(timing))
+    kept = obs.__dict__.setdefault("_contexts", {})
+    if key not in kept:
+        ctx = EffectContext(camera=camera, x=obs.x, y=obs.y, t_ns=obs.t_ns, row=obs.y, t0_ns=obs.t0_ns[obs.frame],
+                            frame=obs.frame, magnitude=obs.magnitude, unit_icrs=obs.u_icrs, pm_rad_yr=obs.pm_rad_yr,
+                            timing=timing, t_start_ns=int(obs.t0_ns.min()) if obs.n_frames else 0)
+        kept[key] = (camera, timing, ctx, ctx.take(np.tile(np.arange(obs.n), len(POS_OFFSETS))))
+    return kept[key][2:]
+
+
+def tiled_context(ctx: EffectContext, tiled: EffectContext, x, y) -> EffectContext:
+    """``ctx.take(np.tile(np.arange(n), k)).evolve(x=x, y=y)`` from ``tiled``, ``ctx``'s observation
+    fields already tiled k times (:func:`observation_contexts`): only the fields of the prediction
+    are tiled again."""
+    k = tiled.n // max(ctx.n, 1)
+    changes = {"vx": copies(ctx.vx, k), "vy": copies(ctx.vy, k), "omega_rad_s": copies(ctx.omega_rad_s, k),
+               "attitude": ctx.attitude if ctx.attitude.single else ctx.attitude[np.tile(np.arange(ctx.n), k)]}
+    return tiled.evolve(x=x, y=y, **changes)
+
+
+def copies(a: np.ndarray, k: int) -> np.ndarray:
+    """``k`` copies of ``a`` one after the other along its first axis (``np.tile`` along that axis,
+    without its per-call cost)."""
+    return np.concatenate((a,) * k)
 
 
 def by_exposure(ctx: EffectContext, exposure_ns, fn):
@@ -218,12 +251,32 @@ def frame_reference_times(t0_ns: np.ndarray, timing, exposure_ns: np.ndarray | N
     return t_ref
 
 
-def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=(), attitude_jacobian: bool = True) -> Prediction:
-    """Predict every observation: ideal pinhole position, then the effect chain in stage order.
+@dataclass(frozen=True, eq=False)
+class Pinhole:
+    """What :func:`predict` computes of a nuisance before the effect chain (:func:`pinhole`): the
+    lines of sight ``w``, ideal positions, their attitude Jacobian (n, 2, 3), image velocities and
+    body rates, and the effect context of the ideal positions."""
 
-    ``attitude_jacobian=False``: positions only; ``att_jac`` is then the pinhole's, without the
-    chain's position Jacobian (the chain at four more positions of each star), for callers that
-    difference positions."""
+    nuisance: Nuisance
+    w: np.ndarray
+    att_jac: np.ndarray
+    v: np.ndarray
+    omega: np.ndarray
+    ctx: EffectContext
+    exposure_ns: np.ndarray | None
+    observation_fields: EffectContext  # the observations' context fields tiled (:func:`observation_contexts`)
+
+    @cached_property
+    def tiled(self) -> EffectContext:
+        """The context of every star at ``POS_OFFSETS`` from its ideal position, offset by offset."""
+        n, c, k = self.ctx.n, self.ctx, len(POS_OFFSETS)
+        bx, by = copies(c.x, k) + np.repeat(POS_OFFSETS[:, 0], n), copies(c.y, k) + np.repeat(POS_OFFSETS[:, 1], n)
+        return tiled_context(c, self.observation_fields, bx, by)
+
+
+def pinhole(obs: Observations, nuis: Nuisance, camera, timing=None) -> Pinhole:
+    """The pinhole part of :func:`predict` (everything before the chain), for callers that
+    predict one nuisance under many chains."""
     rot = camera_rotations(obs, nuis)
     w = rot.inv().apply(obs.u_icrs)
     x0, y0, _ = camera.project(w)
@@ -231,44 +284,78 @@ def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=(), 
     omega = nuis.omega[obs.frame]
     v = np.einsum("nij,nj->ni", jac, omega)
     ctx = effect_context(obs, camera, timing, rot, x0, y0, v[:, 0], v[:, 1], omega)
-    x, y = (x0, y0)
     expo = None if obs.exposure_ns is None else obs.exposure_ns[obs.frame]
-    if len(effects) and not attitude_jacobian:
+    return Pinhole(nuis, w, jac, v, omega, ctx, expo, observation_contexts(obs, camera, timing)[1])
+
+
+def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=(), attitude_jacobian: bool = True,
+            start: Pinhole | None = None) -> Prediction:
+    """Predict every observation: ideal pinhole position, then the effect chain in stage order.
+
+    ``attitude_jacobian=False``: positions only; ``att_jac`` is then the pinhole's, without the
+    chain's position Jacobian (the chain at four more positions of each star), for callers that
+    difference positions. ``start``: :func:`pinhole` of ``nuis``, when the caller has it."""
+    p = pinhole(obs, nuis, camera, timing) if start is None else start
+    if p.nuisance is not nuis:
+        raise ValueError("predict: the pinhole part given was made for another nuisance")
+    ctx, expo, effects = p.ctx, p.exposure_ns, tuple(effects)
+    x, y, jac = ctx.x, ctx.y, p.att_jac
+    if effects and not attitude_jacobian:
         x, y = _run_chain(ctx, expo, effects)
-    elif len(effects):
-        effects = tuple(effects)
-
-        def chain(c):
-            # the attitude moves the ideal position; the chain maps that motion through its position
-            # Jacobian d(x', y')/d(x, y), taken by central differences (the effects publish only
-            # parameter Jacobians). Needed where an effect is strongly nonlinear in position. Up to
-            # TILED_MAX_STARS stars, each position and its four neighbours go through the chain in
-            # one call over 5n copies (every effect acts on each star alone:
-            # tests/diagnosis/test_observations_tiling.py): the chain's cost is then per call;
-            # beyond TILED_MAX_STARS copying the context costs more
-            n = c.n
-            if n <= TILED_MAX_STARS:
-                big = c.take(np.tile(np.arange(n), 5))
-                big = big.evolve(x=big.x + np.repeat(POS_OFFSETS[:, 0], n), y=big.y + np.repeat(POS_OFFSETS[:, 1], n))
-                xs, ys = (np.reshape(a, (5, n)) for a in chain_predict(effects, big))
-            else:
-                xs, ys = (np.stack(a) for a in zip(*(chain_predict(effects, c.evolve(x=c.x + dx, y=c.y + dy))
-                                                     for dx, dy in POS_OFFSETS)))
-            cols = [np.stack([xs[k] - xs[k + 1], ys[k] - ys[k + 1]], axis=-1) / (2 * POS_STEP_PX) for k in (1, 3)]
-            return xs[0], ys[0], np.stack(cols, axis=-1)
-
-        x, y, pos_jac = by_exposure(ctx, expo, chain)
+    elif effects:
+        x, y, pos_jac = by_exposure(ctx, expo, lambda c: _chain_with_position_jacobian(effects, c, p))
         jac = pos_jac @ jac  # (n, 2, 2) @ (n, 2, 3)
-    return Prediction(np.asarray(x, float), np.asarray(y, float), x0, y0, w, jac, v[:, 0], v[:, 1], omega, ctx, expo,
-                      nuis, tuple(effects))
+    return Prediction(np.asarray(x, float), np.asarray(y, float), ctx.x, ctx.y, p.w, jac, p.v[:, 0], p.v[:, 1], p.omega,
+                      ctx, expo, nuis, effects)
 
 
-def chain_positions(pred: Prediction, effects) -> tuple[np.ndarray, np.ndarray]:
+def _chain_with_position_jacobian(effects: tuple, c: EffectContext, p: Pinhole):
+    """The chain's positions of the context ``c`` and its position Jacobian d(x', y')/d(x, y) (n, 2, 2).
+
+    The attitude moves the ideal position; the chain maps that motion through its position
+    Jacobian, taken by central differences (the effects publish only parameter Jacobians). Needed
+    where an effect is strongly nonlinear in position. Up to TILED_MAX_STARS stars, each position
+    and its four neighbours go through the chain in one call over 5n copies (every effect acts on
+    each star alone: tests/diagnosis/test_observations_tiling.py): the chain's cost is then per
+    call; beyond TILED_MAX_STARS copying the context costs more. ``c`` is ``p``'s context, or one
+    exposure group of it when the recording mixes exposure times.
+    """
+    n = c.n
+    if n <= TILED_MAX_STARS:
+        if c is p.ctx:  # the whole recording: its tiled context is made once per pinhole part
+            big = p.tiled
+        else:
+            big = c.take(np.tile(np.arange(n), 5))
+            big = big.evolve(x=big.x + np.repeat(POS_OFFSETS[:, 0], n), y=big.y + np.repeat(POS_OFFSETS[:, 1], n))
+        xs, ys = (np.reshape(a, (5, n)) for a in chain_predict(effects, big))
+    else:
+        xs, ys = (np.stack(a) for a in zip(*(chain_predict(effects, c.evolve(x=c.x + dx, y=c.y + dy))
+                                             for dx, dy in POS_OFFSETS)))
+    cols = [np.stack([xs[k] - xs[k + 1], ys[k] - ys[k + 1]], axis=-1) / (2 * POS_STEP_PX) for k in (1, 3)]
+    return xs[0], ys[0], np.stack(cols, axis=-1)
+
+
+def chain_positions(pred: Prediction, effects, trace: list | None = None, start: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """The positions ``predict(..., effects, attitude_jacobian=False)`` gives with the nuisance
     ``pred`` was made with: only the chain runs again, on ``pred``'s ideal positions and context
-    (for callers that difference one chain against others at the same attitudes)."""
-    x, y = _run_chain(pred.ctx, pred.exposure_ns, effects)
+    (for callers that difference one chain against others at the same attitudes).
+
+    ``trace``: :func:`chain_trace` of a chain that ``effects`` equals before position ``start`` of
+    its stage order; the chain then runs from ``start`` on (:func:`rollingstar.sensors.effects.chain.resume`)."""
+    if trace is None or start == 0:
+        x, y = _run_chain(pred.ctx, pred.exposure_ns, effects)
+    else:
+        x, y = chain_resume(tuple(effects), pred.ctx, start, *trace[start])
     return np.asarray(x, float), np.asarray(y, float)
+
+
+def chain_trace(pred: Prediction, effects) -> list | None:
+    """The positions entering each effect of the stage-ordered chain on ``pred``'s context
+    (:func:`rollingstar.sensors.effects.chain.entering`); None when the recording mixes exposure
+    times (each exposure group runs a chain of its own, :func:`by_exposure`)."""
+    if pred.exposure_ns is not None and pred.ctx.timing is not None and np.unique(pred.exposure_ns).size > 1:
+        return None
+    return chain_entering(tuple(effects), pred.ctx)
 
 
 def _run_chain(ctx: EffectContext, exposure_ns, effects) -> tuple[np.ndarray, np.ndarray]:
@@ -286,9 +373,9 @@ def frame_normal(obs_frame: np.ndarray, n_frames: int, jac: np.ndarray, wts: np.
     jw = jac * wts[:, None, None] if wts.ndim == 1 else wts @ jac
     # the sums over the two image axes written out: what einsum("nki,nkj->nij") computes, to the
     # bit, in half its time on thousands of stars
-    a = jw[:, 0, :, None] * jac[:, 0, None, :] + jw[:, 1, :, None] * jac[:, 1, None, :]
-    b = jw[:, 0, :, None] * rhs[:, 0, None, :] + jw[:, 1, :, None] * rhs[:, 1, None, :]
-    return frame_sums(obs_frame, n_frames, a), frame_sums(obs_frame, n_frames, b)
+    both = np.concatenate([jac, rhs], axis=-1)  # one sum per frame for J^T W J and J^T W r
+    ab = frame_sums(obs_frame, n_frames, jw[:, 0, :, None] * both[:, 0, None, :] + jw[:, 1, :, None] * both[:, 1, None, :])
+    return ab[..., :3], ab[..., 3:]
 
 
 def frame_sums(obs_frame: np.ndarray, n_frames: int, values: np.ndarray) -> np.ndarray:
@@ -297,7 +384,7 @@ def frame_sums(obs_frame: np.ndarray, n_frames: int, values: np.ndarray) -> np.n
     One ``np.bincount`` over every element (frame-major bins): it adds each bin's values in the
     stars' order as ``np.add.at`` does, so the sums are the same to the bit, and is several times
     faster on thousands of stars."""
-    k = int(np.prod(values.shape[1:]))
+    k = math.prod(values.shape[1:])
     flat = values.reshape(values.shape[0], k)
     bins = (np.asarray(obs_frame, dtype=np.int64)[:, None] * k + np.arange(k)).ravel()
     sums = np.bincount(bins, weights=flat.ravel(), minlength=n_frames * k).astype(float, copy=False)
@@ -306,26 +393,31 @@ def frame_sums(obs_frame: np.ndarray, n_frames: int, values: np.ndarray) -> np.n
 
 def solve_frames(big_a: np.ndarray, big_b: np.ndarray) -> np.ndarray:
     """Solve every frame's 3x3 system; frames with fewer than 2 stars (singular) get zeros."""
-    out = np.zeros_like(big_b)
     tr = np.trace(big_a, axis1=1, axis2=2)
     ok = np.linalg.det(big_a) > 1e-12 * np.maximum(tr, 1e-300) ** 3  # well conditioned (det vs trace^3)
+    if ok.all():  # the usual case, without the copies of the selection (each system is solved alone)
+        return np.linalg.solve(big_a, big_b)
+    out = np.zeros_like(big_b)
     if ok.any():
         out[ok] = np.linalg.solve(big_a[ok], big_b[ok])
     return out
 
 
 def fit_attitudes(obs: Observations, nuis: Nuisance, camera, timing=None, effects=(), mask=None,
-                  iterations: int = 4) -> tuple[Nuisance, Prediction]:
+                  iterations: int = 4, start: Pinhole | None = None) -> tuple[Nuisance, Prediction]:
     """Gauss-Newton refit of every frame's attitude (weighted least squares over its stars).
 
     Only observations in ``mask`` (default: all) contribute; the prediction returned covers all.
+    ``start``: :func:`pinhole` of ``nuis``, for callers that refit from one nuisance many times.
     """
     use = np.ones(obs.n, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
     wts = star_weights(obs, use)
-    pred = predict(obs, nuis, camera, timing, effects)
+    pred = predict(obs, nuis, camera, timing, effects, start=start)
     for _ in range(iterations):
         r = np.stack([obs.x - pred.x, obs.y - pred.y], axis=-1)[:, :, None]
-        a, b = frame_normal(obs.frame, obs.n_frames, pred.att_jac, wts, np.nan_to_num(r))
+        if not np.isfinite(r).all():  # stars the model cannot place (weight 0 outside ``mask``)
+            r = np.nan_to_num(r)
+        a, b = frame_normal(obs.frame, obs.n_frames, pred.att_jac, wts, r)
         delta = solve_frames(a, b)[:, :, 0]
         nuis = nuis.with_attitude(nuis.attitude * Rotation.from_rotvec(delta))
         pred = predict(obs, nuis, camera, timing, effects)

@@ -33,8 +33,10 @@ from rollingstar.estimators.diagnosis.observations import (
     Observations,
     Prediction,
     chain_positions,
+    chain_trace,
     fit_attitudes,
     frame_normal,
+    pinhole,
     predict,
     rates_from_attitudes,
     solve_frames,
@@ -44,6 +46,7 @@ from rollingstar.estimators.diagnosis.observations import (
 )
 from rollingstar.estimators.diagnosis.selection import project_frames
 from rollingstar.sensors.conventions import NS_PER_S
+from rollingstar.sensors.effects.chain import ordered
 
 STABILITY_Z = 3.0
 
@@ -74,13 +77,13 @@ def refit(obs: Observations, nuis: Nuisance, camera, timing, base_effects, candi
     m = sum(len(c.parameters) for c in candidates)
     z0 = np.zeros(m) if theta0 is None else np.concatenate([(t - c.defaults) / c.scales for c, t in zip(candidates, theta0)])
     z0, lo, hi = _within_bounds(candidates, z0)
-    state = {"nuis": nuis}
+    state, start = {"nuis": nuis}, pinhole(obs, nuis, camera, timing)
 
     def resid(z):
         effects = chain_with(base_effects, candidates, split_theta(candidates, z))
         # always from the effect-free nuisance: the residual is then a function of z alone (no
         # hysteresis between evaluations, which finite differences and the trust region need)
-        n2, pred = fit_attitudes(obs, nuis, camera, timing, effects, mask, iterations=4)
+        n2, pred = fit_attitudes(obs, nuis, camera, timing, effects, mask, iterations=4, start=start)
         state["nuis"], state["z"], state["pred"] = n2, np.array(z, copy=True), pred
         w = whitened_residuals(obs, pred, mask)
         r = np.concatenate([w[:, 0], w[:, 1], channel_rows(obs, pred)])  # + the gyro increment channel, when present
@@ -122,6 +125,9 @@ def projected_jacobian(obs: Observations, nuis: Nuisance, camera, timing, base_e
     steps, chains = np.empty(z.size), []
     owner = np.repeat(np.arange(len(candidates)), [len(c.parameters) for c in candidates])
     first = np.concatenate([[0], np.cumsum([len(c.parameters) for c in candidates])])
+    # a column's chain equals the base chain before its candidate: it runs from that candidate on
+    trace = chain_trace(base, effects)
+    place = {id(e): i for i, e in enumerate(ordered(effects))}
     for j in range(z.size):
         h = 1e-4 * max(1.0, abs(z[j]))
         zj = z[j] + h if z[j] + h <= hi[j] else z[j] - h
@@ -130,7 +136,7 @@ def projected_jacobian(obs: Observations, nuis: Nuisance, camera, timing, base_e
         zk = z[first[k]:first[k + 1]].copy()
         zk[j - first[k]] = zj
         chains.append(effects[:at] + (candidates[k].instance(split_theta([candidates[k]], zk)[0]),) + effects[at + 1:])
-        px, py = chain_positions(base, chains[-1])
+        px, py = chain_positions(base, chains[-1], trace, place[id(effects[at])])
         cols[:, 0, j], cols[:, 1, j] = (px - base.x) / steps[j], (py - base.y) / steps[j]
     idx = np.flatnonzero(mask)
     aj = whiten(obs, base.att_jac[idx], idx)

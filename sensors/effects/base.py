@@ -110,7 +110,6 @@ Where the rest lives
 """
 from __future__ import annotations
 
-import copy
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
@@ -286,9 +285,16 @@ class EffectContext:
             return EffectContext(**kw)
         # this context's fields are checked and broadcast already, and indexing by an array copies:
         # the selection needs neither again (the effect chain and the diagnosis take thousands a run)
-        out = copy.copy(self)
+        out = self._copy()
         for k, v in kw.items():
             object.__setattr__(out, k, v)
+        return out
+
+    def _copy(self) -> "EffectContext":
+        """A shallow copy: what ``copy.copy`` makes of this dataclass (a new instance with the same
+        field values), without the generic copy protocol's per-call cost."""
+        out = object.__new__(type(self))
+        out.__dict__.update(self.__dict__)
         return out
 
     def evolve(self, **changes) -> "EffectContext":
@@ -300,7 +306,7 @@ class EffectContext:
         unknown = set(changes) - set(self.__dataclass_fields__)
         if unknown:
             raise TypeError(f"EffectContext has no field(s) {', '.join(sorted(unknown))}")
-        out = copy.copy(self)
+        out = self._copy()
         if "x" in changes or "y" in changes:
             x, y = (np.array(changes.pop(k, getattr(self, k)), dtype=float).reshape(-1) for k in ("x", "y"))
             if not x.shape == y.shape == self.x.shape:

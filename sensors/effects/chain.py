@@ -60,8 +60,10 @@ def shifted_context(effects: Sequence[Effect], ctx: EffectContext) -> EffectCont
     body rotation ``Exp(omega dt)``, so that e.g. a covariate, an angular acceleration or the zenith
     direction are evaluated when the star is seen -- as the simulator does on the true motion.
     """
+    if not time_effects(effects):
+        return ctx
     dt = time_shift_s(effects, ctx)
-    if not np.any(dt):
+    if not dt.any():
         return ctx
     from scipy.spatial.transform import Rotation  # local: only needed with time effects
 
@@ -78,14 +80,41 @@ def predict(effects: Sequence[Effect], ctx: EffectContext) -> tuple[np.ndarray, 
     Time effects act first (on the ideal line of sight); the later ones see :func:`shifted_context`.
     """
     ctx.check(effects)
-    x, y = ctx.x, ctx.y
+    return _run(ordered(effects), ctx, 0, ctx.x, ctx.y)
+
+
+def entering(effects: Sequence[Effect], ctx: EffectContext) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The positions entering each effect of ``ordered(effects)`` in :func:`predict`, then its result."""
+    ctx.check(effects)
+    trace: list = []
+    trace.append(_run(ordered(effects), ctx, 0, ctx.x, ctx.y, trace))
+    return trace
+
+
+def resume(effects: Sequence[Effect], ctx: EffectContext, start: int, x, y) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`predict` of ``effects`` continued from ``ordered(effects)[start]``, which ``x, y`` enter.
+
+    For a chain that differs from one traced by :func:`entering` only from position ``start`` on
+    (the same effects before it, in the same order): the result is then its :func:`predict`, to
+    the bit, without running the effects before ``start`` again. The shifted context is made from
+    ``effects``, so the effect at ``start`` may be a time effect.
+    """
+    ctx.check(effects)
+    return _run(ordered(effects), ctx, start, x, y)
+
+
+def _run(chain: tuple[Effect, ...], ctx: EffectContext, start: int, x, y, trace: list | None = None):
+    """The ordered ``chain`` from position ``start`` on positions ``x, y``; ``trace`` collects the
+    positions entering each effect."""
     later = None  # the shifted context, made once when the first later effect needs it
-    for e in ordered(effects):
+    for e in chain[start:]:
+        if trace is not None:
+            trace.append((x, y))
         if e.stage == STAGE_TIME:
             x, y = e.apply(x, y, ctx)
         elif e.stage < STAGE_GYRO:
             if later is None:
-                later = shifted_context(effects, ctx)
+                later = shifted_context(chain, ctx)
             x, y = e.apply(x, y, later)
     return np.asarray(x, dtype=float), np.asarray(y, dtype=float)
 

@@ -50,10 +50,11 @@ class TangentialDistortion(Effect):
     def _basis(self, x, y, cam):
         f = cam.focal_px
         xn, yn = (x - cam.cx) / f, (y - cam.cy) / f
-        r2 = xn * xn + yn * yn
-        dp1 = np.stack([2 * xn * yn, r2 + 2 * yn * yn], axis=-1) * f
-        dp2 = np.stack([r2 + 2 * xn * xn, 2 * xn * yn], axis=-1) * f
-        return np.stack([dp1, dp2], axis=-1)  # (n, 2, 2)
+        r2, xy = xn * xn + yn * yn, 2 * xn * yn
+        out = np.empty(xn.shape + (2, 2))  # columns: d(x, y)/d p1, d(x, y)/d p2
+        out[..., 0, 0], out[..., 1, 0] = xy * f, (r2 + 2 * yn * yn) * f
+        out[..., 0, 1], out[..., 1, 1] = (r2 + 2 * xn * xn) * f, xy * f
+        return out
 
     def apply(self, x, y, ctx):
         x, y = as_positions(x, y)

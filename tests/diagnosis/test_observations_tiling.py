@@ -64,3 +64,51 @@ def test_predict_gives_the_same_attitude_jacobian_tiled_or_call_by_call(monkeypa
     calls = observations.predict(obs, truth, camera, timing, effects)
     for a, b in ((tiled.x, calls.x), (tiled.y, calls.y), (tiled.att_jac, calls.att_jac)):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
+
+
+def _same_context(a, b) -> None:
+    """Every field of two effect contexts equal to the bit (arrays, rotations, the rest)."""
+    import dataclasses
+
+    for f in dataclasses.fields(a):
+        va, vb = getattr(a, f.name), getattr(b, f.name)
+        if f.name == "attitude":
+            np.testing.assert_array_equal(va.as_quat(), vb.as_quat())
+        elif f.name == "covariates":
+            assert va.keys() == vb.keys()
+        elif isinstance(va, np.ndarray):
+            assert va.dtype == vb.dtype and va.shape == vb.shape, f.name
+            np.testing.assert_array_equal(va, vb, err_msg=f.name)
+        else:
+            assert va is vb or va == vb, f.name
+
+
+def test_the_kept_observation_fields_give_the_contexts_made_from_scratch():
+    """``predict`` evolves contexts made once per observations (``observation_contexts``) instead of
+    building each from the observations: the context and the tiled context must be, field by field
+    and to the bit, what the constructor and ``take`` give; the pinhole part made once for many
+    chains must predict as a fresh one does, and only for its own nuisance."""
+    from rollingstar.estimators.diagnosis import observations as O
+    from rollingstar.sensors.effects.base import EffectContext
+    from tests.diagnosis.synthetic import synthetic
+
+    obs, truth, camera, timing = synthetic(frames=3, stars=15, noise=False)
+    nuis = O.Nuisance(truth.attitude, truth.omega + 0.01)
+    p = O.pinhole(obs, nuis, camera, timing)
+    rot = O.camera_rotations(obs, nuis)
+    fresh = EffectContext(camera=camera, x=p.ctx.x, y=p.ctx.y, t_ns=obs.t_ns, row=obs.y, t0_ns=obs.t0_ns[obs.frame],
+                          frame=obs.frame, magnitude=obs.magnitude, vx=p.v[:, 0], vy=p.v[:, 1], omega_rad_s=p.omega,
+                          attitude=rot, unit_icrs=obs.u_icrs, pm_rad_yr=obs.pm_rad_yr, timing=timing,
+                          t_start_ns=int(obs.t0_ns.min()))
+    _same_context(p.ctx, fresh)
+    n, off = obs.n, O.POS_OFFSETS
+    big = fresh.take(np.tile(np.arange(n), len(off)))
+    _same_context(p.tiled, big.evolve(x=big.x + np.repeat(off[:, 0], n), y=big.y + np.repeat(off[:, 1], n)))
+    effects = (EFFECTS["radial_distortion"](k1=3e-3), EFFECTS["rolling_shutter"](line_delay_error_us=2.0))
+    for a, b in ((O.predict(obs, nuis, camera, timing, effects, start=p), O.predict(obs, nuis, camera, timing, effects)),
+                 (O.fit_attitudes(obs, nuis, camera, timing, effects, start=p)[1],
+                  O.fit_attitudes(obs, nuis, camera, timing, effects)[1])):
+        for k in ("x", "y", "x_ideal", "w_cam", "att_jac", "vx"):
+            np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=k)
+    with pytest.raises(ValueError, match="another nuisance"):
+        O.predict(obs, truth, camera, timing, effects, start=p)

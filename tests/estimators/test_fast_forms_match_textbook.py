@@ -476,3 +476,33 @@ def test_the_diagnosis_frame_sums_are_numpys_add_at_to_the_bit(stars, trailing):
         got = frame_normal(frame, frames, jac, wts, rhs)
         np.testing.assert_array_equal(got[0], a)
         np.testing.assert_array_equal(got[1], b)
+
+
+def test_the_diagnosis_frame_solves_are_each_frame_solved_alone():
+    """``solve_frames`` solves all frames in one call when every one is well conditioned, and only
+    those that are otherwise (zeros for the rest): both must be each frame's own ``solve``."""
+    from rollingstar.estimators.diagnosis.observations import solve_frames
+
+    rng = np.random.default_rng(11)
+    m = rng.normal(size=(12, 3, 3))
+    a, b = m @ np.swapaxes(m, 1, 2) + 0.1 * np.eye(3), rng.normal(size=(12, 3, 2))
+    each = np.stack([np.linalg.solve(a[k], b[k]) for k in range(12)])
+    np.testing.assert_array_equal(solve_frames(a, b), each)
+    a[[2, 7]] = np.outer([1.0, 2.0, 3.0], [1.0, 2.0, 3.0])  # rank one: a frame with one star
+    got = solve_frames(a, b)
+    np.testing.assert_array_equal(got[[2, 7]], 0.0)
+    keep = np.setdiff1d(np.arange(12), [2, 7])
+    np.testing.assert_array_equal(got[keep], each[keep])
+    assert solve_frames(np.zeros((0, 3, 3)), np.zeros((0, 3, 1))).shape == (0, 3, 1)
+
+
+def test_the_camera_unit_vectors_are_normalised_as_numpys_norm_does():
+    """``unproject`` divides by the square root of the sum of squares written out: the same
+    numbers as ``np.linalg.norm``, to the bit."""
+    from rollingstar.sensors.camera import PinholeCamera
+
+    cam = PinholeCamera(width=808, height=608, focal_length_m=0.016, pixel_size_m=8e-6)
+    rng = np.random.default_rng(2)
+    x, y = rng.uniform(-2000, 3000, 5000), rng.uniform(-2000, 3000, 5000)
+    w = np.stack([-(x - cam.cx), -(y - cam.cy), np.full(x.shape, cam.focal_px)], axis=-1)
+    np.testing.assert_array_equal(cam.unproject(x, y), w / np.linalg.norm(w, axis=-1, keepdims=True))

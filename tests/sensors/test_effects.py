@@ -24,7 +24,7 @@ from rollingstar.sensors.effects import (
     UnknownEffectError,
     build_effect,
 )
-from rollingstar.sensors.effects.chain import chain_jacobian, ordered, predict
+from rollingstar.sensors.effects.chain import chain_jacobian, entering, ordered, predict, resume
 from rollingstar.sensors.effects.context import context_from_attitude
 from rollingstar.sensors.effects.design import (
     detection_limit,
@@ -459,3 +459,20 @@ def test_empirical_ripple_known_answer_and_jacobian(axis, along):
         xm, ym = EFFECTS["empirical_ripple"](**{**values, name: values[name] - h}).apply(ctx.x, ctx.y, ctx)
         fd = np.stack([xp - xm, yp - ym], axis=-1) / (2 * h)
         np.testing.assert_allclose(jac[:, :, k], fd, atol=1e-6)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_a_chain_resumed_where_it_changes_is_the_whole_chain_to_the_bit(seed):
+    """``resume`` runs a chain from the effect where it differs from a traced one: that must be
+    the whole chain's prediction to the bit, wherever the change is (a time effect included, which
+    moves the context every later effect sees), and the trace must end on the traced chain's own."""
+    rng = np.random.default_rng(seed)
+    ctx = full_context(seed=seed % 7, n=30)
+    names = list(rng.choice(PHYSICAL, size=rng.integers(1, 6), replace=False))
+    chain = tuple(build_effect(n, random_values(EFFECTS[n], rng)) for n in names)
+    trace = entering(chain, ctx)
+    np.testing.assert_array_equal(np.stack(trace[-1]), np.stack(predict(chain, ctx)))
+    for k, e in enumerate(ordered(chain)):
+        changed = tuple(type(e)(**random_values(type(e), rng)) if c is e else c for c in chain)
+        np.testing.assert_array_equal(np.stack(resume(changed, ctx, k, *trace[k])), np.stack(predict(changed, ctx)))
