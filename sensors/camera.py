@@ -209,7 +209,7 @@ class PinholeCamera:
             return np.stack([-sin * dx / safe, -sin * dy / safe, np.cos(theta)], axis=-1)
         w = np.empty(np.broadcast_shapes(x.shape, y.shape) + (3,))
         w[..., 0], w[..., 1], w[..., 2] = -(x - self.cx), -(y - self.cy), self.focal_px
-        return w / np.sqrt(np.add.reduce(w * w, axis=-1, keepdims=True))  # np.linalg.norm's sum, without its checks
+        return w / np.sqrt(np.add.reduce(w * w, axis=-1, keepdims=True))  # the sum np.linalg.norm makes, without its checks
 
     def projection_jacobian(self, w_cam) -> np.ndarray:
         """d(x, y)/d(w) for unnormalised camera vectors, shape (..., 2, 3)."""

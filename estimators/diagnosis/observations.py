@@ -32,6 +32,7 @@ so the rate comes from the attitude sequence across frames (:func:`rates_from_at
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
@@ -62,6 +63,9 @@ class Observations:
 
     ``frame`` indexes the per-frame arrays (length ``F``): ``frame_index`` (the recording's frame
     numbers), ``t0_ns`` and ``t_ref_ns``. ``heldout`` marks observations split off before any fit.
+    The arrays are never written in place (a changed set of observations is a new object,
+    ``dataclasses.replace`` or :meth:`take`): the predictions keep context fields made from them
+    (:func:`observation_context`).
     """
 
     frame: np.ndarray
@@ -184,39 +188,56 @@ def camera_rotations(obs: Observations, nuis: Nuisance) -> Rotation:
 
 def effect_context(obs: Observations, camera, timing, rot: Rotation, x, y, vx, vy, omega) -> EffectContext:
     """The per-observation :class:`rollingstar.sensors.effects.base.EffectContext` of the ideal positions."""
-    return observation_contexts(obs, camera, timing)[0].evolve(x=x, y=y, vx=vx, vy=vy, omega_rad_s=omega, attitude=rot)
+    return observation_context(obs).evolve(x=x, y=y, vx=vx, vy=vy, omega_rad_s=omega, attitude=rot, camera=camera,
+                                           timing=timing)
 
 
-def observation_contexts(obs: Observations, camera, timing) -> tuple[EffectContext, EffectContext]:
+# The context fields of each set of observations, made once (module doc of observation_context);
+# weakly keyed, so that they go with the observations and are never copied or pickled with them.
+_OBSERVATION_FIELDS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def observation_context(obs: Observations, copies_of: int = 1) -> EffectContext:
     """The context fields that depend on the observations alone (times, rows, frames, magnitudes,
-    catalogue directions), for the stars and for ``len(POS_OFFSETS)`` copies of them (:func:`predict`'s
-    tiled chain). A prediction only evolves them with its positions, rates and attitudes; they are
-    made once per observations, camera and timing (kept on ``obs``: the diagnosis predicts the same
-    observations tens of thousands of times)."""
-    key = (id(camera), id(timing))
-    kept = obs.__dict__.setdefault("_contexts", {})
-    if key not in kept:
-        ctx = EffectContext(camera=camera, x=obs.x, y=obs.y, t_ns=obs.t_ns, row=obs.y, t0_ns=obs.t0_ns[obs.frame],
-                            frame=obs.frame, magnitude=obs.magnitude, unit_icrs=obs.u_icrs, pm_rad_yr=obs.pm_rad_yr,
-                            timing=timing, t_start_ns=int(obs.t0_ns.min()) if obs.n_frames else 0)
-        kept[key] = (camera, timing, ctx, ctx.take(np.tile(np.arange(obs.n), len(POS_OFFSETS))))
-    return kept[key][2:]
+    catalogue directions), with no camera or timing, for the stars (``copies_of=1``) or for
+    ``copies_of`` copies of them one after the other (:func:`predict`'s tiled chain). A prediction
+    evolves them with its camera, timing, positions, rates and attitudes; they are made once per
+    set of observations (the diagnosis predicts the same observations tens of thousands of times),
+    whose arrays are never written in place."""
+    kept = _OBSERVATION_FIELDS.setdefault(obs, {})
+    if copies_of not in kept:
+        if 1 not in kept:
+            kept[1] = EffectContext(camera=None, x=obs.x, y=obs.y, t_ns=obs.t_ns, row=obs.y, t0_ns=obs.t0_ns[obs.frame],
+                                    frame=obs.frame, magnitude=obs.magnitude, unit_icrs=obs.u_icrs,
+                                    pm_rad_yr=obs.pm_rad_yr, t_start_ns=int(obs.t0_ns.min()) if obs.n_frames else 0)
+        kept[copies_of] = kept[1].take(np.tile(np.arange(obs.n), copies_of))
+    return kept[copies_of]
 
 
-def tiled_context(ctx: EffectContext, tiled: EffectContext, x, y) -> EffectContext:
+def tiled_context(ctx: EffectContext, tiled: EffectContext, k: int, x, y) -> EffectContext:
     """``ctx.take(np.tile(np.arange(n), k)).evolve(x=x, y=y)`` from ``tiled``, ``ctx``'s observation
-    fields already tiled k times (:func:`observation_contexts`): only the fields of the prediction
-    are tiled again."""
-    k = tiled.n // max(ctx.n, 1)
+    fields already in ``k`` copies (:func:`observation_context`): only the fields of the prediction
+    are copied again."""
     changes = {"vx": copies(ctx.vx, k), "vy": copies(ctx.vy, k), "omega_rad_s": copies(ctx.omega_rad_s, k),
                "attitude": ctx.attitude if ctx.attitude.single else ctx.attitude[np.tile(np.arange(ctx.n), k)]}
-    return tiled.evolve(x=x, y=y, **changes)
+    return tiled.evolve(x=x, y=y, camera=ctx.camera, timing=ctx.timing, **changes)
+
+
+def offset_positions(ctx: EffectContext) -> tuple[np.ndarray, np.ndarray]:
+    """The context's ideal positions moved by each of ``POS_OFFSETS`` in turn, (k n,) each."""
+    n, k = ctx.n, len(POS_OFFSETS)
+    return copies(ctx.x, k) + np.repeat(POS_OFFSETS[:, 0], n), copies(ctx.y, k) + np.repeat(POS_OFFSETS[:, 1], n)
 
 
 def copies(a: np.ndarray, k: int) -> np.ndarray:
     """``k`` copies of ``a`` one after the other along its first axis (``np.tile`` along that axis,
     without its per-call cost)."""
-    return np.concatenate((a,) * k)
+    return np.concatenate((a,) * k) if k else a[:0]
+
+
+def mixes_exposures(ctx: EffectContext, exposure_ns) -> bool:
+    """Whether the observations of ``ctx`` mix exposure times (then each group runs its own chain)."""
+    return exposure_ns is not None and ctx.timing is not None and np.unique(exposure_ns).size > 1
 
 
 def by_exposure(ctx: EffectContext, exposure_ns, fn):
@@ -228,7 +249,7 @@ def by_exposure(ctx: EffectContext, exposure_ns, fn):
     the results (arrays over observations, first axis) put back in order. ``fn`` returns an array
     or a tuple of arrays.
     """
-    if exposure_ns is None or ctx.timing is None or np.unique(exposure_ns).size < 2:
+    if not mixes_exposures(ctx, exposure_ns):
         return fn(ctx)
     out = None
     for e in np.unique(exposure_ns):
@@ -255,23 +276,28 @@ def frame_reference_times(t0_ns: np.ndarray, timing, exposure_ns: np.ndarray | N
 class Pinhole:
     """What :func:`predict` computes of a nuisance before the effect chain (:func:`pinhole`): the
     lines of sight ``w``, ideal positions, their attitude Jacobian (n, 2, 3), image velocities and
-    body rates, and the effect context of the ideal positions."""
+    body rates, and the effect context of the ideal positions; with the observations, nuisance,
+    camera and timing it was made for."""
 
+    obs: Observations
     nuisance: Nuisance
+    camera: object
+    timing: object
     w: np.ndarray
     att_jac: np.ndarray
     v: np.ndarray
     omega: np.ndarray
     ctx: EffectContext
     exposure_ns: np.ndarray | None
-    observation_fields: EffectContext  # the observations' context fields tiled (:func:`observation_contexts`)
 
     @cached_property
     def tiled(self) -> EffectContext:
-        """The context of every star at ``POS_OFFSETS`` from its ideal position, offset by offset."""
-        n, c, k = self.ctx.n, self.ctx, len(POS_OFFSETS)
-        bx, by = copies(c.x, k) + np.repeat(POS_OFFSETS[:, 0], n), copies(c.y, k) + np.repeat(POS_OFFSETS[:, 1], n)
-        return tiled_context(c, self.observation_fields, bx, by)
+        """The context of every star at each of ``POS_OFFSETS`` from its ideal position, in turn."""
+        k = len(POS_OFFSETS)
+        return tiled_context(self.ctx, observation_context(self.obs, k), k, *offset_positions(self.ctx))
+
+    def made_for(self, obs: Observations, nuis: Nuisance, camera, timing) -> bool:
+        return self.obs is obs and self.nuisance is nuis and self.camera is camera and self.timing is timing
 
 
 def pinhole(obs: Observations, nuis: Nuisance, camera, timing=None) -> Pinhole:
@@ -285,7 +311,7 @@ def pinhole(obs: Observations, nuis: Nuisance, camera, timing=None) -> Pinhole:
     v = np.einsum("nij,nj->ni", jac, omega)
     ctx = effect_context(obs, camera, timing, rot, x0, y0, v[:, 0], v[:, 1], omega)
     expo = None if obs.exposure_ns is None else obs.exposure_ns[obs.frame]
-    return Pinhole(nuis, w, jac, v, omega, ctx, expo, observation_contexts(obs, camera, timing)[1])
+    return Pinhole(obs, nuis, camera, timing, w, jac, v, omega, ctx, expo)
 
 
 def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=(), attitude_jacobian: bool = True,
@@ -294,10 +320,11 @@ def predict(obs: Observations, nuis: Nuisance, camera, timing=None, effects=(), 
 
     ``attitude_jacobian=False``: positions only; ``att_jac`` is then the pinhole's, without the
     chain's position Jacobian (the chain at four more positions of each star), for callers that
-    difference positions. ``start``: :func:`pinhole` of ``nuis``, when the caller has it."""
+    difference positions. ``start``: :func:`pinhole` of these arguments, when the caller has it."""
     p = pinhole(obs, nuis, camera, timing) if start is None else start
-    if p.nuisance is not nuis:
-        raise ValueError("predict: the pinhole part given was made for another nuisance")
+    if not p.made_for(obs, nuis, camera, timing):
+        raise ValueError("predict: the pinhole part given was made for another nuisance, camera, timing or set of "
+                         "observations")
     ctx, expo, effects = p.ctx, p.exposure_ns, tuple(effects)
     x, y, jac = ctx.x, ctx.y, p.att_jac
     if effects and not attitude_jacobian:
@@ -320,14 +347,14 @@ def _chain_with_position_jacobian(effects: tuple, c: EffectContext, p: Pinhole):
     call; beyond TILED_MAX_STARS copying the context costs more. ``c`` is ``p``'s context, or one
     exposure group of it when the recording mixes exposure times.
     """
-    n = c.n
+    n, k = c.n, len(POS_OFFSETS)
     if n <= TILED_MAX_STARS:
         if c is p.ctx:  # the whole recording: its tiled context is made once per pinhole part
             big = p.tiled
         else:
-            big = c.take(np.tile(np.arange(n), 5))
-            big = big.evolve(x=big.x + np.repeat(POS_OFFSETS[:, 0], n), y=big.y + np.repeat(POS_OFFSETS[:, 1], n))
-        xs, ys = (np.reshape(a, (5, n)) for a in chain_predict(effects, big))
+            bx, by = offset_positions(c)
+            big = c.take(np.tile(np.arange(n), k)).evolve(x=bx, y=by)
+        xs, ys = (np.reshape(a, (k, n)) for a in chain_predict(effects, big))
     else:
         xs, ys = (np.stack(a) for a in zip(*(chain_predict(effects, c.evolve(x=c.x + dx, y=c.y + dy))
                                              for dx, dy in POS_OFFSETS)))
@@ -353,7 +380,7 @@ def chain_trace(pred: Prediction, effects) -> list | None:
     """The positions entering each effect of the stage-ordered chain on ``pred``'s context
     (:func:`rollingstar.sensors.effects.chain.entering`); None when the recording mixes exposure
     times (each exposure group runs a chain of its own, :func:`by_exposure`)."""
-    if pred.exposure_ns is not None and pred.ctx.timing is not None and np.unique(pred.exposure_ns).size > 1:
+    if mixes_exposures(pred.ctx, pred.exposure_ns):
         return None
     return chain_entering(tuple(effects), pred.ctx)
 

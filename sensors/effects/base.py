@@ -72,7 +72,9 @@ Effect interface (methods), all vectorised over the ``n`` observations
   for any motion) and skips their ``apply``. Effects after the time stage see the context of the
   instant the star is really seen (:func:`rollingstar.sensors.effects.chain.shifted_context`: ``t_ns`` and
   ``attitude`` shifted; covariates stay those sampled at the stamped time, as a log has them).
-  Gyro-stage effects are the identity here.
+  Gyro-stage effects are the identity here. ``apply`` never writes ``x``, ``y`` or the context's
+  arrays in place: callers keep the positions entering each effect
+  (:func:`rollingstar.sensors.effects.chain.entering`) and contexts share arrays.
 - ``jacobian(x, y, ctx) -> (n, 2, n_params)``: analytic ``d(x', y') / d(params)`` of ``apply`` at
   the same inputs (the image-plane signature, in px per parameter unit). Zero for gyro effects.
 - ``time_shift_s(ctx) -> (n,)``: timing hook: seconds added to the instant the star is seen.

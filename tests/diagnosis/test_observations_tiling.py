@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from rollingstar.sensors.effects import EFFECTS
 from rollingstar.sensors.effects.chain import predict as chain_predict
@@ -88,6 +89,8 @@ def test_the_kept_observation_fields_give_the_contexts_made_from_scratch():
     building each from the observations: the context and the tiled context must be, field by field
     and to the bit, what the constructor and ``take`` give; the pinhole part made once for many
     chains must predict as a fresh one does, and only for its own nuisance."""
+    from dataclasses import replace
+
     from rollingstar.estimators.diagnosis import observations as O
     from rollingstar.sensors.effects.base import EffectContext
     from tests.diagnosis.synthetic import synthetic
@@ -112,3 +115,52 @@ def test_the_kept_observation_fields_give_the_contexts_made_from_scratch():
             np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=k)
     with pytest.raises(ValueError, match="another nuisance"):
         O.predict(obs, truth, camera, timing, effects, start=p)
+    with pytest.raises(ValueError, match="another nuisance, camera"):
+        O.predict(obs, nuis, replace(camera), timing, effects, start=p)
+
+
+def test_one_set_of_observations_predicted_under_several_cameras_and_timings():
+    """The observation fields are kept once per set of observations, whatever camera and timing a
+    prediction uses: each prediction must be what the same observations give with nothing kept
+    (a fresh copy), to the bit, on a recording that does not start at time zero."""
+    from dataclasses import replace
+
+    from rollingstar.estimators.diagnosis import observations as O
+    from tests.diagnosis.synthetic import synthetic
+
+    obs, truth, camera, timing = synthetic(frames=3, stars=15, noise=False)
+    later = 7_000_000_123
+    obs = replace(obs, t_ns=obs.t_ns + later, t0_ns=obs.t0_ns + later, t_ref_ns=obs.t_ref_ns + later)
+    effects = (EFFECTS["rolling_shutter"](line_delay_error_us=2.0), EFFECTS["time_offset"](offset_ms=0.3))
+    for cam in (camera, replace(camera, focal_length_m=camera.focal_length_m * 1.5), camera):
+        for tim in (timing, replace(timing, line_delay_ns=timing.line_delay_ns * 2), None):
+            if tim is None:
+                chain = (EFFECTS["radial_distortion"](k1=3e-3),)
+            else:
+                chain = effects
+            kept = O.predict(obs, truth, cam, tim, chain)
+            fresh = O.predict(replace(obs), truth, cam, tim, chain)
+            for k in ("x", "y", "att_jac"):
+                np.testing.assert_array_equal(getattr(kept, k), getattr(fresh, k), err_msg=k)
+            assert kept.ctx.t_start_ns == int(obs.t0_ns.min()) and kept.ctx.camera is cam and kept.ctx.timing is tim
+
+
+def test_stars_the_model_cannot_place_weigh_nothing_in_the_attitude_fit():
+    """Stars behind the camera have no predicted position; outside the fit's mask they must not
+    stop it or move it: the attitudes are those fitted without them."""
+    from dataclasses import replace
+
+    from rollingstar.estimators.diagnosis import observations as O
+    from tests.diagnosis.synthetic import synthetic
+
+    obs, truth, camera, timing = synthetic(frames=3, stars=15, noise=False)
+    behind = np.zeros(obs.n, bool)
+    behind[::5] = True
+    u = obs.u_icrs.copy()
+    u[behind] = -u[behind]  # the antipode of the star: behind the camera
+    obs = replace(obs, u_icrs=u)
+    start = O.Nuisance(truth.attitude * Rotation.from_rotvec([[1e-4, -2e-4, 3e-4]] * obs.n_frames), truth.omega)
+    with_them, pred = O.fit_attitudes(obs, start, camera, timing, mask=~behind)
+    assert np.isnan(pred.x[behind]).all()
+    without, _ = O.fit_attitudes(obs.take(~behind), start, camera, timing)
+    np.testing.assert_allclose(with_them.attitude.as_quat(), without.attitude.as_quat(), rtol=0, atol=1e-14)
