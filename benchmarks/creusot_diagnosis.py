@@ -12,7 +12,9 @@ Per recording: the lens projection (searched only when the field is wide enough 
 projections apart), the named effects, the measured noise factor, what is left unexplained (its
 described shape), the held-out RMS after the named model against astrometry.net's own in-sample
 residual on the same table (the importer's sigma; target: not above it), and the CPU seconds of
-the whole diagnosis (import excluded, pipeline run included).
+the whole diagnosis (import excluded, pipeline run included). The summary also lists the
+recordings above that residual by more than their held-out stars' own scatter allows
+(:func:`above_beyond_scatter`).
 
 A held-out RMS is larger than an in-sample one by construction (the fit did not see those stars),
 so the in-sample residual is not a like-for-like bar. The fair one is also reported:
@@ -37,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 from anet_class import fit_class  # beside this script (run as ``python benchmarks/creusot_diagnosis.py``)
+from scipy import stats
 
 from rollingstar.estimators.centroiders.remeasure import remeasure_stars
 from rollingstar.logs.importers.corr import find_corr_folders, import_corr, pointing_centres
@@ -56,6 +59,7 @@ def summarise(label: str, scope: str, res: dict) -> dict:
                 "delta_bic": e["delta_bic"], "inclusion": e["inclusion_probability"], "confidence": e["confidence"],
                 "at_bound": e.get("at_bound", [])} for e in res["effects"]]
     return {"recording": label, "scope": scope, "stars": res["split"]["train_observations"] + res["split"]["heldout_observations"],
+            "heldout_stars": res["split"]["heldout_observations"],
             "frames": res["split"]["frames"], "sigma_px": res["noise"]["sigma_px_median"],
             "chi2_dof_before": res["located"]["chi2_dof"], "chi2_dof_after": res["train_chi2_dof_after"],
             "strongest_covariate": res["located"]["strongest_covariate"], "mismatch": res["mismatch"],
@@ -159,7 +163,7 @@ def markdown(rows: list[dict]) -> str:
                      f"{f(r['heldout_rms_before_px'], '{:.3f}')} → {f(r['heldout_rms_after_px'], '{:.3f}')} | {ratio(r)} | "
                      f"{f(r['anet_class_heldout_rms_px'], '{:.3f}')} | {f(r['cpu_s'], '{:.2f}')} |")
     cpu = [r["cpu_s"] for r in rows]
-    lines += ["", *against(rows, "sigma_px", "astrometry.net's in-sample residual"),
+    lines += ["", *against(rows, "sigma_px", "astrometry.net's in-sample residual", beyond_scatter=True),
               *against(rows, "anet_class_heldout_rms_px", "astrometry.net's model class held out the same way "
                        "(TAN + SIP order 2 fitted to the same training stars, scored on the same held-out stars)")]
     lines.append(f"- CPU seconds per diagnosis: median {np.median(cpu):.2f}, maximum {np.max(cpu):.2f} ({len(rows)} recordings)")
@@ -191,17 +195,19 @@ def markdown_image(rows: list[dict], table_rows: list[dict]) -> str:
     pairs = [(r["recording"], r["heldout_rms_after_px"], table.get(r["recording"])) for r in rows]
     pairs = [(k, a, b) for k, a, b in pairs if a is not None and b is not None]
     not_lower = [k for k, a, b in pairs if a >= b]
-    lines += ["", *against(rows, "anet_residual_px", "astrometry.net's in-sample residual, stars measured again"),
+    lines += ["", *against(rows, "anet_residual_px", "astrometry.net's in-sample residual, stars measured again",
+                           beyond_scatter=True),
               f"- held-out RMS after lower than with the tables' positions: {len(pairs) - len(not_lower)} of "
               f"{len(pairs)} recordings (not lower: {', '.join(not_lower) or 'none'})",
               f"- CPU seconds per diagnosis: median {np.median(cpu):.2f}, maximum {np.max(cpu):.2f} ({len(rows)} recordings)"]
     return "\n".join(lines)
 
 
-def against(rows: list[dict], key: str, what: str) -> list[str]:
+def against(rows: list[dict], key: str, what: str, beyond_scatter: bool = False) -> list[str]:
     """Summary lines: on how many recordings the held-out RMS after is at or below ``row[key]``
     (described as ``what``), overall and per lens, with the median ratio per lens; rows without
-    either number count in neither."""
+    either number count in neither. ``beyond_scatter``: also those above it by more than their
+    held-out stars' own scatter allows (:func:`above_beyond_scatter`)."""
     def ratios(of):
         return [r["heldout_rms_after_px"] / r[key] for r in of if r["heldout_rms_after_px"] is not None and r[key]]
 
@@ -211,7 +217,27 @@ def against(rows: list[dict], key: str, what: str) -> list[str]:
         x = ratios([r for r in rows if lens_of(r) == lens])
         median = f"{np.median(x):.2f}" if x else "n/a"
         lines.append(f"  - {lens}: {sum(v <= 1.0 for v in x)} of {len(x)}, median ratio {median}")
+    if beyond_scatter:
+        above = [r["recording"] for r in rows if r["heldout_rms_after_px"] is not None and r[key]
+                 and r["heldout_rms_after_px"] > r[key] and above_beyond_scatter(r, key)]
+        lines.append(f"  - above it by more than the held-out stars' own scatter allows (one-sided "
+                     f"{BEYOND_SCATTER_P:.1%}): {len(above)} ({', '.join(above) or 'none'})")
     return lines
+
+
+BEYOND_SCATTER_P = 0.025
+
+
+def above_beyond_scatter(row: dict, key: str) -> bool:
+    """Whether the held-out RMS after exceeds ``row[key]`` by more than sampling allows: if the
+    held-out residuals had an RMS per axis of ``row[key]``, the mean square of the m held-out
+    stars' 2m coordinates would be ``row[key]^2 chi2(2m) / 2m``; True when the measured one lies
+    beyond its one-sided ``BEYOND_SCATTER_P`` point. The model's own fitted error, which makes a
+    held-out RMS larger still, is not allowed for: a recording is counted here more readily than
+    it should be, never less."""
+    m = row["heldout_stars"]
+    ratio2 = (row["heldout_rms_after_px"] / row[key]) ** 2
+    return bool(m) and float(stats.chi2.sf(2 * m * ratio2, 2 * m)) < BEYOND_SCATTER_P
 
 
 def lens_of(row: dict) -> str:

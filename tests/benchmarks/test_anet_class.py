@@ -154,3 +154,20 @@ def test_fitted_to_every_star_it_leaves_astrometry_nets_own_residual(real_data_d
         ratios[folder.relative_to(real_data_dir / "creusot").as_posix()] = ours / theirs
     assert len(ratios) >= 10 and max(ratios.values()) <= 1.005, ratios
     assert np.median([r for k, r in ratios.items() if k.startswith("16mm_checker_2/")]) > 0.99, ratios
+
+
+@pytest.mark.parametrize("stars", [6, 40])
+def test_the_creusot_summary_counts_a_chance_excess_at_its_stated_rate(stars):
+    """The creusot benchmark counts the recordings whose held-out RMS exceeds astrometry.net's
+    residual by more than the held-out stars' scatter allows. Held-out residuals drawn at exactly
+    that RMS must be counted at the stated one-sided rate, and a real excess must be counted."""
+    cd = _load_benchmark_module("creusot_diagnosis")
+    rng = np.random.default_rng(stars)
+    draws = 4000
+    rms = np.sqrt(np.mean(rng.normal(0.0, SIGMA, (draws, stars, 2)) ** 2, axis=(1, 2)))
+    rate = np.mean([cd.above_beyond_scatter({"heldout_stars": stars, "heldout_rms_after_px": float(v), "sigma_px": SIGMA},
+                                            "sigma_px") for v in rms])
+    p = cd.BEYOND_SCATTER_P
+    assert abs(rate - p) < 4 * np.sqrt(p * (1 - p) / draws)
+    assert cd.above_beyond_scatter({"heldout_stars": stars, "heldout_rms_after_px": 2.0 * SIGMA, "sigma_px": SIGMA},
+                                   "sigma_px")
