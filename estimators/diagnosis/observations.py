@@ -192,7 +192,7 @@ def effect_context(obs: Observations, camera, timing, rot: Rotation, x, y, vx, v
                                            timing=timing)
 
 
-# The context fields of each set of observations, made once (module doc of observation_context);
+# The context fields of each set of observations, made once (docstring of observation_context);
 # weakly keyed, so that they go with the observations and are never copied or pickled with them.
 _OBSERVATION_FIELDS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 

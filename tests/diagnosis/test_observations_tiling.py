@@ -85,7 +85,7 @@ def _same_context(a, b) -> None:
 
 
 def test_the_kept_observation_fields_give_the_contexts_made_from_scratch():
-    """``predict`` evolves contexts made once per observations (``observation_contexts``) instead of
+    """``predict`` evolves contexts made once per observations (``observation_context``) instead of
     building each from the observations: the context and the tiled context must be, field by field
     and to the bit, what the constructor and ``take`` give; the pinhole part made once for many
     chains must predict as a fresh one does, and only for its own nuisance."""
