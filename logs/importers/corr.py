@@ -467,6 +467,7 @@ def import_corr(folder: str | Path, out: str | Path, remeasure: Callable | None 
             "image": _image_for(f.folder) if remeasured is None else remeasured[k]["image"],
             "fov_deg": f.meta.fov_deg, "ra_deg": f.meta.center.ra_degrees, "dec_deg": f.meta.center.dec_degrees,
             "timestamp": f.meta.timestamp, "n_stars": int(f.x.size),
+            "residual_rms_px": _finite_or_none(_residual_rms([f.residual_px])),
             **({} if remeasured is None else {"remeasured": remeasured[k]})} for k, f in enumerate(frames)],
     }
     metadata = {"scenario": {"yaml": to_yaml(scenario)},
@@ -488,6 +489,10 @@ def _covariance_columns(cov: np.ndarray | None) -> dict:
         return {}
     return {"cov_xx": cov[:, 0, 0], "cov_xy": cov[:, 0, 1], "cov_yy": cov[:, 1, 1],
             "sigma_px": np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))}
+
+
+def _finite_or_none(v: float | None) -> float | None:
+    return v if v is not None and math.isfinite(v) else None
 
 
 def _residual_rms(residuals: list[np.ndarray]) -> float | None:

@@ -274,6 +274,12 @@ def test_corr_round_trip_quest_recovers_the_attitude(tmp_path):
         assert (R.inv() * Rotation.from_quat(q)).magnitude() < 1e-6
     offsets = boresight_offsets(rec, tmp_path / "out.mcap")
     assert [o["folder"] for o in offsets] == ["scene0", "scene1", "scene2"]
+    # each table's own residual RMS per axis, pooled over the tables: the recording's centroid sigma
+    frames = pointing_centres(rec).values()
+    pooled = np.sqrt(sum(f["n_stars"] * f["residual_rms_px"] ** 2 for f in frames) / sum(f["n_stars"] for f in frames))
+    scenario = scenario_from_yaml(reader.metadata()["scenario"]["yaml"])
+    assert pooled == pytest.approx(scenario.noise.centroid_sigma_px, rel=1e-12)
+    assert len({f["residual_rms_px"] for f in frames}) == 3
     assert max(o["offset_deg"] for o in offsets) < 1e-6
 
 
