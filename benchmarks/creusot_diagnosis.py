@@ -238,6 +238,10 @@ def against(rows: list[dict], key: str, what: str, beyond_scatter: bool = False)
         above = [r["recording"] for r in scored if above_beyond_scatter(r, key)]
         lines.append(f"  - above it by more than the held-out stars' own scatter allows (one-sided "
                      f"{BEYOND_SCATTER_P:.1%}): {len(above)} of {len(scored)} ({', '.join(above) or 'none'})")
+        missed = [r for r in scored if r["heldout_rms_after_px"] > r[key]]
+        also = [r["recording"] for r in missed if (r["anet_class_heldout_rms_px"] or 0.0) > r[key]]
+        lines.append(f"  - of the {len(missed)} above it, above it also with astrometry.net's own model class held out "
+                     f"the same way: {len(also)} ({', '.join(also) or 'none'})")
     return lines
 
 

@@ -179,3 +179,18 @@ def test_the_creusot_summary_counts_a_chance_excess_at_its_stated_rate(stars, fr
     p = cd.BEYOND_SCATTER_P
     assert abs(rate - p) < 4 * np.sqrt(p * (1 - p) / draws)
     assert cd.above_beyond_scatter({**row, "heldout_rms_after_px": 2.0 * SIGMA}, "sigma_px")
+
+
+def test_the_creusot_summary_counts_misses_that_astrometry_nets_own_model_shares():
+    """The summary counts, among the recordings above astrometry.net's in-sample residual, those
+    where astrometry.net's own model class, held out the same way, is above it too."""
+    cd = _load_benchmark_module("creusot_diagnosis")
+    row = {"recording": "r", "heldout_stars": 30, "heldout_frames_fitted": 0, "anet_bar_px": 0.3}
+    rows = [{**row, "recording": "below", "heldout_rms_after_px": 0.25, "anet_class_heldout_rms_px": 0.5},
+            {**row, "recording": "shared", "heldout_rms_after_px": 0.45, "anet_class_heldout_rms_px": 0.4},
+            {**row, "recording": "ours", "heldout_rms_after_px": 0.45, "anet_class_heldout_rms_px": 0.28},
+            {**row, "recording": "no class", "heldout_rms_after_px": 0.45, "anet_class_heldout_rms_px": None}]
+    lines = cd.against(rows, "anet_bar_px", "the bar", beyond_scatter=True)
+    assert lines[0] == "- held-out RMS after at or below the bar: 1 of 4 recordings"
+    assert lines[-1].endswith("of the 3 above it, above it also with astrometry.net's own model class held out the "
+                              "same way: 1 (shared)")
