@@ -197,21 +197,21 @@ def effect_context(obs: Observations, camera, timing, rot: Rotation, x, y, vx, v
 _OBSERVATION_FIELDS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def observation_context(obs: Observations, copies_of: int = 1) -> EffectContext:
+def observation_context(obs: Observations, k: int = 1) -> EffectContext:
     """The context fields that depend on the observations alone (times, rows, frames, magnitudes,
-    catalogue directions), with no camera or timing, for the stars (``copies_of=1``) or for
-    ``copies_of`` copies of them one after the other (:func:`predict`'s tiled chain). A prediction
-    evolves them with its camera, timing, positions, rates and attitudes; they are made once per
-    set of observations (the diagnosis predicts the same observations tens of thousands of times),
-    whose arrays are never written in place."""
+    catalogue directions), with no camera or timing, for the stars (``k=1``) or for ``k`` copies
+    of them one after the other (:func:`predict`'s tiled chain). A prediction evolves them with its
+    camera, timing, positions, rates and attitudes; they are made once per set of observations
+    (the diagnosis predicts the same observations tens of thousands of times), whose arrays are
+    never written in place."""
     kept = _OBSERVATION_FIELDS.setdefault(obs, {})
-    if copies_of not in kept:
-        if 1 not in kept:
-            kept[1] = EffectContext(camera=None, x=obs.x, y=obs.y, t_ns=obs.t_ns, row=obs.y, t0_ns=obs.t0_ns[obs.frame],
-                                    frame=obs.frame, magnitude=obs.magnitude, unit_icrs=obs.u_icrs,
-                                    pm_rad_yr=obs.pm_rad_yr, t_start_ns=int(obs.t0_ns.min()) if obs.n_frames else 0)
-        kept[copies_of] = kept[1].take(np.tile(np.arange(obs.n), copies_of))
-    return kept[copies_of]
+    if 1 not in kept:
+        kept[1] = EffectContext(camera=None, x=obs.x, y=obs.y, t_ns=obs.t_ns, row=obs.y, t0_ns=obs.t0_ns[obs.frame],
+                                frame=obs.frame, magnitude=obs.magnitude, unit_icrs=obs.u_icrs, pm_rad_yr=obs.pm_rad_yr,
+                                t_start_ns=int(obs.t0_ns.min()) if obs.n_frames else 0)
+    if k not in kept:
+        kept[k] = kept[1].take(np.tile(np.arange(obs.n), k))
+    return kept[k]
 
 
 def tiled_context(ctx: EffectContext, tiled: EffectContext, k: int, x, y) -> EffectContext:
