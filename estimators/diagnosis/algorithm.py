@@ -91,9 +91,14 @@ class Diagnosis:
 
     def updated_scenario(self) -> ScenarioConfig:
         """The input scenario with the named effects enabled at their fitted parameters (and, when
-        the diagnosis measured them, the noise and an empirical correction)."""
+        the diagnosis measured them, the noise, an empirical correction and the effects the attitude
+        absorbs that the reference attitude showed)."""
         v = self.verification
-        out = updated_scenario(self.sensor.scenario, v.named, v.thetas)
+        chosen, thetas = list(v.named), list(v.thetas)
+        if self.reference is not None:
+            chosen += [c for c, _ in self.reference.model]
+            thetas += [t for _, t in self.reference.model]
+        out = updated_scenario(self.sensor.scenario, chosen, thetas)
         if self.noise is not None and self.noise.applied and self.sensor.scenario.level == "centroid":
             sigma = self.noise.stated_sigma_px * self.noise.factor  # the stated noise may be the recording's
             out = out.model_copy(update={"noise": out.noise.model_copy(update={"centroid_sigma_px": sigma})})
@@ -395,8 +400,8 @@ def _verdict(projection: ProjectionChoice | None, noise: NoiseCheck | None, desc
     if description is not None:
         lead.append(f"outside the library: {description.text}" +
                     (" (written as an empirical correction)" if description.correction is not None else ""))
-    if reference is not None and reference.tested:
-        lead.append("against the reference attitude: " + ", ".join(reference.tested))
+    if reference is not None and reference.model:
+        lead.append("against the reference attitude: " + ", ".join(c.name for c, _ in reference.model))
     if not lead:
         return verdict
     rest = verdict.replace("no mismatch: the simulation explains", "with it the simulation explains", 1)

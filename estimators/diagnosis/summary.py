@@ -33,8 +33,11 @@ def _what_differs(r: dict) -> str:
     if desc and desc.get("correction"):
         found.append(f"outside the library, {desc['text']} (written to the updated scenario as an empirical correction)")
     ref = r.get("attitude_reference") or {}
-    found += [f"{c['name']}, which the attitude absorbs, seen against the reference attitude (below)"
-              for c in ref.get("candidates", []) if c["tested"]]
+    for c in ref.get("model", []):
+        alt = [a["candidates"][1] for a in ref.get("ambiguous", []) if a["candidates"][0] == c["name"]]
+        found.append(f"{c['name']}" + (f" (or {' or '.join(alt)}, which the reference cannot tell from it)" if alt else "")
+                     + f", which the attitude absorbs, seen against the reference attitude ({_values(c['params'])}; "
+                     "written to the updated scenario)")
     if not found:
         return "The simulation misses this recording, and no library effect explains it."
     return "What differs: " + "; ".join(found) + "."
@@ -122,9 +125,17 @@ def _reference(r: dict) -> str:
             f"chi2 {ref['chi2']:.3g} over {ref['dof']} dof without an effect)")
     if not tested:
         return head + ", no effect the attitude absorbs is seen."
-    found = "; ".join(c["name"] + " (" + ", ".join(f"{k} = {p['value']:.4g} +- {p['sigma']:.2g}" for k, p in c["params"].items())
-                      + f", delta BIC {c['delta_bic']:.3g})" for c in tested)
-    return f"{head}: {found}."
+    found = "; ".join(f"{c['name']} ({_values(c['params'])}, delta BIC {c['delta_bic']:.3g})" for c in tested)
+    joint = ", ".join(c["name"] for c in ref["model"])
+    amb = "".join(f" It cannot tell {a['candidates'][0]} from {a['candidates'][1]} (swap delta BIC {a['delta_bic_swap']:.3g}; "
+                  f"separate them with: {a['separating_experiment']})." for a in ref.get("ambiguous", []))
+    return (f"{head}: each alone, {found}. Fitted together, {joint} leave chi2 {ref['chi2_after']:.3g} over "
+            f"{ref['dof_after']} dof.{amb}")
+
+
+def _values(params: dict) -> str:
+    return ", ".join(f"{k} = {p['value']:.4g} +- {p['sigma']:.2g}" + (f" {p['unit']}" if p["unit"] not in ("", "1") else "")
+                     for k, p in params.items())
 
 
 def _untestable(r: dict) -> str:

@@ -1,0 +1,180 @@
+"""A reference attitude the recording carries (``/truth/attitude``), used as a prior of stated
+accuracy on every frame's attitude, makes testable the effects the attitude absorbs.
+
+Recordings: the discrepancy benchmark's base sensor (he2021b optics, 1024 x 1024, 0.05 px) turning
+about one axis, with a boresight roll (a rotation of the whole field, which the stars alone cannot
+see) and a clock offset (a constant-rate rotation, the same). The reference is the simulation's
+truth; where its stated accuracy must be real, it is perturbed by that much.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy import stats
+from scipy.spatial.transform import Rotation
+
+from rollingstar.config import validate
+from rollingstar.pipelines import diagnose as P
+from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose_recording
+from rollingstar.pipelines.simulate import simulate_to_log
+from rollingstar.sensors.conventions import ARCSEC_TO_RAD
+from rollingstar.sensors.scenario import ScenarioConfig
+from rollingstar.studies.bench import discrepancy as D
+
+OPTIONS = DiagnoseOptions(n_boot=10, stability=False, resimulate=False, seed=1)
+
+
+def _recording(tmp_path, seed: int, effects: list[dict]) -> tuple[ScenarioConfig, ScenarioConfig, str]:
+    """The base scenario, the one the recording was made with (``effects`` added) and the recording."""
+    cfg = D.design_scenario(D.base_scenario(20), "single_axis", 20.0, np.random.default_rng(seed), 20, seed)
+    truth = validate(ScenarioConfig, {**cfg.model_dump(mode="json"), "effects": effects}, "<t>")
+    rec = tmp_path / f"{seed}-{len(effects)}.mcap"
+    simulate_to_log(truth, rec, show_progress=False)
+    return cfg, truth, rec
+
+
+def _noisy_reference(monkeypatch, rng: np.random.Generator, sigma_arcsec: float) -> None:
+    """Read the reference with a random rotation of ``sigma_arcsec`` per axis on every frame."""
+    read = P.read_reference
+
+    def noisy(recording, obs):
+        attitude, covered = read(recording, obs)
+        return Rotation.from_rotvec(rng.normal(0.0, sigma_arcsec * ARCSEC_TO_RAD, (len(attitude), 3))) * attitude, covered
+
+    monkeypatch.setattr(P, "read_reference", noisy)
+
+
+ROLL = [{"kind": "boresight_rotation", "params": {"roll_arcsec": 60.0}}]
+
+
+def test_a_reference_attitude_makes_an_absorbed_roll_testable(tmp_path):
+    """A 60 arcsec boresight roll: the stars alone cannot see it (listed as absorbed, not named).
+    With the recording's truth attitude as a 0.5 arcsec reference it is tested and measured; on a
+    recording without the roll nothing is seen."""
+    cfg, _, rec = _recording(tmp_path, 5, ROLL)
+    _, _, null = _recording(tmp_path, 5, [])
+    plain, _ = diagnose_recording(rec, cfg, None, OPTIONS)
+    assert "boresight_rotation" in [a["name"] for a in plain["absorbed_by_attitude"]] and plain["effects"] == []
+    with_ref = replace(OPTIONS, reference_sigma_arcsec=0.5)
+    result, _ = diagnose_recording(rec, cfg, None, with_ref)
+    row = next(c for c in result["attitude_reference"]["candidates"] if c["name"] == "boresight_rotation")
+    roll = row["params"]["roll_arcsec"]
+    print("roll against the reference:", roll)  # pytest -s: the figure in docs/diagnosis.md
+    assert row["tested"] and abs(roll["value"] - 60.0) < 4 * roll["sigma"], row
+    assert result["mismatch"] and "seen against the reference attitude" in result["summary"]
+    clean, _ = diagnose_recording(null, cfg, None, with_ref)
+    assert not any(c["tested"] for c in clean["attitude_reference"]["candidates"]), clean["attitude_reference"]
+    assert clean["attitude_reference"]["model"] == []
+
+
+def test_the_effect_seen_against_the_reference_goes_to_the_updated_scenario_and_closes_the_fit(tmp_path):
+    """The roll measured against the reference is written to the updated scenario; diagnosed again
+    against that scenario, the attitude differences are consistent with the reference's accuracy
+    and nothing is left to see."""
+    cfg, _, rec = _recording(tmp_path, 7, ROLL)
+    with_ref = replace(OPTIONS, reference_sigma_arcsec=0.5)
+    first, d = diagnose_recording(rec, cfg, None, with_ref)
+    updated = d.updated_scenario()
+    (model,) = first["attitude_reference"]["model"]
+    assert model["name"] == "boresight_rotation"
+    (effect,) = [e for e in updated.effects if e.kind == "boresight_rotation"]
+    assert effect.params["roll_arcsec"] == pytest.approx(model["params"]["roll_arcsec"]["value"])
+    again, _ = diagnose_recording(rec, updated, None, with_ref)
+    ref = again["attitude_reference"]
+    assert ref["model"] == [] and not any(c["tested"] for c in ref["candidates"]), ref
+    assert stats.chi2.sf(ref["chi2"], ref["dof"]) > 1e-3, ref
+    assert ref["chi2"] < 0.2 * first["attitude_reference"]["chi2"]
+
+
+def test_two_absorbed_effects_are_fitted_together_and_a_collinear_pair_is_reported(tmp_path):
+    """A roll and a 20 ms clock offset at once. Alone, the roll's fit takes up part of the offset's
+    rotation; fitted together both come out right. At a constant rate an exposure smear's shift of
+    the reference time is the same rotation as the clock offset: the report says the reference
+    cannot tell the two apart, with the experiment that would."""
+    effects = [*ROLL, {"kind": "time_offset", "params": {"offset_ms": 20.0}}]
+    cfg, _, rec = _recording(tmp_path, 3, effects)
+    result, d = diagnose_recording(rec, cfg, None, replace(OPTIONS, reference_sigma_arcsec=1.0))
+    ref = result["attitude_reference"]
+    model = {m["name"]: m["params"] for m in ref["model"]}
+    assert set(model) in ({"boresight_rotation", "time_offset"}, {"boresight_rotation", "exposure_smear"}), ref
+    roll = model["boresight_rotation"]["roll_arcsec"]
+    assert abs(roll["value"] - 60.0) < 4 * roll["sigma"], roll
+    if "time_offset" in model:
+        offset = model["time_offset"]["offset_ms"]
+        assert abs(offset["value"] - 20.0) < 0.05 * 20.0, offset
+    pair = [sorted(a["candidates"]) for a in ref["ambiguous"]]
+    assert ["exposure_smear", "time_offset"] in pair, ref["ambiguous"]
+    assert "cannot tell" in result["summary"] and "two exposure times" in result["summary"]
+    assert {e.kind for e in d.updated_scenario().effects} == set(model)
+    dof_after = ref["dof_after"]
+    assert stats.chi2.sf(ref["chi2_after"], dof_after) > 1e-4, ref
+
+
+@pytest.mark.long_study
+def test_the_reference_measurements_scatter_as_their_stated_sigma(tmp_path, monkeypatch):
+    """Monte Carlo over recordings and reference noise: a 30 arcsec roll measured against a
+    reference perturbed by its stated 3 arcsec per axis. The pulls (estimate - truth) / sigma have
+    mean 0 and spread 1; the joint model's chi-square sums to its degrees of freedom; on the same
+    recordings without the roll, the reference sees no effect in more than a few."""
+    n, sigma_ref = 30, 3.0
+    rng = np.random.default_rng(11)
+    _noisy_reference(monkeypatch, rng, sigma_ref)
+    opts = replace(OPTIONS, reference_sigma_arcsec=sigma_ref)
+    pulls, chi2, dof, false = [], 0.0, 0, 0
+    for seed in range(n):
+        cfg, _, rec = _recording(tmp_path, seed, [{"kind": "boresight_rotation", "params": {"roll_arcsec": 30.0}}])
+        ref = diagnose_recording(rec, cfg, None, opts)[0]["attitude_reference"]
+        roll = {m["name"]: m["params"] for m in ref["model"]}["boresight_rotation"]["roll_arcsec"]
+        pulls.append((roll["value"] - 30.0) / roll["sigma"])
+        chi2, dof = chi2 + ref["chi2_after"], dof + ref["dof_after"]
+        _, _, null = _recording(tmp_path, seed, [])
+        false += bool(diagnose_recording(null, cfg, None, opts)[0]["attitude_reference"]["model"])
+    pulls = np.array(pulls)
+    print(f"pulls: mean {pulls.mean():.3f} std {pulls.std(ddof=1):.3f}; chi2 {chi2:.1f} over {dof}; "
+          f"false {false} of {n}")
+    assert abs(pulls.mean()) < 3.0 / np.sqrt(n), pulls
+    assert 0.7 < pulls.std(ddof=1) < 1.35, pulls
+    assert abs(chi2 - dof) < 4.0 * np.sqrt(2.0 * dof), (chi2, dof)
+    assert false <= 2, false
+
+
+def test_the_reference_test_is_the_joint_fit_with_the_reference_as_a_prior():
+    """The identity behind :mod:`.reference`: for an effect the stars see only through the
+    attitude (image columns ``J = A_k a_k``), the joint least squares of the stars and a prior
+    ``u_k ~ N(m_k, sigma^2 I)`` on every frame's attitude gives the same effect estimate and
+    covariance as the weighted fit of ``a_k theta`` to ``e_k = s_k - m_k`` (``s_k``: the stars'
+    own attitude fit, covariance ``C_k``) with covariance ``C_k + sigma^2 I``."""
+    from rollingstar.estimators.diagnosis.gyro_channel import absorbed_rotations, attitude_covariances
+    from rollingstar.estimators.diagnosis.reference import weighted_fit
+
+    rng = np.random.default_rng(4)
+    n_frames, p, sigma = 6, 2, 0.3
+    frame = np.repeat(np.arange(n_frames), rng.integers(3, 9, n_frames))
+    att = rng.normal(size=(frame.size, 2, 3))
+    a_true = rng.normal(size=(n_frames, 3, p))
+    cols = np.einsum("nij,njp->nip", att, a_true[frame])
+    u, theta = rng.normal(size=(n_frames, 3)), np.array([0.7, -1.3])
+    y = np.einsum("nij,nj->ni", att, u[frame]) + cols @ theta + rng.normal(size=(frame.size, 2))
+    m = u + sigma * rng.normal(size=(n_frames, 3))
+
+    # the joint least squares over (u_1 .. u_F, theta): star rows, then the prior's rows
+    x = np.zeros((2 * frame.size + 3 * n_frames, 3 * n_frames + p))
+    for i, k in enumerate(frame):
+        x[2 * i:2 * i + 2, 3 * k:3 * k + 3] = att[i]
+        x[2 * i:2 * i + 2, 3 * n_frames:] = cols[i]
+    x[2 * frame.size:, :3 * n_frames] = np.eye(3 * n_frames) / sigma
+    rhs = np.concatenate([y.ravel(), m.ravel() / sigma])
+    joint = np.linalg.lstsq(x, rhs, rcond=None)[0][3 * n_frames:]
+    joint_cov = np.linalg.inv(x.T @ x)[3 * n_frames:, 3 * n_frames:]
+
+    c = attitude_covariances(frame, n_frames, att, np.ones(frame.size), np.ones(frame.size, bool))
+    s = np.stack([np.linalg.lstsq(att[frame == k].reshape(-1, 3), y[frame == k].ravel(), rcond=None)[0]
+                  for k in range(n_frames)])
+    a = absorbed_rotations(frame, n_frames, att, cols)
+    np.testing.assert_allclose(a, a_true, atol=1e-10)
+    w = np.linalg.inv(c + sigma**2 * np.eye(3))
+    estimate, cov, _ = weighted_fit(a, w, s - m)
+    np.testing.assert_allclose(estimate, joint, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(cov, joint_cov, rtol=1e-9, atol=1e-12)
