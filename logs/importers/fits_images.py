@@ -13,12 +13,16 @@ image: :func:`fits_holds_image` tells the importer to leave it out.
 from __future__ import annotations
 
 import math
+import re
 import warnings
+from datetime import timezone
 from pathlib import Path
 
 import numpy as np
 
 from rollingstar.logs.importers.common import ImportDataError
+from rollingstar.logs.importers.observation import NO_OBSERVATION, Observation
+from rollingstar.logs.importers.sidecar import EPOCH_YEARS
 
 # astropy warns about a short file when it opens it; the header check below reports it as an error instead
 _TRUNCATED_WARNING = "File may have been truncated"
@@ -115,3 +119,55 @@ def _checked_index(hdul, path: Path) -> int:
                               "in the primary HDU or an image extension")
     _check_complete(hdul, index, path)
     return index
+
+
+def fits_observation(path: str | Path, log) -> Observation:
+    """The observation time the file's header states, else none (``log``: a warning's sink).
+
+    ``DATE-OBS`` (the start of the observation) in the image's HDU, else the primary HDU: ISO 8601
+    (``2019-07-29T20:47:26.5``), or the pre-2000 form ``DD/MM/YY`` (years 1900-1999). A date without
+    a time of day takes ``TIME-OBS`` (or ``UT``) when given, else midnight with a warning. The time
+    scale is ``TIMESYS`` (UTC by the standard's default); a scale astropy cannot convert to UTC
+    (``GPS``, ``LOCAL``) is read as UTC with a warning: GPS time differs from it by seconds, far below
+    the 53 min to which the catalogue epoch is rounded, and a local clock by its zone (at most 14 h,
+    0.0016 yr)."""
+    path = Path(path)
+    try:
+        with _open(path) as hdul:
+            index = _image_index(hdul)
+            headers = [hdul[index].header] if index not in (None, 0) else []
+            headers.append(hdul[0].header)
+            cards = {key: next((str(h[key]).strip() for h in headers if str(h.get(key, "")).strip()), "")
+                     for key in ("DATE-OBS", "TIME-OBS", "UT", "TIMESYS")}
+    except ImportDataError:  # an unreadable file is reported by the image reader itself
+        return NO_OBSERVATION
+    return _observation_from_cards(cards, path, log)
+
+
+def _observation_from_cards(cards: dict[str, str], path: Path, log) -> Observation:
+    from astropy.time import Time  # here, not at the top, like astropy.io.fits
+
+    text = cards["DATE-OBS"]
+    if not text:
+        return NO_OBSERVATION
+    old = re.fullmatch(r"(\d\d)/(\d\d)/(\d\d)", text)
+    date = f"19{old[3]}-{old[2]}-{old[1]}" if old else text
+    if "T" not in date:
+        time_of_day = cards["TIME-OBS"] or cards["UT"]
+        if not time_of_day:
+            log(f"{path}: DATE-OBS {text} states no time of day (and no TIME-OBS); read as 00:00 (a day moves the "
+                "catalogue epoch by 0.0027 yr, no Hipparcos star by more than 30 mas)")
+        date = f"{date}T{time_of_day or '00:00:00'}"
+    scale = (cards["TIMESYS"] or "UTC").lower()
+    if scale not in Time.SCALES or scale == "local":  # astropy keeps a local clock but cannot convert it
+        log(f"{path}: TIMESYS {cards['TIMESYS']} is not a time scale that converts to UTC; DATE-OBS read as UTC")
+        scale = "utc"
+    try:
+        when = Time(date, format="fits", scale=scale).utc.to_datetime(timezone=timezone.utc)
+    except ValueError:
+        log(f"{path}: DATE-OBS {text!r} is not a FITS date (YYYY-MM-DDThh:mm:ss); not used")
+        return NO_OBSERVATION
+    if not EPOCH_YEARS[0] <= when.year <= EPOCH_YEARS[1]:
+        log(f"{path}: DATE-OBS {text} is outside the years {EPOCH_YEARS[0]:.0f}-{EPOCH_YEARS[1]:.0f}; not used")
+        return NO_OBSERVATION
+    return Observation(when, "fits")

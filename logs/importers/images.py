@@ -37,7 +37,7 @@ from rollingstar.logs.importers.common import (
     time_column,
     warn,
 )
-from rollingstar.logs.importers.fits_images import fits_header, fits_holds_image, read_fits
+from rollingstar.logs.importers.fits_images import fits_header, fits_holds_image, fits_observation, read_fits
 from rollingstar.logs.importers.observation import (
     Observation,
     catalog_for,
@@ -440,11 +440,14 @@ def _bit_depths(files: list[Path], cam: CameraSpec, folder: Path) -> tuple[int, 
 
 def _observation(side: RecordingSidecar, files: list[Path], t0: np.ndarray, timing: dict,
                  log: WarningLog) -> Observation:
-    """The observation time: the sidecar's, else Unix-time frame times', else the first image's EXIF."""
+    """The observation time: the sidecar's, else Unix-time frame times', else the first image's
+    FITS ``DATE-OBS`` or EXIF time."""
     if side.observation_time is not None:
         return Observation(side.observation_time, "observation_time")
     if timing.get("column") in UNIX_TIME_COLUMNS:
         return from_unix_ns(int(t0[0]), timing["column"], timing["csv"])
+    if files[0].suffix.lower() in FITS_SUFFIXES:
+        return fits_observation(files[0], log)
     return exif_observation(files[0], log)
 
 

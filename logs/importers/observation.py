@@ -7,7 +7,9 @@ The observation time is the UTC time of the first frame, taken from the first of
    frame times in ``t_ns``/``time_s`` are on the recording's own clock and never read as dates
    (a clock may count from power-on, from 1980 like GPS, ...), even when they look like Unix time:
    a warning then says how to state it;
-3. the first image's EXIF ``DateTimeOriginal``, else its TIFF/EXIF ``DateTime``, shifted by
+3. the first image's header: a FITS file's ``DATE-OBS``
+   (:func:`rollingstar.logs.importers.fits_images.fits_observation`); another file's EXIF
+   ``DateTimeOriginal``, else its TIFF/EXIF ``DateTime``, shifted by
    ``OffsetTimeOriginal``/``OffsetTime`` when the file states one; without one the camera's
    local zone is unknown and the time is read as UTC, with a warning;
 4. none.
@@ -45,7 +47,7 @@ _DATETIME, _DATETIME_ORIGINAL, _OFFSET, _OFFSET_ORIGINAL = 0x0132, 0x9003, 0x901
 @dataclass(frozen=True)
 class Observation:
     """The observation time (UTC, first frame) and where it came from (``observation_time``: stated
-    in the sidecar; a Unix time column's name; ``exif``; or ``none`` with ``time`` None)."""
+    in the sidecar; a Unix time column's name; ``exif``; ``fits``; or ``none`` with ``time`` None)."""
 
     time: datetime | None = None
     source: str = "none"
@@ -126,7 +128,7 @@ def catalog_for(camera: CameraSpec, spec: ObservationSpec, observation: Observat
     if epoch_source == "default" and warn_default:
         hint = (f"; the frame times would be {unix_hint} read as Unix time: if they are, name their column "
                 f"{' or '.join(UNIX_TIME_COLUMNS)}" if unix_hint else "")
-        log(f"{source}: no observation time (observation_time, Unix-time frame times or EXIF); the catalogue is "
+        log(f"{source}: no observation time (observation_time, Unix-time frame times, FITS DATE-OBS or EXIF); the catalogue is "
             f"propagated to the default epoch {epoch:g}{hint}")
     limit, limit_source, limit_reason, field = _limit(camera, spec, detections_per_frame, source, log)
     details = {"epoch_year": epoch, "epoch_source": epoch_source, "epoch_reason": epoch_reason,
@@ -141,8 +143,9 @@ def _epoch(spec: ObservationSpec, observation: Observation, source: str) -> tupl
         return spec.catalog.epoch_year, "sidecar", f"catalog.epoch_year in {source}"
     if observation.time is not None:
         year = round(julian_year(observation.time), EPOCH_DECIMALS)
-        kind = observation.source if observation.source in ("observation_time", "exif") else "timestamps"
-        where = {"observation_time": f"observation_time in {source}", "exif": "the first image's EXIF time"}.get(
+        kind = observation.source if observation.source in ("observation_time", "exif", "fits") else "timestamps"
+        where = {"observation_time": f"observation_time in {source}", "exif": "the first image's EXIF time",
+                 "fits": "the first image's FITS DATE-OBS"}.get(
             observation.source, f"the first frame's {observation.source} (Unix time)")
         return year, kind, f"Julian year of {observation.iso}, from {where}"
     return DEFAULT_EPOCH_YEAR, "default", "no observation time; the scenario default"

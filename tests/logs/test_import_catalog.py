@@ -97,6 +97,56 @@ def test_exif_time_with_its_offset(tmp_path):
     assert scenario.catalog.epoch_year == 2019.5739
 
 
+def _fits_folder(tmp_path: Path, sidecar: str, cards: dict, extension: bool = False) -> Path:
+    """Two FITS frames with ``cards`` in the header of the HDU that holds the image (or, with
+    ``extension``, in an empty primary HDU before an image extension)."""
+    from astropy.io import fits
+
+    folder = tmp_path / "fits"
+    folder.mkdir()
+    for k in range(2):
+        image = fits.ImageHDU if extension else fits.PrimaryHDU
+        hdu = image(np.zeros((300, 400), np.uint16))
+        target = fits.PrimaryHDU() if extension else hdu
+        target.header.update(cards)
+        (fits.HDUList([target, hdu]) if extension else fits.HDUList([hdu])).writeto(folder / f"f{k}.fits")
+    (folder / "recording.yaml").write_text(sidecar)
+    return folder
+
+
+@pytest.mark.parametrize("cards,extension", [
+    ({"DATE-OBS": "2019-07-29T20:47:26"}, False),  # UTC by the standard's default
+    ({"DATE-OBS": "2019-07-29T20:48:35.184", "TIMESYS": "TT"}, True),  # TT = UTC + 37 s + 32.184 s in 2019
+    ({"DATE-OBS": "2019-07-29", "TIME-OBS": "20:47:26"}, False),  # the older split form
+])
+def test_fits_date_obs_sets_the_epoch(tmp_path, cards, extension):
+    folder = _fits_folder(tmp_path, CAMERA_6DEG + "timestamps: {frame_rate_hz: 2.0}\n", cards, extension)
+    scenario, cat, _ = _imported(_quiet_import(folder, tmp_path / "r.mcap"))
+    assert cat["epoch_source"] == "fits" and cat["observation_time_source"] == "fits"
+    when = datetime.fromisoformat(cat["observation_time_utc"].replace("Z", "+00:00"))
+    assert abs((when - OBSERVED).total_seconds()) < 1.0, cat["observation_time_utc"]
+    assert scenario.catalog.epoch_year == 2019.5739 and "DATE-OBS" in cat["epoch_reason"]
+
+
+@pytest.mark.parametrize("cards,expect", [
+    ({"DATE-OBS": "29/07/99"}, r"DATE-OBS 29/07/99 states no time of day"),  # the pre-2000 form: 1999-07-29
+    ({"DATE-OBS": "1850-07-29T20:47:26"}, r"outside the years 1900-2100; not used"),
+    ({"DATE-OBS": "2019-07-29"}, r"no time of day.*read as 00:00"),
+    ({"DATE-OBS": "yesterday"}, r"not a FITS date"),
+    ({"DATE-OBS": "2019-07-29T20:47:26", "TIMESYS": "LOCAL"}, r"TIMESYS LOCAL.*read as UTC"),
+])
+def test_a_fits_date_obs_that_is_not_a_full_time_is_said(tmp_path, cards, expect):
+    folder = _fits_folder(tmp_path, CAMERA_6DEG + "timestamps: {frame_rate_hz: 2.0}\n", cards)
+    with pytest.warns(ImportDataWarning, match=expect):
+        rec = import_images(folder, tmp_path / "r.mcap")
+    _, cat, _ = _imported(rec)
+    if cards["DATE-OBS"] in ("2019-07-29", "2019-07-29T20:47:26", "29/07/99"):
+        assert cat["epoch_source"] == "fits"
+        assert cat["observation_time_utc"].startswith("1999-07-29T00:00:00" if "/" in cards["DATE-OBS"] else "2019-07-29T")
+    else:
+        assert cat["epoch_source"] == "default" and cat["observation_time_utc"] is None
+
+
 def test_tiff_datetime_without_zone_is_read_as_utc_with_a_warning(tmp_path):
     exif = Image.Exif()
     exif[0x0132] = "2019:07:29 20:47:26"  # TIFF DateTime: local time of an unknown zone
