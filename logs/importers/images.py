@@ -325,7 +325,7 @@ def import_images(folder: str | Path, out: str | Path, camera: CameraSpec | str 
     cam = resolve_camera(camera, side if sidecar_path else None, sidecar_path, log, folder)
     files = _list_files(folder, side.files, source, log)
     container_bits, bit_depth = _bit_depths(files, cam, folder)
-    shift = _value_shift(files[0], container_bits, cam, log)
+    shift, shift_reason = _value_shift(files, container_bits, cam, log)
     t0, timing = _frame_times(side, files, base, source, log)
     gyro = _read_gyro(base / side.gyro_csv, log) if side.gyro_csv else None
     truth = _read_truth(base / side.truth_csv, log) if side.truth_csv else None
@@ -339,6 +339,7 @@ def import_images(folder: str | Path, out: str | Path, camera: CameraSpec | str 
     details = {
         "files": [f.name for f in files], "t0_ns": t0.tolist(), "timestamps": timing,
         "container_bits": container_bits, "bit_depth": bit_depth, "value_shift_bits": shift,
+        "value_shift_reason": shift_reason,
         "camera": cam.model_dump(mode="json"), "focal_px": cam.focal_px,
         "sidecar": str(sidecar_path) if sidecar_path else None,
         "gyro_csv": side.gyro_csv, "truth_csv": side.truth_csv, "catalog": catalog_details,
@@ -351,39 +352,68 @@ def import_images(folder: str | Path, out: str | Path, camera: CameraSpec | str 
             progress_bar(f"import {folder.name}", len(files), show_progress) as advance:
         _write_samples(writer, t0, gyro, truth)
         for f, t in zip(files, t0.tolist()):
-            writer.write_image(TOPIC_IMAGE, _frame_pixels(f, container_bits, bit_depth, shift, cam.mirrored), t)
+            writer.write_image(TOPIC_IMAGE, _frame_pixels(f, container_bits, bit_depth, (shift, shift_reason),
+                                                            cam.mirrored), t)
             advance()
     return out
 
 
-def _frame_pixels(path: Path, container_bits: int, bit_depth: int, shift: int, mirrored: bool) -> np.ndarray:
-    """One file's pixels as the recording holds them: ADC counts, in the camera's unmirrored view."""
+def _frame_pixels(path: Path, container_bits: int, bit_depth: int, shift: tuple[int, str | None],
+                  mirrored: bool) -> np.ndarray:
+    """One file's pixels as the recording holds them: ADC counts, in the camera's unmirrored view
+    (``shift``: the bits and reason :func:`_value_shift` gives)."""
     image = read_image(path)
     if image.itemsize * 8 != container_bits:  # header and pixels disagree (e.g. mode "I")
         raise ImportDataError(f"{path}: decoded as {image.dtype}, expected {container_bits}-bit like the other images")
     if bit_depth < container_bits:
-        image = _to_counts(image, bit_depth, shift, path)
+        image = _to_counts(image, bit_depth, *shift, path)
     if mirrored:
         image = np.ascontiguousarray(image[:, ::-1])
     return image
 
 
-def _value_shift(first: Path, container_bits: int, cam: CameraSpec, log: WarningLog) -> int:
-    """How many bits the files' values sit above the camera's ADC counts, judged on the first image.
+MIN_JUSTIFIED_PIXELS = 100
+"""Non-zero pixels, all multiples of ``2^(16 - bit_depth)``, that show an image's counts are
+left-justified when none exceeds ``2^bit_depth - 1`` (a dark image): right-justified counts with
+noise in their low bits are all such multiples with a chance of ``2^-(16 - bit_depth)`` per pixel."""
+
+
+def _value_shift(files: list[Path], container_bits: int, cam: CameraSpec, log: WarningLog) -> tuple[int, str | None]:
+    """How many bits the files' values sit above the camera's ADC counts, and why: judged on the
+    first image that decides it (:func:`_justification`; none decides: right-justified).
 
     A camera whose ``bit_depth`` is less than the 16-bit container writes its counts either
     right-justified (0 .. 2^bit_depth - 1) or left-justified (shifted up to the top of the word:
-    multiples of 2^(16 - bit_depth), as many 10- to 14-bit cameras write). Values above
-    2^bit_depth - 1 can only be left-justified; they are shifted down to counts, so that the
-    saturation level 2^bit_depth - 1 and the gain in e-/ADU refer to the camera's own counts.
+    multiples of 2^(16 - bit_depth), as many 10- to 14-bit cameras write). Left-justified counts
+    are shifted down, so that the saturation level 2^bit_depth - 1 and the gain in e-/ADU refer to
+    the camera's own counts.
     """
     if container_bits != 16 or cam.bit_depth == 16:
-        return 0
-    image = read_image(first)
+        return 0, None
     if cam.bit_depth is None:
-        _hint_bit_depth(image, first, log)
-        return 0
-    return 16 - cam.bit_depth if int(image.max()) > (1 << cam.bit_depth) - 1 else 0
+        _hint_bit_depth(read_image(files[0]), files[0], log)
+        return 0, None
+    for path in files:
+        left, why = _justification(read_image(path), cam.bit_depth)
+        if left is not None:
+            return (16 - cam.bit_depth if left else 0), f"{path.name}: {why}"
+    return 0, f"no image tells (every one has fewer than {MIN_JUSTIFIED_PIXELS} non-zero pixels): right-justified"
+
+
+def _justification(image: np.ndarray, bit_depth: int) -> tuple[bool | None, str]:
+    """(True, why) for left-justified counts: a value exceeds ``2^bit_depth - 1``, or at least
+    :data:`MIN_JUSTIFIED_PIXELS` non-zero values are all multiples of ``2^(16 - bit_depth)``;
+    (False, why) when a value is not such a multiple; (None, "") when the image cannot tell (all
+    zero, or too few non-zero pixels)."""
+    top, step = (1 << bit_depth) - 1, 1 << (16 - bit_depth)
+    if int(image.max()) > top:
+        return True, f"values up to {int(image.max())} exceed {top}"
+    if ((image & (step - 1)) != 0).any():
+        return False, f"values up to {int(image.max())}, not all multiples of {step}"
+    nonzero = int(np.count_nonzero(image))
+    if nonzero >= MIN_JUSTIFIED_PIXELS:
+        return True, f"all {nonzero} non-zero values are multiples of {step}"
+    return None, ""
 
 
 def _hint_bit_depth(image: np.ndarray, path: Path, log: WarningLog) -> None:
@@ -397,8 +427,9 @@ def _hint_bit_depth(image: np.ndarray, path: Path, log: WarningLog) -> None:
             f"65535, which such values never reach: state bit_depth: {16 - zeros} to have saturated stars recognised")
 
 
-def _to_counts(image: np.ndarray, bit_depth: int, shift: int, path: Path) -> np.ndarray:
-    """``image`` as counts 0 .. 2^bit_depth - 1: shifted down ``shift`` bits (left-justified), else checked."""
+def _to_counts(image: np.ndarray, bit_depth: int, shift: int, why: str | None, path: Path) -> np.ndarray:
+    """``image`` as counts 0 .. 2^bit_depth - 1: shifted down ``shift`` bits (left-justified), else
+    checked; ``why``: what decided the shift (:func:`_value_shift`), for the messages."""
     top = (1 << bit_depth) - 1
     if shift:
         # a saturated pixel may read all ones (65535) rather than the largest multiple
@@ -407,14 +438,14 @@ def _to_counts(image: np.ndarray, bit_depth: int, shift: int, path: Path) -> np.
             row, col = np.argwhere(odd)[0]
             raise ImportDataError(
                 f"{path}: pixel value {image[row, col]} at row {row}, column {col} is not a multiple of {1 << shift}; "
-                f"the first image's values exceed {top} (the largest count of the camera's bit_depth {bit_depth}), "
-                f"so every image is expected to hold the counts left-justified in 16-bit words")
+                f"the counts of the camera's bit_depth {bit_depth} were judged left-justified in 16-bit words "
+                f"({why}), so every image is expected to hold multiples of {1 << shift}")
         return image >> shift
     if int(image.max()) > top:
         raise ImportDataError(
             f"{path}: pixel values up to {image.max()} exceed {top}, the largest count of the camera's bit_depth "
-            f"{bit_depth}; expected 0..{top} like the first image (or counts left-justified in 16-bit words, "
-            f"multiples of {1 << (16 - bit_depth)}, in every image including the first), or a larger bit_depth")
+            f"{bit_depth}; the counts were judged right-justified ({why}), so 0..{top} is expected (or counts "
+            f"left-justified in 16-bit words, multiples of {1 << (16 - bit_depth)}, in every image), or a larger bit_depth")
     return image
 
 

@@ -163,15 +163,43 @@ def test_values_inconsistent_with_the_bit_depth_are_named(tmp_path):
     write_left_justified(tmp_path / "lj", counts)
     Image.fromarray(counts[1] * 16 + 3).save(tmp_path / "lj" / "f1.tiff")  # not a multiple of 16
     with pytest.raises(ImportDataError, match=r"f1\.tiff: pixel value \d+ at row \d+, column \d+ is not a multiple "
-                                              r"of 16; the first image's values exceed 4095"):
+                                              r"of 16; the counts of the camera's bit_depth 12 were judged left-justified .*f0\.tiff: values up to 65535 exceed 4095"):
         import_quietly(tmp_path / "lj", tmp_path / "r.mcap", camera=small_camera(bit_depth=12))
     folder = tmp_path / "rj"
     folder.mkdir()
     Image.fromarray(sky(0, top=4095)).save(folder / "f0.tiff")
     Image.fromarray(sky(1, top=5000)).save(folder / "f1.tiff")  # right-justified, then beyond 12 bits
     with pytest.raises(ImportDataError, match=r"f1\.tiff: pixel values up to 5000 exceed 4095, the largest count "
-                                              r"of the camera's bit_depth 12; expected 0\.\.4095 like the first"):
+                                              r"of the camera's bit_depth 12; the counts were judged right-justified \(f0\.tiff: values up to 4095, not all multiples of 16\)"):
         import_quietly(folder, tmp_path / "r.mcap", camera=small_camera(bit_depth=12))
+
+
+@pytest.mark.parametrize("dark", ["dim", "zero"])
+def test_a_dark_first_image_of_left_justified_counts_is_judged_from_its_low_bits(tmp_path, dark):
+    """A first frame taken in the dark (counts far below 4095, left-justified: multiples of 16)
+    cannot show the shift by its maximum; its low bits show it. An all-zero first frame tells
+    nothing: the next image decides."""
+    rng = np.random.default_rng(3)
+    first = rng.integers(0, 40, (H, W)).astype(np.uint16) if dark == "dim" else np.zeros((H, W), np.uint16)
+    counts = [first, sky(1, top=4095), sky(2, top=4095)]
+    write_left_justified(tmp_path / "imgs", counts)
+    rec = import_quietly(tmp_path / "imgs", tmp_path / "r.mcap", camera=small_camera(bit_depth=12))
+    assert all(np.array_equal(g, c) for g, c in zip(frames(rec), counts))
+    assert details(rec)["value_shift_bits"] == 4
+    assert details(rec)["value_shift_reason"].startswith("f0.tiff: all" if dark == "dim" else "f1.tiff: values up to")
+
+
+def test_dim_right_justified_counts_stay_as_they_are(tmp_path):
+    """Dim right-justified 12-bit counts (values far below 4095, low bits set by noise) are not
+    shifted, and a frame of the same camera that later reaches 4095 is read as it is."""
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    counts = [np.random.default_rng(4).integers(0, 40, (H, W)).astype(np.uint16), sky(1, top=4095)]
+    for k, c in enumerate(counts):
+        Image.fromarray(c).save(folder / f"f{k}.tiff")
+    rec = import_quietly(folder, tmp_path / "r.mcap", camera=small_camera(bit_depth=12))
+    assert all(np.array_equal(g, c) for g, c in zip(frames(rec), counts))
+    assert details(rec)["value_shift_bits"] == 0 and "not all multiples of 16" in details(rec)["value_shift_reason"]
 
 
 def test_left_justified_counts_without_a_bit_depth_are_warned_about(tmp_path):
