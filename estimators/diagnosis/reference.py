@@ -11,16 +11,21 @@ effect's whitened image Jacobian, :func:`.gyro_channel.absorbed_rotations`), plu
 fit's error (covariance ``C_k`` from the stars) and the reference's (``sigma_ref^2 I``).
 
 This is the reference used as a prior of covariance ``sigma_ref^2 I`` on every frame's attitude:
-for an effect the stars cannot see, the image residual depends on the attitude and the effect only
-through their sum, so profiling the joint least squares (stars plus prior) over the attitudes leaves
-exactly the weighted fit of ``a_k theta`` to ``e_k`` with covariance ``C_k + sigma_ref^2 I``.
+for an effect the stars see only through the attitude, the image residual depends on the attitude
+and the effect only through their sum, so profiling the joint least squares (stars plus prior) over
+the attitudes leaves exactly the weighted fit of ``a_k theta`` to ``e_k`` with covariance
+``C_k + sigma_ref^2 I``. The candidates tested here are those the stars' selection set aside: the
+ones the attitude absorbs, and the ones that even at their bounds would move the stars by less than
+a sigma; for the latter the identity holds to the extent that their visible part is negligible.
 
-Each absorbed candidate is fitted to ``e`` alone by weighted least squares over the frames; a
-delta BIC above the diagnosis's margin makes it *tested by the reference*, with its estimate and
-sigma. The tested candidates then enter a joint model by forward selection (each step adds the one
-that lowers the chi-square most, while its delta BIC clears the margin): its parameters, fitted
-together, go to the updated scenario. The chi-square of ``e`` with no effect checks that reference
-and fitted attitudes agree; the joint model's chi-square shows how much of it the effects explain.
+Each candidate is fitted to ``e`` alone; a delta BIC above the diagnosis's margin, with its values
+within their bounds, makes it *tested by the reference*, with its estimate and sigma. The
+candidates then enter a joint model by forward selection under the stars' rules (:mod:`.selection`:
+each step adds the one that lowers BIC most, while it does by more than the margin; pairs the data
+cannot tell apart are reported), with one more: a set whose fit puts a candidate outside its bounds
+is no explanation. The joint model's parameters go to the updated scenario. The chi-square of ``e``
+with no effect checks that reference and fitted attitudes agree; the joint model's chi-square shows
+how much of it the effects explain.
 """
 from __future__ import annotations
 
@@ -50,6 +55,7 @@ class ReferenceCheck:
     model: list[tuple[Candidate, np.ndarray]] = field(default_factory=list)  # jointly fitted: (candidate, values)
     model_params: list[dict] = field(default_factory=list)  # per model candidate: name, params (value, sigma, unit)
     chi2_after: float | None = None  # of the attitude differences with the joint model
+    rank_after: int = 0  # parameters the joint model determines
     ambiguous: list[dict] = field(default_factory=list)  # pairs the reference cannot tell apart
 
     @property
@@ -58,18 +64,19 @@ class ReferenceCheck:
 
     def as_json(self) -> dict:
         z = float(z_from_sf(stats.chi2.sf(self.chi2, self.dof))) if self.dof else None
-        n_par = sum(len(c.parameters) for c, _ in self.model)
         return {"sigma_arcsec": self.sigma_arcsec, "frames": self.frames, "chi2": self.chi2, "dof": self.dof,
                 "z": z, "candidates": self.rows, "model": self.model_params,
-                "chi2_after": self.chi2_after if self.model else self.chi2, "dof_after": self.dof - n_par,
+                "chi2_after": self.chi2_after if self.model else self.chi2, "dof_after": self.dof - self.rank_after,
                 "ambiguous": self.ambiguous}
 
 
 def reference_check(data, model, cands: dict[str, Candidate], names: list[str], reference: Rotation,
-                    covered: np.ndarray, sigma_arcsec: float, min_delta_bic: float) -> ReferenceCheck:
+                    covered: np.ndarray, sigma_arcsec: float, min_delta_bic: float,
+                    base: dict[str, dict] | None = None) -> ReferenceCheck:
     """Test the candidates ``names`` against ``reference`` (one attitude per frame at its reference
     time; frames where ``covered`` is False are left out). ``data``: the diagnosis's dataset,
-    ``model``: the named model (its attitudes and prediction)."""
+    ``model``: the named model (its attitudes and prediction); ``base``: the scenario's effects
+    (kind -> parameters), to which the values reported are added."""
     obs, pred = data.obs, model.prediction
     sigma = sigma_arcsec * ARCSEC_TO_RAD
     e = (reference.inv() * model.nuisance.attitude).as_rotvec()  # (F, 3)
@@ -85,83 +92,123 @@ def reference_check(data, model, cands: dict[str, Candidate], names: list[str], 
     for name in names:
         j = whiten(obs, cands[name].signature(pred.ctx, model.effects, pred.exposure_ns))
         cols[name] = absorbed_rotations(obs.frame[idx], obs.n_frames, aj[idx], j[idx])[use]  # (F', 3, p) rad per unit
-    rows = []
-    for name in names:
-        c = cands[name]
-        theta, inv, delta = weighted_fit(cols[name], w, e)
-        dbic = delta - len(c.parameters) * np.log(max(n_rows, 2))
-        rows.append({"name": name, "params": _params(c.parameters, theta, inv), "delta_chi2": delta,
-                     "delta_bic": float(dbic), "tested": bool(dbic > min_delta_bic)})
-    chosen = _forward(cols, w, e, [r["name"] for r in rows if r["tested"]], cands, n_rows, min_delta_bic)
+    sel = _Selection(cols, w, e, cands, np.log(max(n_rows, 2)), base or {})
+    rows = [sel.alone(name, min_delta_bic) for name in names]
+    chosen = sel.forward(names, min_delta_bic)
     out = ReferenceCheck(float(sigma_arcsec), int(use.sum()), chi2, n_rows, rows)
     if not chosen:
         return out
-    theta, inv, delta = weighted_fit(np.concatenate([cols[n] for n in chosen], axis=2), w, e)
+    theta, inv, removed, rank = sel.fit(chosen)
     model, params, k = [], [], 0
     for name in chosen:
         c = cands[name]
         p = len(c.parameters)
         model.append((c, np.array([q.default for q in c.parameters]) + theta[k:k + p]))
-        params.append({"name": name, "params": _params(c.parameters, theta[k:k + p], inv[k:k + p, k:k + p])})
+        params.append({"name": name, "params": sel.params(name, theta[k:k + p], inv[k:k + p, k:k + p])})
         k += p
-    amb = _ambiguous(cols, w, e, chosen, out.tested, cands, n_rows)
-    return replace(out, model=model, model_params=params, chi2_after=max(chi2 - delta, 0.0), ambiguous=amb)
+    return replace(out, model=model, model_params=params, chi2_after=max(chi2 - removed, 0.0), rank_after=rank,
+                   ambiguous=sel.ambiguous(chosen, names))
 
 
-def weighted_fit(a: np.ndarray, w: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+def weighted_fit(a: np.ndarray, w: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, int]:
     """Weighted least squares of ``a theta`` (F', 3, p) to ``e`` (F', 3) with weights ``w`` (F', 3, 3):
-    the estimate, its covariance and the chi-square it removes."""
+    the estimate, its covariance, the chi-square it removes and the rank of the fit (the parameters
+    the data determine; a pseudo-inverse leaves the others at zero with zero variance)."""
     normal = np.einsum("kip,kij,kjq->pq", a, w, a)
     rhs = np.einsum("kip,kij,kj->p", a, w, e)
     inv = np.linalg.pinv(normal, hermitian=True)
     theta = inv @ rhs
-    return theta, inv, float(rhs @ theta)
+    rank = int(np.linalg.matrix_rank(normal, hermitian=True)) if normal.size else 0
+    return theta, inv, float(rhs @ theta), rank
 
 
-def _forward(cols: dict[str, np.ndarray], w: np.ndarray, e: np.ndarray, tested: list[str],
-             cands: dict[str, Candidate], n_rows: int, min_delta_bic: float) -> list[str]:
-    """Forward selection among the ``tested`` candidates: add the one whose joint fit removes the most
-    chi-square, while that gain less its BIC penalty stays above ``min_delta_bic``."""
-    chosen: list[str] = []
-    removed = 0.0
-    while True:
-        gains = {}
-        for name in (n for n in tested if n not in chosen):
-            a = np.concatenate([cols[n] for n in [*chosen, name]], axis=2)
-            gains[name] = weighted_fit(a, w, e)[2] - removed
-        best = max(gains, key=gains.get, default=None)
-        if best is None or gains[best] - len(cands[best].parameters) * np.log(max(n_rows, 2)) <= min_delta_bic:
-            return chosen
-        chosen.append(best)
-        removed += gains[best]
+class _Selection:
+    """Joint fits of sets of candidates to the attitude differences, and the choices made on them:
+    the rules of the stars' selection (:mod:`.selection`), on ``e`` instead of the image residual.
+    A fit that puts a candidate outside its bounds is no explanation: that candidate is not chosen,
+    and not offered as an alternative, in that set."""
 
+    def __init__(self, cols, w, e, cands, log_n: float, base: dict[str, dict]):
+        self.cols, self.w, self.e, self.cands, self.log_n, self.base = cols, w, e, cands, log_n, base
+        self._fits: dict[tuple, tuple] = {(): (np.zeros(0), np.zeros((0, 0)), 0.0, 0)}
 
-def _ambiguous(cols: dict[str, np.ndarray], w: np.ndarray, e: np.ndarray, chosen: list[str], tested: list[str],
-               cands: dict[str, Candidate], n_rows: int) -> list[dict]:
-    """Pairs (chosen, other tested candidate) the reference cannot tell apart, by the rule the stars'
-    selection uses (:func:`.selection.ambiguities`): swapping one for the other costs less than
-    ``BIC_WINDOW``, or their whitened signatures are collinear and the swap is not decisive."""
-    def bic(names: list[str]) -> float:
-        a = np.concatenate([cols[n] for n in names], axis=2)
-        return -weighted_fit(a, w, e)[2] + a.shape[2] * np.log(max(n_rows, 2))
+    def fit(self, names) -> tuple[np.ndarray, np.ndarray, float, int]:
+        key = tuple(names)
+        if key not in self._fits:
+            self._fits[key] = weighted_fit(np.concatenate([self.cols[n] for n in key], axis=2), self.w, self.e)
+        return self._fits[key]
 
-    root = np.linalg.cholesky(w)  # w = L L^T: L^T a whitens a frame's rows
-    def whitened(name: str) -> np.ndarray:
-        return np.einsum("kji,kjp->kip", root, cols[name]).reshape(-1, cols[name].shape[2])
+    def bic(self, names) -> float:
+        """BIC up to a constant: the chi-square left plus ln(n) per determined parameter."""
+        _, _, removed, rank = self.fit(names)
+        return -removed + rank * self.log_n
 
-    rows, base = [], bic(chosen)
-    for g in chosen:
-        rest = [n for n in chosen if n != g]
-        for h in (n for n in tested if n not in chosen):
-            swap = bic([*rest, h]) - base
-            corr = canonical_correlation(whitened(g), whitened(h))
-            if swap < BIC_WINDOW or (corr > CORR_LIMIT and swap < DECISIVE_SWAP_BIC):
-                rows.append({"candidates": [g, h], "corr": corr, "delta_bic_swap": float(swap),
-                             "separating_experiment": separating_experiment(cands[g], cands[h])})
-    return rows
+    def within_bounds(self, names) -> bool:
+        theta, k = self.fit(names)[0], 0
+        for name in names:
+            c = self.cands[name]
+            value = np.array([q.default for q in c.parameters]) + theta[k:k + len(c.parameters)]
+            if np.any(value < c.lower) or np.any(value > c.upper):
+                return False
+            k += len(c.parameters)
+        return True
 
+    def params(self, name: str, theta: np.ndarray, cov: np.ndarray) -> dict:
+        """Each parameter's value in the updated scenario (the scenario's, else the default, plus
+        ``theta``), sigma and unit."""
+        given = self.base.get(name, {})
+        return {p.name: {"value": float(given.get(p.name, p.default) + t), "sigma": float(np.sqrt(max(s, 0.0))),
+                         "unit": p.unit} for p, t, s in zip(self.cands[name].parameters, theta, np.diag(cov))}
 
-def _params(parameters, theta: np.ndarray, cov: np.ndarray) -> dict:
-    """Each parameter's value (its default plus ``theta``), sigma and unit."""
-    return {p.name: {"value": float(p.default + t), "sigma": float(np.sqrt(max(s, 0.0))), "unit": p.unit}
-            for p, t, s in zip(parameters, theta, np.diag(cov))}
+    def alone(self, name: str, min_delta_bic: float) -> dict:
+        """The candidate fitted alone: tested when it lowers BIC by the margin within its bounds."""
+        theta, inv, removed, _ = self.fit((name,))
+        dbic = self.bic(()) - self.bic((name,))
+        inside = self.within_bounds((name,))
+        return {"name": name, "params": self.params(name, theta, inv), "delta_chi2": removed,
+                "delta_bic": float(dbic), "within_bounds": inside, "tested": bool(dbic > min_delta_bic and inside)}
+
+    def forward(self, names: list[str], min_delta_bic: float) -> list[str]:
+        """Forward selection: add the candidate that lowers BIC most, within bounds, while it lowers it
+        by more than ``min_delta_bic``. Equal gains (collinear candidates) go to the first by name."""
+        chosen: tuple[str, ...] = ()
+        while True:
+            best, best_gain = None, min_delta_bic
+            for name in sorted(set(names) - set(chosen)):
+                trial = (*chosen, name)
+                gain = self.bic(chosen) - self.bic(trial)
+                if gain > best_gain + 1e-9 * max(1.0, abs(best_gain)) and self.within_bounds(trial):
+                    best, best_gain = name, gain
+            if best is None:
+                return list(chosen)
+            chosen = (*chosen, best)
+
+    def ambiguous(self, chosen: list[str], names: list[str]) -> list[dict]:
+        """Pairs the reference cannot tell apart, as :func:`.selection.ambiguities` finds them: a
+        chosen candidate and another whose swap for it costs less than ``BIC_WINDOW``, or that is
+        collinear with it and whose swap is not decisive; two chosen candidates that are collinear."""
+        rows, base = [], self.bic(chosen)
+        for g in chosen:
+            rest = [n for n in chosen if n != g]
+            for h in (n for n in names if n not in chosen):
+                swap = self.bic([*rest, h]) - base
+                corr = canonical_correlation(self._whitened(g), self._whitened(h))
+                if self.within_bounds([*rest, h]) and (swap < BIC_WINDOW or (corr > CORR_LIMIT and swap < DECISIVE_SWAP_BIC)):
+                    rows.append(self._pair(g, h, corr, swap))
+        for i, g in enumerate(chosen):
+            for h in chosen[i + 1:]:
+                corr = canonical_correlation(self._whitened(g), self._whitened(h))
+                if corr > CORR_LIMIT:
+                    rows.append(self._pair(g, h, corr, 0.0))
+        return rows
+
+    def _pair(self, g: str, h: str, corr: float, swap: float) -> dict:
+        return {"candidates": [g, h], "corr": corr, "delta_bic_swap": float(swap),
+                "separating_experiment": separating_experiment(self.cands[g], self.cands[h])}
+
+    def _whitened(self, name: str) -> np.ndarray:
+        """The candidate's rotations whitened by ``w`` (``R^T a`` with ``w = R R^T``; ``R`` from the
+        eigen-decomposition, so that a singular ``w`` is whitened too), stacked over frames."""
+        vals, vecs = np.linalg.eigh(self.w)
+        root = vecs * np.sqrt(np.clip(vals, 0.0, None))[:, None, :]
+        return np.einsum("kji,kjp->kip", root, self.cols[name]).reshape(-1, self.cols[name].shape[2])

@@ -33,10 +33,12 @@ def _what_differs(r: dict) -> str:
     if desc and desc.get("correction"):
         found.append(f"outside the library, {desc['text']} (written to the updated scenario as an empirical correction)")
     ref = r.get("attitude_reference") or {}
+    chosen = {m["name"] for m in ref.get("model", [])}
     for c in ref.get("model", []):
-        alt = [a["candidates"][1] for a in ref.get("ambiguous", []) if a["candidates"][0] == c["name"]]
+        alt = [a["candidates"][1] for a in ref.get("ambiguous", [])
+               if a["candidates"][0] == c["name"] and a["candidates"][1] not in chosen]
         found.append(f"{c['name']}" + (f" (or {' or '.join(alt)}, which the reference cannot tell from it)" if alt else "")
-                     + f", which the attitude absorbs, seen against the reference attitude ({_values(c['params'])}; "
+                     + f", which the stars alone do not show, seen against the reference attitude ({_values(c['params'])}; "
                      "written to the updated scenario)")
     if not found:
         return "The simulation misses this recording, and no library effect explains it."
@@ -126,11 +128,12 @@ def _reference(r: dict) -> str:
     if not tested:
         return head + ", no effect the attitude absorbs is seen."
     found = "; ".join(f"{c['name']} ({_values(c['params'])}, delta BIC {c['delta_bic']:.3g})" for c in tested)
-    joint = ", ".join(c["name"] for c in ref["model"])
+    names = [c["name"] for c in ref["model"]]
+    joint = (f"Fitted together, {', '.join(names[:-1])} and {names[-1]} leave" if len(names) > 1
+             else f"{names[0]} leaves")
     amb = "".join(f" It cannot tell {a['candidates'][0]} from {a['candidates'][1]} (swap delta BIC {a['delta_bic_swap']:.3g}; "
                   f"separate them with: {a['separating_experiment']})." for a in ref.get("ambiguous", []))
-    return (f"{head}: each alone, {found}. Fitted together, {joint} leave chi2 {ref['chi2_after']:.3g} over "
-            f"{ref['dof_after']} dof.{amb}")
+    return f"{head}: each alone, {found}. {joint} chi2 {ref['chi2_after']:.3g} over {ref['dof_after']} dof.{amb}"
 
 
 def _values(params: dict) -> str:
