@@ -108,6 +108,26 @@ def heldout_plot(result: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def _reference_section(ref: dict | None) -> list[str]:
+    """The candidates tested against the reference attitude: each alone, then the joint model."""
+    if not ref:
+        return []
+    joint = {m["name"]: m["params"] for m in ref["model"]}
+    rows = [[c["name"], pn, _f(pv["value"]), _f(pv["sigma"]), pv["unit"], _f(c["delta_bic"]), c["within_bounds"],
+             c["tested"], _f(joint[c["name"]][pn]["value"]) if c["name"] in joint else "not in it"]
+            for c in ref["candidates"] for pn, pv in c["params"].items()]
+    head = (f"<p>Against the reference attitude ({_f(ref['sigma_arcsec'])} arcsec per axis, {ref['frames']} frames): "
+            f"chi2 {_f(ref['chi2'])} over {ref['dof']} dof without an effect, {_f(ref['chi2_after'])} over "
+            f"{ref['dof_after']} with the joint model.</p>")
+    out = [head, _table(rows, ["effect", "parameter", "value alone", "sigma alone", "unit", "delta BIC alone",
+                               "within bounds", "tested", "value in the joint model"])]
+    if ref["ambiguous"]:
+        out.append(_table([[" / ".join(a["candidates"]), _f(a["corr"]), _f(a["delta_bic_swap"]), a["separating_experiment"]]
+                           for a in ref["ambiguous"]], ["the reference cannot tell apart", "|corr|", "delta BIC swap",
+                                                        "separating experiment"]))
+    return out
+
+
 def _table(rows: list[list], head: list[str]) -> str:
     h = "".join(f"<th>{html.escape(str(c))}</th>" for c in head)
     body = "".join("<tr>" + "".join(f"<td>{html.escape(_cell(c))}</td>" for c in r) + "</tr>" for r in rows)
@@ -201,6 +221,7 @@ def write_report(result: dict, d: Diagnosis, out_dir: Path) -> Path:
     if result["absorbed_by_attitude"] or result["not_testable"]:
         parts.append(_table([[a["name"], "absorbed by the per-frame attitude", a["separating_experiment"]] for a in result["absorbed_by_attitude"]]
                             + [[a["name"], "not testable", a["reason"]] for a in result["not_testable"]], ["effect", "status", "why / what would show it"]))
+    parts += _reference_section(result.get("attitude_reference"))
     parts += _model_section(result)
     parts.append("<h2>4. The fit improves</h2>")
     parts.append(_table([["training", _f(result["train_rms_before_px"]), _f(result["train_rms_after_px"]),

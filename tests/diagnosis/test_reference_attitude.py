@@ -16,6 +16,7 @@ from scipy import stats
 from scipy.spatial.transform import Rotation
 
 from rollingstar.config import validate
+from rollingstar.estimators.diagnosis.report import write_report
 from rollingstar.pipelines import diagnose as P
 from rollingstar.pipelines.diagnose import DiagnoseOptions, diagnose_recording
 from rollingstar.pipelines.simulate import simulate_to_log
@@ -120,6 +121,8 @@ def test_two_absorbed_effects_are_fitted_together_and_a_collinear_pair_is_report
         assert "cannot tell" in result["summary"] and "two exposure times" in result["summary"]
     assert {e.kind for e in d.updated_scenario().effects} == set(model)
     assert stats.chi2.sf(ref["chi2_after"], ref["dof_after"]) > 1e-4, ref
+    page = write_report(result, d, tmp_path / "report").read_text()
+    assert "Against the reference attitude" in page and "value in the joint model" in page
 
 
 @pytest.mark.long_study
