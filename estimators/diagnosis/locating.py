@@ -147,11 +147,7 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
     # gross outliers (misidentified stars: the tracking refine gate is 2 px = 40 sigma at 0.05 px),
     # against the named model's misses when one is given
     model = sensor if gate is None else gate
-    far = gross_outliers(obs, attitudes, model, att_mask, pred0 if gate is None else None)
-    gate_sigmas = OUTLIER_SIGMA
-    if np.count_nonzero(~far & ~obs.heldout) < MIN_TRAINING_STARS or far.mean() > MAX_GROSS_FRACTION:
-        gate_sigmas = _robust_gate(obs, attitudes, model, att_mask, pred0 if gate is None else None)
-        far = gross_outliers(obs, attitudes, model, att_mask, gate_sigmas=gate_sigmas)
+    far, gate_sigmas = _gate(obs, attitudes, model, att_mask, pred0 if gate is None else None)
     n_rejected = int(far.sum())
     if np.count_nonzero(~obs.heldout) < MIN_TRAINING_STARS:
         raise UserError(f"only {np.count_nonzero(~obs.heldout)} of the {obs.n} identified stars are left for training "
@@ -175,6 +171,77 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
         obs = replace(obs, channel=chan)
         nuis0, pred0 = fit_nuisance(obs, nuis0, *fit, att_mask, sensor.moving)
     return Dataset(obs, unit, frame_has_train, att_mask, n_rejected, chan_out, gate_sigmas), nuis0, pred0
+
+
+def _gate(obs: Observations, attitudes, model: SensorModel, att_mask: np.ndarray,
+          pred: Prediction | None) -> tuple[np.ndarray, float]:
+    """The gross outliers of ``model`` and the gate (sigmas) that found them.
+
+    The ``OUTLIER_SIGMA`` gate from the attitudes fitted to every star; when it leaves too few
+    training stars or rejects too many, the gate :func:`_robust_gate` sets. When that still leaves
+    too few, the attitudes of the fit every star pulled were too far off to start from (a few
+    wrong identifications hundreds of pixels off, on a lens the model as given also misses): both
+    gates again from the least-trimmed-squares attitudes (:func:`trimmed_prediction`)."""
+    far = gross_outliers(obs, attitudes, model, att_mask, pred)
+    if _enough(obs, far) and far.mean() <= MAX_GROSS_FRACTION:
+        return far, OUTLIER_SIGMA
+    gate_sigmas = _robust_gate(obs, attitudes, model, att_mask, pred)
+    far = gross_outliers(obs, attitudes, model, att_mask, gate_sigmas=gate_sigmas)
+    if _enough(obs, far):
+        return far, gate_sigmas
+    return trimmed_gate(obs, attitudes, model, att_mask)
+
+
+def trimmed_gate(obs: Observations, attitudes, model: SensorModel, att_mask: np.ndarray) -> tuple[np.ndarray, float]:
+    """The gross outliers of ``model`` and the gate (sigmas) that found them, starting from the
+    least-trimmed-squares attitudes (:func:`trimmed_prediction`): the ``OUTLIER_SIGMA`` gate, or,
+    when it leaves too few training stars or rejects too many, :func:`_robust_gate`'s."""
+    trimmed = trimmed_prediction(obs, attitudes, model, att_mask)
+    far = gross_outliers(obs, attitudes, model, att_mask, trimmed)
+    if _enough(obs, far) and far.mean() <= MAX_GROSS_FRACTION:
+        return far, OUTLIER_SIGMA
+    gate_sigmas = _robust_gate(obs, attitudes, model, att_mask, trimmed)
+    return gross_outliers(obs, attitudes, model, att_mask, trimmed, gate_sigmas), gate_sigmas
+
+
+def _enough(obs: Observations, far: np.ndarray) -> bool:
+    """Whether at least ``MIN_TRAINING_STARS`` training stars are left outside ``far``."""
+    return np.count_nonzero(~far & ~obs.heldout) >= MIN_TRAINING_STARS
+
+
+TRIM_FRACTION = 0.5  # of each frame's stars, the share the trimmed attitude fit keeps
+TRIM_ROUNDS = 10  # C-steps of the trimmed fit at most (they stop when the stars kept repeat)
+
+
+def trimmed_prediction(obs: Observations, attitudes, model: SensorModel, att_mask: np.ndarray) -> Prediction:
+    """``model``'s prediction with each frame's attitude fitted to the half of its stars it misses
+    least: least trimmed squares by C-steps (Rousseeuw and Van Driessen 2006; fit, keep the half
+    with the smallest misses, refit, until the stars kept repeat). A wrong identification hundreds
+    of pixels off pulls a fit to every star by tens of pixels; it cannot pull this one while wrong
+    stars are fewer than half of a frame's."""
+    fit = (model.camera, model.timing, model.effects)
+    _, pred = fit_nuisance(obs, attitudes, *fit, att_mask, model.moving)
+    keep = att_mask
+    for _ in range(TRIM_ROUNDS):
+        miss = np.where(att_mask, miss_sigmas(obs, pred), np.inf)
+        again = att_mask & _least_per_frame(obs.frame, obs.n_frames, miss, TRIM_FRACTION)
+        if np.array_equal(again, keep):
+            break
+        keep = again
+        _, pred = fit_nuisance(obs, attitudes, *fit, keep, model.moving)
+    return pred
+
+
+def _least_per_frame(frame: np.ndarray, n_frames: int, value: np.ndarray, fraction: float) -> np.ndarray:
+    """Per frame, the ``fraction`` of its observations with the smallest ``value`` (at least
+    ``MIN_STARS_PER_FRAME``, or all it has)."""
+    order = np.lexsort((value, frame))  # by frame, then by value
+    count = np.bincount(frame, minlength=n_frames)
+    first = np.concatenate([[0], np.cumsum(count)[:-1]])
+    rank = np.empty(frame.size, dtype=np.int64)
+    rank[order] = np.arange(frame.size) - first[frame[order]]
+    n_keep = np.maximum(np.ceil(fraction * count), np.minimum(MIN_STARS_PER_FRAME, count))
+    return rank < n_keep[frame]
 
 
 def _robust_gate(obs: Observations, attitudes, model: SensorModel, att_mask: np.ndarray,

@@ -43,11 +43,13 @@ from scipy.spatial.transform import Rotation
 from rollingstar.estimators.diagnosis.inputs import DiagnoseOptions, SensorModel
 from rollingstar.estimators.diagnosis.locating import (
     GATE_ROUNDS,
+    MAX_GROSS_FRACTION,
     MIN_TRAINING_STARS,
     attitude_mask,
     beyond_gate,
     gross_outliers,
     split_heldout,
+    trimmed_gate,
 )
 from rollingstar.estimators.diagnosis.observations import (
     Nuisance,
@@ -169,7 +171,10 @@ def choose_projection(obs: Observations, attitudes: Rotation, sensor: SensorMode
     Every projection is fitted to the same stars: those within the gross-outlier gate of the best
     fit (with its rates free), found as a fixed point (fit, gate every star on the best fit, fit
     again on the stars inside; at most ``GATE_ROUNDS`` refits). A misidentified star hundreds of
-    pixels off would otherwise decide the search: its miss is about the same under every projection."""
+    pixels off would otherwise decide the search: its miss is about the same under every projection.
+    The first fit has every star in it, and a few such stars among a few tens can pull it so far
+    that most stars end beyond the gate; the search then starts again from the stars within the
+    gate of a trimmed fit of the model as given (:func:`~.locating.trimmed_gate`)."""
     if obs.n == 0:
         return None
     searched = distinguishable(sensor.camera, float(np.median(obs.sigma)))
@@ -181,7 +186,32 @@ def choose_projection(obs: Observations, attitudes: Rotation, sensor: SensorMode
     _, att_mask = attitude_mask(obs)
     train = ~heldout
     declared = sensor.camera.projection
-    inside = np.ones(obs.n, dtype=bool)
+    fits, best, inside = _search(obs, attitudes, sensor, candidates, att_mask, np.ones(obs.n, dtype=bool))
+    if _gross_fraction(obs, fits[best]) > MAX_GROSS_FRACTION:
+        # the search from every star ended with most of them beyond the gate: wrong identifications
+        # far off pulled its first fit; the search again from the stars within the gate of the
+        # model as given with the attitudes of a trimmed fit, kept when it leaves fewer beyond the gate
+        far, _ = trimmed_gate(obs, attitudes, sensor, att_mask)
+        again = _search(obs, attitudes, sensor, candidates, att_mask, ~far)
+        if _gross_fraction(obs, again[0][again[1]]) < _gross_fraction(obs, fits[best]):
+            fits, best, inside = again
+    if declared != best:
+        fits[declared] = _fit(obs, attitudes, sensor, declared, att_mask & inside, train & inside, inside)
+    chi2 = {p: f.chi2 for p, f in fits.items()}
+    named = best if (not np.isfinite(chi2[declared]) or chi2[declared] - chi2[best] >= NAMING_DELTA) else declared
+    dof = int(2 * np.count_nonzero(train & inside) - 3 * obs.n_frames - 2)
+    return ProjectionChoice(declared, named, chi2, {p: f.focal_px for p, f in fits.items()},
+                            {p: f.k1 for p, f in fits.items()}, dof, {p: f.heldout_rms for p, f in fits.items()},
+                            int(np.count_nonzero(~inside)), sensor.camera.focal_px, searched)
+
+
+def _search(obs: Observations, attitudes: Rotation, sensor: SensorModel, candidates, att_mask: np.ndarray,
+            inside: np.ndarray) -> tuple[dict, str, np.ndarray]:
+    """Every candidate projection fitted to the training stars ``inside`` the gate, the best one
+    fitted again with its rates free, and the gate moved to the stars within ``OUTLIER_SIGMA`` of
+    the best fit, until it keeps the same stars (at most ``GATE_ROUNDS`` refits). Returns the fits,
+    the best one's name and the stars inside the gate."""
+    train, declared = ~obs.heldout, sensor.camera.projection
     for round_ in range(GATE_ROUNDS + 1):
         # the frames' rates from the declared model's attitudes, held through the search: a projection
         # changes where stars image, not how the frame turns between frames (the attitudes are
@@ -200,14 +230,12 @@ def choose_projection(obs: Observations, attitudes: Rotation, sensor: SensorMode
         if np.array_equal(again, inside) or np.count_nonzero(again & train) < MIN_TRAINING_STARS:
             break
         inside = again
-    if declared != best:
-        fits[declared] = _fit(obs, attitudes, sensor, declared, att_mask & inside, train & inside, inside)
-    chi2 = {p: f.chi2 for p, f in fits.items()}
-    named = best if (not np.isfinite(chi2[declared]) or chi2[declared] - chi2[best] >= NAMING_DELTA) else declared
-    dof = int(2 * np.count_nonzero(train & inside) - 3 * obs.n_frames - 2)
-    return ProjectionChoice(declared, named, chi2, {p: f.focal_px for p, f in fits.items()},
-                            {p: f.k1 for p, f in fits.items()}, dof, {p: f.heldout_rms for p, f in fits.items()},
-                            int(np.count_nonzero(~inside)), sensor.camera.focal_px, searched)
+    return fits, best, inside
+
+
+def _gross_fraction(obs: Observations, fit) -> float:
+    """The share of the stars beyond the gross-outlier gate of ``fit`` (1 for a failed fit)."""
+    return 1.0 if fit.prediction is None else float(beyond_gate(obs, fit.prediction).mean())
 
 
 def _misses_many(obs: Observations, attitudes: Rotation, sensor: SensorModel) -> bool:
