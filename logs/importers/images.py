@@ -65,10 +65,11 @@ from rollingstar.sensors.conventions import NS_PER_S
 SIDECAR_NAMES = ("recording.yaml", "recording.yml")
 
 _MODES_16 = ("I;16", "I;16L", "I;16B", "I;16N")
+_COLOUR_MODES = ("RGB", "RGBA", "P", "LA", "CMYK", "YCbCr", "PA", "La")
 _LAST_NUMBER = re.compile(r"(.*?)(\d+)(\D*)")  # a file name split around its last run of digits
 
 
-def read_image(path: str | Path) -> np.ndarray:
+def read_image(path: str | Path, log=warn) -> np.ndarray:
     """One image file as a (H, W) uint8 or uint16 array of raw values.
 
     8-bit greyscale stays uint8, 16-bit greyscale (``I;16*``, or ``I`` within 0..65535) becomes
@@ -77,9 +78,10 @@ def read_image(path: str | Path) -> np.ndarray:
     give integers like the 16-bit files. Floating-point pixels (32-bit float TIFF, FITS ``BITPIX
     -32``) become uint16: values 0..1 are normalised (1.0 is 65535), values up to 65535 are counts
     (rounded to integers). Multi-page files, NaN/inf and other values raise ImportDataError.
+    ``log``: where the colour conversion's warning goes (an import's :class:`WarningLog` keeps it).
     """
     path = Path(path)
-    arr = read_fits(path) if path.suffix.lower() in FITS_SUFFIXES else _read_pillow(path)
+    arr = read_fits(path) if path.suffix.lower() in FITS_SUFFIXES else _read_pillow(path, log)
     if arr.size == 0:
         raise ImportDataError(f"{path}: the image has no pixels ({arr.shape[-1]}x{arr.shape[0]} px)")
     if arr.dtype == np.uint8:
@@ -93,7 +95,7 @@ def read_image(path: str | Path) -> np.ndarray:
     return np.ascontiguousarray(arr, dtype=np.uint16)
 
 
-def _read_pillow(path: Path) -> np.ndarray:
+def _read_pillow(path: Path, log=warn) -> np.ndarray:
     """A TIFF, PNG or JPEG file's pixels as Pillow decodes them (greyscale; colour converted to luminance)."""
     try:
         with Image.open(path) as im:
@@ -104,8 +106,8 @@ def _read_pillow(path: Path) -> np.ndarray:
                 return np.asarray(im.convert("L") if mode == "1" else im)
             if mode in ("I", "F"):
                 return np.asarray(im)
-            if mode in ("RGB", "RGBA", "P", "LA", "CMYK", "YCbCr", "PA", "La"):
-                warn(f"{path}: colour image (mode {mode}) converted to 8-bit luminance; "
+            if mode in _COLOUR_MODES:
+                log(f"{path}: colour image (mode {mode}) converted to 8-bit luminance; "
                      "star trackers normally record raw greyscale")
                 return np.asarray(im.convert("L"))
             raise ImportDataError(f"{path}: image mode {mode!r} not supported (expected 8- or 16-bit greyscale)")
@@ -138,14 +140,15 @@ def _float_to_uint16(arr: np.ndarray, path: Path) -> np.ndarray:
     return np.rint(arr * scale).astype(np.uint16)
 
 
-def _image_header(path: Path) -> tuple[int, int, int]:
-    """(width, height, bits) without decoding the pixels; bits is that of :func:`read_image`'s array."""
+def _image_header(path: Path) -> tuple[int, int, int, str]:
+    """(width, height, bits, mode) without decoding the pixels; bits is that of :func:`read_image`'s
+    array, mode Pillow's (``FITS`` for a FITS file)."""
     if path.suffix.lower() in FITS_SUFFIXES:
-        return fits_header(path)
+        return (*fits_header(path), "FITS")
     try:
         with Image.open(path) as im:
             bits = 16 if (im.mode in _MODES_16 or im.mode in ("I", "F")) else 8
-            return im.size[0], im.size[1], bits
+            return im.size[0], im.size[1], bits, im.mode
     except Exception as exc:
         raise _unreadable(path, exc) from None
 
@@ -324,7 +327,7 @@ def import_images(folder: str | Path, out: str | Path, camera: CameraSpec | str 
     source = str(sidecar_path or folder)
     cam = resolve_camera(camera, side if sidecar_path else None, sidecar_path, log, folder)
     files = _list_files(folder, side.files, source, log)
-    container_bits, bit_depth = _bit_depths(files, cam, folder)
+    container_bits, bit_depth = _bit_depths(files, cam, folder, log)
     shift, shift_reason = _value_shift(files, container_bits, cam, log)
     t0, timing = _frame_times(side, files, base, source, log)
     gyro = _read_gyro(base / side.gyro_csv, log) if side.gyro_csv else None
@@ -358,11 +361,15 @@ def import_images(folder: str | Path, out: str | Path, camera: CameraSpec | str 
     return out
 
 
+def _said(message: str) -> None:
+    """Nothing: for a warning the import has already given once for every image."""
+
+
 def _frame_pixels(path: Path, container_bits: int, bit_depth: int, shift: tuple[int, str | None],
                   mirrored: bool) -> np.ndarray:
     """One file's pixels as the recording holds them: ADC counts, in the camera's unmirrored view
     (``shift``: the bits and reason :func:`_value_shift` gives)."""
-    image = read_image(path)
+    image = read_image(path, log=_said)  # a colour image was said once, by :func:`_bit_depths`
     if image.itemsize * 8 != container_bits:  # header and pixels disagree (e.g. mode "I")
         raise ImportDataError(f"{path}: decoded as {image.dtype}, expected {container_bits}-bit like the other images")
     if bit_depth < container_bits:
@@ -449,14 +456,19 @@ def _to_counts(image: np.ndarray, bit_depth: int, shift: int, why: str | None, p
     return image
 
 
-def _bit_depths(files: list[Path], cam: CameraSpec, folder: Path) -> tuple[int, int]:
-    """(container bits, ADC bit depth) of the images, which must all have the camera's size and one container."""
+def _bit_depths(files: list[Path], cam: CameraSpec, folder: Path, log: WarningLog) -> tuple[int, int]:
+    """(container bits, ADC bit depth) of the images, which must all have the camera's size and one
+    container; colour images (converted to luminance) are said once, in the import's warnings."""
     headers = [_image_header(f) for f in files]
-    for f, (w, h, _) in zip(files, headers):
+    colour = [(f, hd[3]) for f, hd in zip(files, headers) if hd[3] in _COLOUR_MODES]
+    if colour:
+        log(f"{folder}: {len(colour)} of the {len(files)} images are colour (the first {colour[0][0].name}, mode "
+            f"{colour[0][1]}) and are converted to 8-bit luminance; star trackers normally record raw greyscale")
+    for f, (w, h, _, _) in zip(files, headers):
         if (w, h) != (cam.width_px, cam.height_px):
             raise ImportDataError(f"{f}: image is {w}x{h} px but the camera says width_px {cam.width_px}, "
                                   f"height_px {cam.height_px}")
-    bits = {b for _, _, b in headers}
+    bits = {b for _, _, b, _ in headers}
     if len(bits) > 1:
         first8 = next(f for f, hd in zip(files, headers) if hd[2] == 8)
         first16 = next(f for f, hd in zip(files, headers) if hd[2] == 16)

@@ -114,11 +114,15 @@ def test_jpeg_and_colour_images_are_luminance(tmp_path):
     rgb = np.zeros((30, 40, 3), dtype=np.uint8)
     rgb[..., 0], rgb[..., 1], rgb[..., 2] = 200, 100, 50
     Image.fromarray(rgb).save(folder / "a.png")
-    with pytest.warns(ImportDataWarning, match="colour image"):
+    Image.fromarray(rgb).save(folder / "b.png")
+    with pytest.warns(ImportDataWarning, match="2 of the 2 images are colour") as caught:
         out = import_images(folder, tmp_path / "r.mcap", camera=small_camera())
+    assert sum("converted to 8-bit luminance" in str(w.message) for w in caught) == 1  # once, not per frame
     img = image_from_raw(next(LogReader(out).messages("/camera/image")))
     # ITU-R 601-2 luma, as Pillow: L = R * 299/1000 + G * 587/1000 + B * 114/1000
     assert img.dtype == np.uint8 and np.all(img == round(200 * 0.299 + 100 * 0.587 + 50 * 0.114))
+    kept = json.loads(LogReader(out).metadata()["import"]["warnings"])
+    assert any("are colour (the first a.png, mode RGB)" in w for w in kept), kept
 
 
 def test_image_sidecar_frame_rate_default_and_camera_file(tmp_path):
