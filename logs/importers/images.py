@@ -153,6 +153,14 @@ def _image_header(path: Path) -> tuple[int, int, int, str]:
         raise _unreadable(path, exc) from None
 
 
+def _png_bits_per_channel(path: Path) -> int | None:
+    """The bit depth a PNG file's header (IHDR) states, None for another file: Pillow decodes 16-bit
+    colour PNGs to 8 bits per channel without saying so."""
+    with open(path, "rb") as f:
+        head = f.read(26)
+    return head[24] if len(head) == 26 and head.startswith(b"\x89PNG\r\n\x1a\n") and head[12:16] == b"IHDR" else None
+
+
 def find_sidecar(folder: Path) -> Path | None:
     for name in SIDECAR_NAMES:
         if (folder / name).is_file():
@@ -462,8 +470,11 @@ def _bit_depths(files: list[Path], cam: CameraSpec, folder: Path, log: WarningLo
     headers = [_image_header(f) for f in files]
     colour = [(f, hd[3]) for f, hd in zip(files, headers) if hd[3] in _COLOUR_MODES]
     if colour:
+        deep = sum(_png_bits_per_channel(f) == 16 for f, _ in colour)
+        lost = (f"; {deep} of them hold 16 bits per channel, of which Pillow keeps the top 8 (convert them to "
+                "16-bit greyscale to keep the rest)") if deep else ""
         log(f"{folder}: {len(colour)} of the {len(files)} images are colour (the first {colour[0][0].name}, mode "
-            f"{colour[0][1]}) and are converted to 8-bit luminance; star trackers normally record raw greyscale")
+            f"{colour[0][1]}) and are converted to 8-bit luminance; star trackers normally record raw greyscale{lost}")
     for f, (w, h, _, _) in zip(files, headers):
         if (w, h) != (cam.width_px, cam.height_px):
             raise ImportDataError(f"{f}: image is {w}x{h} px but the camera says width_px {cam.width_px}, "

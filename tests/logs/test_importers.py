@@ -125,6 +125,27 @@ def test_jpeg_and_colour_images_are_luminance(tmp_path):
     assert any("are colour (the first a.png, mode RGB)" in w for w in kept), kept
 
 
+def test_a_16_bit_colour_png_says_what_pillow_drops(tmp_path):
+    """Pillow decodes a PNG of 16 bits per RGB channel to 8 bits per channel: the import says so.
+    The file is written by hand from the PNG specification (signature, IHDR, IDAT, IEND), as Pillow
+    cannot write one."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    rgb = np.full((30, 40, 3), 40000, dtype=">u2")
+    rows = b"".join(b"\x00" + row.tobytes() for row in rgb)  # filter type 0 before each row
+    (folder / "a.png").write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 40, 30, 16, 2, 0, 0, 0))
+                                   + chunk(b"IDAT", zlib.compress(rows)) + chunk(b"IEND", b""))
+    with pytest.warns(ImportDataWarning, match=r"1 of them hold 16 bits per channel, of which Pillow keeps the top 8"):
+        out = import_images(folder, tmp_path / "r.mcap", camera=small_camera())
+    assert np.all(image_from_raw(next(LogReader(out).messages("/camera/image"))) == 40000 >> 8)
+
+
 def test_image_sidecar_frame_rate_default_and_camera_file(tmp_path):
     folder = tmp_path / "imgs"
     folder.mkdir()
