@@ -58,6 +58,7 @@ from rollingstar.sensors.build import build_timing
 from rollingstar.sensors.conventions import radec_to_unit
 from rollingstar.sensors.scenario import MAX_TIME_MS
 
+FAST_FRAME_MS = 1.0  # frames closer than this (median) with no shutter stated get a warning: a 1 kHz star camera is rare
 REQUIRED = ("frame", "x", "y", "flux")
 COVARIANCE = ("cov_xx", "cov_xy", "cov_yy")
 OPTIONAL = ("sigma_px", "snr", "peak", "npix", "saturated", "catalog_id", "ra_deg", "dec_deg", "magnitude", *COVARIANCE)
@@ -76,7 +77,7 @@ def read_centroid_table(path: str | Path, camera: CameraSpec, log: WarningLog | 
         raise ImportDataError(f"{table.where(int(bad[0]), 'frame')}: {frame[bad[0]]} is negative; frames are 0-based")
     check_non_decreasing(table, frame, "frame")
     t, tname, starts = _frame_times(table, frame)
-    _check_frame_spacing(table, frame, t, starts, tname, camera)
+    _check_frame_spacing(table, frame, t, starts, tname, camera, log)
     cols: dict[str, np.ndarray] = {"frame": frame, "t0_ns": t, "time_column": np.asarray(tname),
                                    "lines": table.lines,
                                    "x": float_column(table, "x"), "y": float_column(table, "y"),
@@ -219,7 +220,7 @@ def import_centroids(csv: str | Path, out: str | Path, camera: CameraSpec | str 
 
 
 def _check_frame_spacing(table, frame: np.ndarray, t: np.ndarray, starts: np.ndarray, tname: str,
-                         camera: CameraSpec) -> None:
+                         camera: CameraSpec, log: WarningLog) -> None:
     """Refuse frame times closer together than the camera can take frames.
 
     Every row's exposure (when the camera file states its shutter) and the readout of all rows of a
@@ -228,7 +229,9 @@ def _check_frame_spacing(table, frame: np.ndarray, t: np.ndarray, starts: np.nda
     close and fail here, instead of being read as a very fast camera; nanoseconds in ``time_s`` come
     out more than the sensor model's hour apart. The median spacing must reach that minimum, as the
     sensor model requires; a single spacing may fall short by up to half of it (timestamp jitter of
-    a camera that exposes for its whole frame period).
+    a camera that exposes for its whole frame period). A camera file without a shutter states no
+    minimum: frames less than ``FAST_FRAME_MS`` apart (median) then get a warning, since
+    microseconds written in ``t_ns`` look like such a camera.
     """
     if starts.size < 2:
         return
@@ -242,6 +245,11 @@ def _check_frame_spacing(table, frame: np.ndarray, t: np.ndarray, starts: np.nda
         raise ImportDataError(f"{table.where(int(starts[1]), tname)}: the frames are {np.median(gaps) * 1e-9:g} s "
                               f"apart (median), more than the sensor model's limit of one hour; the column {tname} "
                               f"is read as {unit}: check that the times are in that unit")
+    if not need and np.median(gaps) < FAST_FRAME_MS * 1e6:
+        log(f"{table.where(int(starts[1]), tname)}: the frames are {np.median(gaps) * 1e-6:g} ms apart (median), "
+            f"faster than star cameras commonly run ({1e3 / FAST_FRAME_MS:g} Hz), and the camera file states no "
+            f"shutter to check them against; the column {tname} is read as {unit}: if the times are in another "
+            "unit, the rolling-shutter timing and every rate will be off by the same factor")
     bad = np.flatnonzero(gaps < (need if np.median(gaps) < need else need / 2))
     if not bad.size:
         return

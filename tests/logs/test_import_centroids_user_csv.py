@@ -1,5 +1,7 @@
 """Centroid CSVs as new users write them: benign variants import, mistakes fail with a message
 naming the file, line and column (exit 2 from the CLI), never a silently wrong recording."""
+import warnings
+
 import pytest
 
 from rollingstar.logs import LogReader
@@ -44,6 +46,21 @@ def test_times_in_another_unit_than_ns_are_refused_before_the_sensor_model(tmp_p
     rows = [",".join([f, str(int(t) // scale), *rest]) for f, t, *rest in (r.split(",") for r in ROWS)]
     _fails(tmp_path, "\n".join([HEADER, *rows]), "line 4, column 't_ns'", "frame 1 is", "after frame 0 (line 2)",
            "readout", "read as integer nanoseconds")
+
+
+def test_microseconds_in_t_ns_without_a_shutter_are_warned_about(tmp_path):
+    """A camera file without a shutter states no minimum frame spacing: times in microseconds
+    (frames 0.1 ms apart as nanoseconds) import, with a warning that names the column and the unit
+    it is read in; frames 100 ms apart import without one."""
+    bare = CameraSpec(width_px=1024, height_px=1024, focal_length_mm=50.0, pixel_size_um=5.5)
+    rows = [",".join([f, str(int(t) // 1_000), *rest]) for f, t, *rest in (r.split(",") for r in ROWS)]
+    with pytest.warns(ImportDataWarning, match=r"line 4, column 't_ns'.*0\.1 ms apart.*states no shutter.*"
+                                               r"read as integer nanoseconds"):
+        _import(tmp_path, "\n".join([HEADER, *rows]), camera=bare)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _import(tmp_path, "\n".join([HEADER, *ROWS]), camera=bare)
+    assert not any("ms apart" in str(w.message) for w in caught)
 
 
 def test_frames_closer_than_the_declared_exposure_are_refused(tmp_path):
