@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 import re
 import warnings
-from datetime import timezone
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -125,11 +125,13 @@ def fits_observation(path: str | Path, log) -> Observation:
     """The observation time the file's header states, else none (``log``: a warning's sink).
 
     ``DATE-OBS`` (the start of the observation) in the image's HDU, else the primary HDU: ISO 8601
-    (``2019-07-29T20:47:26.5``), or the pre-2000 form ``DD/MM/YY`` (years 1900-1999). A date without
-    a time of day takes ``TIME-OBS`` (or ``UT``) when given, else midnight with a warning. The time
-    scale is ``TIMESYS`` (UTC by the standard's default); a scale astropy cannot convert to UTC
-    (``GPS``, ``LOCAL``) is read as UTC with a warning: GPS time differs from it by seconds, far below
-    the 53 min to which the catalogue epoch is rounded, and a local clock by its zone (at most 14 h,
+    (``2019-07-29T20:47:26.5``; a space for the ``T``, minutes without seconds and a zone, ``Z`` or
+    ``+02:00``, are read too), or the pre-2000 form ``DD/MM/YY`` (years 1900-1999). A date without a
+    time of day takes ``MJD-OBS`` when given, else ``TIME-OBS`` (or ``UT``), else midnight with a
+    warning; ``MJD-OBS`` alone is read too. The time scale is ``TIMESYS`` (UTC by the standard's
+    default) unless the time states a zone; a scale astropy cannot convert to UTC (``GPS``,
+    ``LOCAL``) is read as UTC with a warning: GPS time differs from it by seconds, far below the
+    53 min to which the catalogue epoch is rounded, and a local clock by its zone (at most 14 h,
     0.0016 yr)."""
     path = Path(path)
     try:
@@ -138,36 +140,69 @@ def fits_observation(path: str | Path, log) -> Observation:
             headers = [hdul[index].header] if index not in (None, 0) else []
             headers.append(hdul[0].header)
             cards = {key: next((str(h[key]).strip() for h in headers if str(h.get(key, "")).strip()), "")
-                     for key in ("DATE-OBS", "TIME-OBS", "UT", "TIMESYS")}
+                     for key in ("DATE-OBS", "MJD-OBS", "TIME-OBS", "UT", "TIMESYS")}
     except ImportDataError:  # an unreadable file is reported by the image reader itself
         return NO_OBSERVATION
-    return _observation_from_cards(cards, path, log)
-
-
-def _observation_from_cards(cards: dict[str, str], path: Path, log) -> Observation:
-    from astropy.time import Time  # here, not at the top, like astropy.io.fits
-
-    text = cards["DATE-OBS"]
-    if not text:
+    if not cards["DATE-OBS"] and not cards["MJD-OBS"]:
         return NO_OBSERVATION
-    old = re.fullmatch(r"(\d\d)/(\d\d)/(\d\d)", text)
-    date = f"19{old[3]}-{old[2]}-{old[1]}" if old else text
-    if "T" not in date:
-        time_of_day = cards["TIME-OBS"] or cards["UT"]
-        if not time_of_day:
-            log(f"{path}: DATE-OBS {text} states no time of day (and no TIME-OBS); read as 00:00 (a day moves the "
-                "catalogue epoch by 0.0027 yr, no Hipparcos star by more than 30 mas)")
-        date = f"{date}T{time_of_day or '00:00:00'}"
-    scale = (cards["TIMESYS"] or "UTC").lower()
-    if scale not in Time.SCALES or scale == "local":  # astropy keeps a local clock but cannot convert it
-        log(f"{path}: TIMESYS {cards['TIMESYS']} is not a time scale that converts to UTC; DATE-OBS read as UTC")
-        scale = "utc"
-    try:
-        when = Time(date, format="fits", scale=scale).utc.to_datetime(timezone=timezone.utc)
-    except ValueError:
-        log(f"{path}: DATE-OBS {text!r} is not a FITS date (YYYY-MM-DDThh:mm:ss); not used")
+    when, what = _header_utc(cards, _time_scale(cards["TIMESYS"], path, log), path, log)
+    if when is None:
         return NO_OBSERVATION
     if not EPOCH_YEARS[0] <= when.year <= EPOCH_YEARS[1]:
-        log(f"{path}: DATE-OBS {text} is outside the years {EPOCH_YEARS[0]:.0f}-{EPOCH_YEARS[1]:.0f}; not used")
+        log(f"{path}: {what} is outside the years {EPOCH_YEARS[0]:.0f}-{EPOCH_YEARS[1]:.0f}; not used")
         return NO_OBSERVATION
     return Observation(when, "fits")
+
+
+_DATE_ONLY = re.compile(r"\d{4}-\d\d-\d\d")
+_ZONE = re.compile(r"(Z|[+-]\d\d:?\d\d)$")
+
+
+def _time_scale(timesys: str, path: Path, log) -> str:
+    from astropy.time import Time  # here, not at the top, like astropy.io.fits
+
+    scale = (timesys or "UTC").lower()
+    if scale not in Time.SCALES or scale == "local":  # astropy keeps a local clock but cannot convert it
+        log(f"{path}: TIMESYS {timesys} is not a time scale that converts to UTC; the header's time read as UTC")
+        return "utc"
+    return scale
+
+
+def _header_utc(cards: dict[str, str], scale: str, path: Path, log) -> tuple[datetime | None, str]:
+    """The UTC time of the header's cards (:func:`fits_observation`) and the cards it came from; None
+    (with a warning) when they hold no time."""
+    from astropy.time import Time
+
+    text, mjd = cards["DATE-OBS"], cards["MJD-OBS"]
+    date = _normalised(text)
+    if not text or _DATE_ONLY.fullmatch(date):
+        if mjd:
+            try:
+                return Time(float(mjd), format="mjd", scale=scale).utc.to_datetime(timezone=timezone.utc), f"MJD-OBS {mjd}"
+            except ValueError:
+                log(f"{path}: MJD-OBS {mjd!r} is not a modified Julian date; not used")
+            if not text:
+                return None, f"MJD-OBS {mjd}"
+        clock = _normalised(cards["TIME-OBS"] or cards["UT"])
+        if not clock:
+            log(f"{path}: DATE-OBS {text} states no time of day (and no TIME-OBS); read as 00:00 (a day moves the "
+                "catalogue epoch by 0.0027 yr, no Hipparcos star by more than 30 mas)")
+        date = f"{date}T{clock or '00:00:00'}"
+        text = f"{text} {cards['TIME-OBS'] or cards['UT']}".strip()
+    try:
+        if _ZONE.search(date):  # a civil time with its zone: the zone, not TIMESYS, says how far from UTC
+            return datetime.fromisoformat(date).astimezone(timezone.utc), f"DATE-OBS {text}"
+        return Time(date, format="isot", scale=scale).utc.to_datetime(timezone=timezone.utc), f"DATE-OBS {text}"
+    except ValueError:
+        log(f"{path}: DATE-OBS {text!r} is not a date and time (YYYY-MM-DDThh:mm:ss); not used")
+        return None, f"DATE-OBS {text}"
+
+
+def _normalised(text: str) -> str:
+    """A header's date or time as ISO 8601 astropy and Python read: ``DD/MM/YY`` as 19YY-MM-DD,
+    upper case, a space for the ``T``, seconds added to ``hh:mm``, a leap second (``:60``) read as
+    the end of the second before it (neither Python nor the catalogue epoch needs it)."""
+    old = re.fullmatch(r"(\d\d)/(\d\d)/(\d\d)", text)
+    out = f"19{old[3]}-{old[2]}-{old[1]}" if old else text.strip().upper().replace(" ", "T", 1)
+    out = re.sub(r"(T|^)(\d\d:\d\d)(?=$|Z|[+-])", r"\1\2:00", out)
+    return re.sub(r"(\d\d:\d\d):60(\.\d*)?(?=$|Z|[+-])", r"\1:59.999999", out)

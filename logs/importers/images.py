@@ -412,7 +412,10 @@ def _value_shift(files: list[Path], container_bits: int, cam: CameraSpec, log: W
         left, why = _justification(read_image(path), cam.bit_depth)
         if left is not None:
             return (16 - cam.bit_depth if left else 0), f"{path.name}: {why}"
-    return 0, f"no image tells (every one has fewer than {MIN_JUSTIFIED_PIXELS} non-zero pixels): right-justified"
+    why = f"no image tells (every one has fewer than {MIN_JUSTIFIED_PIXELS} non-zero pixels): read as right-justified"
+    log(f"{files[0].parent}: {why}; if the camera writes its {cam.bit_depth}-bit counts left-justified in 16-bit words, "
+        f"every count is {1 << (16 - cam.bit_depth)} times too large")
+    return 0, why
 
 
 def _justification(image: np.ndarray, bit_depth: int) -> tuple[bool | None, str]:

@@ -145,7 +145,7 @@ def _epoch(spec: ObservationSpec, observation: Observation, source: str) -> tupl
         year = round(julian_year(observation.time), EPOCH_DECIMALS)
         kind = observation.source if observation.source in ("observation_time", "exif", "fits") else "timestamps"
         where = {"observation_time": f"observation_time in {source}", "exif": "the first image's EXIF time",
-                 "fits": "the first image's FITS DATE-OBS"}.get(
+                 "fits": "the first image's FITS header (DATE-OBS, MJD-OBS)"}.get(
             observation.source, f"the first frame's {observation.source} (Unix time)")
         return year, kind, f"Julian year of {observation.iso}, from {where}"
     return DEFAULT_EPOCH_YEAR, "default", "no observation time; the scenario default"
