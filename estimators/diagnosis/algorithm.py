@@ -347,6 +347,7 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
         "noise_check": d.noise.as_json() if d.noise is not None else None,
         "rejected_outliers": data.n_rejected,
         "outlier_gate_sigmas": data.gate_sigmas,
+        "outlier_gate_trimmed_start": data.gate_trimmed,
         "isolated_misfits": _isolated(data.obs, d.model.prediction, v.isolated),
         "outlier_rounds": list(d.outlier_rounds),
         "split": {"unit": data.unit, "frames": data.obs.n_frames, "train_frames": data.n_train_frames,

@@ -61,6 +61,7 @@ class Dataset:
     n_rejected: int  # gross outliers dropped
     channel_heldout: GyroChannel | None  # the increment channel of the pairs touching a held-out frame
     gate_sigmas: float = OUTLIER_SIGMA  # the gross-outlier gate used (Mahalanobis sigmas)
+    gate_trimmed: bool = False  # the gate started from the least-trimmed-squares attitudes (:func:`trimmed_gate`)
 
     @property
     def train(self) -> np.ndarray:
@@ -147,7 +148,7 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
     # gross outliers (misidentified stars: the tracking refine gate is 2 px = 40 sigma at 0.05 px),
     # against the named model's misses when one is given
     model = sensor if gate is None else gate
-    far, gate_sigmas = _gate(obs, attitudes, model, att_mask, pred0 if gate is None else None)
+    far, gate_sigmas, gate_trimmed = _gate(obs, attitudes, model, att_mask, pred0 if gate is None else None)
     n_rejected = int(far.sum())
     if np.count_nonzero(~obs.heldout) < MIN_TRAINING_STARS:
         raise UserError(f"only {np.count_nonzero(~obs.heldout)} of the {obs.n} identified stars are left for training "
@@ -158,7 +159,9 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
         raise UserError(f"the simulation as given misses {n_rejected} of the {obs.n} identified stars by more than "
                         f"{gate_sigmas:.3g} sigma (median miss {miss:.3g} px), leaving fewer than {MIN_TRAINING_STARS} "
                         f"training stars to diagnose: its sensor model is far from the recording's (lens projection, "
-                        f"focal length, distortion or principal point); state them closer in the scenario")
+                        f"focal length, distortion or principal point), or so many of the identifications are wrong "
+                        f"that not even the half of each frame's stars it misses least place its attitude; state the "
+                        f"sensor closer in the scenario, or check the identification")
     if n_rejected:
         obs = obs.take(~far)
         frame_has_train, att_mask = attitude_mask(obs)
@@ -170,12 +173,13 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
     if chan is not None:
         obs = replace(obs, channel=chan)
         nuis0, pred0 = fit_nuisance(obs, nuis0, *fit, att_mask, sensor.moving)
-    return Dataset(obs, unit, frame_has_train, att_mask, n_rejected, chan_out, gate_sigmas), nuis0, pred0
+    return Dataset(obs, unit, frame_has_train, att_mask, n_rejected, chan_out, gate_sigmas, gate_trimmed), nuis0, pred0
 
 
 def _gate(obs: Observations, attitudes, model: SensorModel, att_mask: np.ndarray,
-          pred: Prediction | None) -> tuple[np.ndarray, float]:
-    """The gross outliers of ``model`` and the gate (sigmas) that found them.
+          pred: Prediction | None) -> tuple[np.ndarray, float, bool]:
+    """The gross outliers of ``model``, the gate (sigmas) that found them and whether it started from
+    the trimmed fit.
 
     The ``OUTLIER_SIGMA`` gate from the attitudes fitted to every star; when it leaves too few
     training stars or rejects too many, the gate :func:`_robust_gate` sets. When that still leaves
@@ -184,12 +188,12 @@ def _gate(obs: Observations, attitudes, model: SensorModel, att_mask: np.ndarray
     gates again from the least-trimmed-squares attitudes (:func:`trimmed_prediction`)."""
     far = gross_outliers(obs, attitudes, model, att_mask, pred)
     if _enough(obs, far) and far.mean() <= MAX_GROSS_FRACTION:
-        return far, OUTLIER_SIGMA
+        return far, OUTLIER_SIGMA, False
     gate_sigmas = _robust_gate(obs, attitudes, model, att_mask, pred)
     far = gross_outliers(obs, attitudes, model, att_mask, gate_sigmas=gate_sigmas)
     if _enough(obs, far):
-        return far, gate_sigmas
-    return trimmed_gate(obs, attitudes, model, att_mask)
+        return far, gate_sigmas, False
+    return (*trimmed_gate(obs, attitudes, model, att_mask), True)
 
 
 def trimmed_gate(obs: Observations, attitudes, model: SensorModel, att_mask: np.ndarray) -> tuple[np.ndarray, float]:
@@ -233,14 +237,15 @@ def trimmed_prediction(obs: Observations, attitudes, model: SensorModel, att_mas
 
 
 def _least_per_frame(frame: np.ndarray, n_frames: int, value: np.ndarray, fraction: float) -> np.ndarray:
-    """Per frame, the ``fraction`` of its observations with the smallest ``value`` (at least
-    ``MIN_STARS_PER_FRAME``, or all it has)."""
+    """Per frame, the ``fraction`` of its observations with a finite ``value`` that have the smallest
+    (at least ``MIN_STARS_PER_FRAME``, or all it has); an infinite value marks one left out."""
     order = np.lexsort((value, frame))  # by frame, then by value
     count = np.bincount(frame, minlength=n_frames)
     first = np.concatenate([[0], np.cumsum(count)[:-1]])
     rank = np.empty(frame.size, dtype=np.int64)
     rank[order] = np.arange(frame.size) - first[frame[order]]
-    n_keep = np.maximum(np.ceil(fraction * count), np.minimum(MIN_STARS_PER_FRAME, count))
+    finite = np.bincount(frame, weights=np.isfinite(value), minlength=n_frames)
+    n_keep = np.maximum(np.ceil(fraction * finite), np.minimum(MIN_STARS_PER_FRAME, finite))
     return rank < n_keep[frame]
 
 

@@ -83,6 +83,7 @@ class ProjectionChoice:
     beyond_gate: int = 0  # stars every projection was fitted without (beyond the gross-outlier gate of the best)
     declared_focal_px: float = float("nan")
     searched: bool = True  # False: a narrow field, only the declared projection's focal length and k1 fitted
+    trimmed_start: bool = False  # the search started again from a trimmed fit's gate (:func:`choose_projection`)
 
     @property
     def renamed(self) -> bool:
@@ -110,6 +111,7 @@ class ProjectionChoice:
     def as_json(self) -> dict:
         return {"declared": self.declared, "named": self.named, "delta_chi2": self.delta_chi2, "dof": self.dof,
                 "heldout_rms_px": self.heldout_rms_px, "beyond_gate": self.beyond_gate, "searched": self.searched,
+                "trimmed_start": self.trimmed_start,
                 "declared_focal_px": self.declared_focal_px, "refocused": self.refocused,
                 "candidates": {p: {"chi2_dof": self.chi2[p] / max(self.dof, 1), "focal_px": self.focal_px[p],
                                    "k1": self.k1[p]} for p in self.chi2}}
@@ -187,14 +189,17 @@ def choose_projection(obs: Observations, attitudes: Rotation, sensor: SensorMode
     train = ~heldout
     declared = sensor.camera.projection
     fits, best, inside = _search(obs, attitudes, sensor, candidates, att_mask, np.ones(obs.n, dtype=bool))
+    trimmed = False
     if _gross_fraction(obs, fits[best]) > MAX_GROSS_FRACTION:
-        # the search from every star ended with most of them beyond the gate: wrong identifications
+        # the search from every star left more than a quarter of them beyond the gate: wrong identifications
         # far off pulled its first fit; the search again from the stars within the gate of the
-        # model as given with the attitudes of a trimmed fit, kept when it leaves fewer beyond the gate
+        # model as given with the attitudes of a trimmed fit (when they leave enough training stars),
+        # kept when it leaves fewer beyond the gate
         far, _ = trimmed_gate(obs, attitudes, sensor, att_mask)
-        again = _search(obs, attitudes, sensor, candidates, att_mask, ~far)
-        if _gross_fraction(obs, again[0][again[1]]) < _gross_fraction(obs, fits[best]):
-            fits, best, inside = again
+        if np.count_nonzero(~far & train) >= MIN_TRAINING_STARS:
+            again = _search(obs, attitudes, sensor, candidates, att_mask, ~far)
+            if _gross_fraction(obs, again[0][again[1]]) < _gross_fraction(obs, fits[best]):
+                (fits, best, inside), trimmed = again, True
     if declared != best:
         fits[declared] = _fit(obs, attitudes, sensor, declared, att_mask & inside, train & inside, inside)
     chi2 = {p: f.chi2 for p, f in fits.items()}
@@ -202,7 +207,7 @@ def choose_projection(obs: Observations, attitudes: Rotation, sensor: SensorMode
     dof = int(2 * np.count_nonzero(train & inside) - 3 * obs.n_frames - 2)
     return ProjectionChoice(declared, named, chi2, {p: f.focal_px for p, f in fits.items()},
                             {p: f.k1 for p, f in fits.items()}, dof, {p: f.heldout_rms for p, f in fits.items()},
-                            int(np.count_nonzero(~inside)), sensor.camera.focal_px, searched)
+                            int(np.count_nonzero(~inside)), sensor.camera.focal_px, searched, trimmed)
 
 
 def _search(obs: Observations, attitudes: Rotation, sensor: SensorModel, candidates, att_mask: np.ndarray,
