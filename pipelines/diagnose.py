@@ -283,6 +283,9 @@ def diagnose_recording(recording: str | Path, scenario: ScenarioConfig | None = 
             obs, att0 = build_observations(stars, att, scenario, catalog)
         except UserError as exc:
             raise UserError(f"{recording}: {exc} (pipeline {pipeline.name})") from None
+        if options.reference_mount_free and options.reference_sigma_arcsec is None:
+            raise UserError(f"{recording}: --reference-mount-free fits the misalignment of a reference attitude; "
+                            "state the reference's accuracy with --reference-attitude-arcsec S to use one")
         reference = read_reference(recording, obs) if options.reference_sigma_arcsec is not None else None
         with progress_bar("diagnose", len(algorithm.PHASES), options.show_progress) as advance:
             d = algorithm.diagnose(obs, att0, scenario, read_gyro(recording, scenario), options, exclude_effects,

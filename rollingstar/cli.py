@@ -522,6 +522,9 @@ def diagnose(recording: Path = typer.Option(..., "--recording", help="MCAP recor
              reference_arcsec: float = typer.Option(None, "--reference-attitude-arcsec", min=0.0,
                                                     help="use the recording's /truth/attitude as a reference of this "
                                                          "accuracy per axis (arcsec): effects the attitude absorbs become testable"),
+             mount_free: bool = typer.Option(False, "--reference-mount-free",
+                                             help="the reference is not aligned with the camera (a second tracker, an "
+                                                  "unsurveyed mount): fit its misalignment with every model"),
              quiet: bool = _quiet()):
     """Locate a simulation/recording mismatch, name the physics left out, model it, show the fit improve."""
     from rollingstar.pipelines.diagnose import (
@@ -532,7 +535,8 @@ def diagnose(recording: Path = typer.Option(..., "--recording", help="MCAP recor
 
     sim = None if sim is None else find_config(sim, "scenario")
     pipeline = None if pipeline is None else find_config(pipeline, "pipeline")
-    options = DiagnoseOptions(seed=seed, show_progress=not quiet and not as_json, reference_sigma_arcsec=reference_arcsec)
+    options = DiagnoseOptions(seed=seed, show_progress=not quiet and not as_json, reference_sigma_arcsec=reference_arcsec,
+                              reference_mount_free=mount_free)
     result = run_diagnose(recording, sim, pipeline, out_dir, options)
     if as_json:
         print(json.dumps(result, indent=2))

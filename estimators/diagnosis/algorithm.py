@@ -166,7 +166,8 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
         if reference is not None and options.reference_sigma_arcsec is not None:
             check = reference_check(steps[0].data, steps[2], cands, list(steps[1].problem.absorbed), *reference,
                                     options.reference_sigma_arcsec, options.min_delta_bic,
-                                    {e.kind: dict(e.params) for e in sensor.scenario.effects})
+                                    {e.kind: dict(e.params) for e in sensor.scenario.effects},
+                                    options.reference_mount_free)
         done(PHASES[5])
     return Diagnosis(sensor, *steps[:4], choice, steps[4], noise, shape, evidence, before, check, carries_reference)
 

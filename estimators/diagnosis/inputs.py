@@ -30,7 +30,9 @@ class DiagnoseOptions:
     distributions with a re-simulation; ``show_progress``: show the progress of the pipeline run
     that produces the observations (used by the command layer, not by the algorithm);
     ``reference_sigma_arcsec``: the accuracy per axis of the recording's reference attitude, to
-    test the effects the attitude absorbs against it (None: no reference used, :mod:`.reference`).
+    test the effects the attitude absorbs against it (None: no reference used, :mod:`.reference`);
+    ``reference_mount_free``: the reference is not aligned with the camera (a second tracker, an
+    unsurveyed mount): its misalignment is fitted with every model.
     """
 
     heldout_fraction: float = HELDOUT_FRACTION
@@ -41,6 +43,7 @@ class DiagnoseOptions:
     resimulate: bool = True
     show_progress: bool = False
     reference_sigma_arcsec: float | None = None
+    reference_mount_free: bool = False
 
 
 @dataclass(frozen=True, eq=False)

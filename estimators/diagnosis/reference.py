@@ -39,8 +39,19 @@ from rollingstar.estimators.diagnosis.gyro_channel import absorbed_rotations, at
 from rollingstar.estimators.diagnosis.library import Candidate, separating_experiment
 from rollingstar.estimators.diagnosis.observations import whiten
 from rollingstar.estimators.diagnosis.residuals import z_from_sf
-from rollingstar.estimators.diagnosis.selection import BIC_WINDOW, CORR_LIMIT, DECISIVE_SWAP_BIC, canonical_correlation
+from rollingstar.estimators.diagnosis.selection import (
+    ABSORBED_FRACTION,
+    BIC_WINDOW,
+    CORR_LIMIT,
+    DECISIVE_SWAP_BIC,
+    canonical_correlation,
+)
 from rollingstar.sensors.conventions import ARCSEC_TO_RAD
+
+MISALIGNED = "a misaligned reference"
+MISALIGNED_EXPERIMENT = ("a reference known to be aligned with the camera (a simulation's truth, a surveyed mount); "
+                         "for a second tracker or an unsurveyed mount, --reference-mount-free fits the misalignment "
+                         "and leaves this effect untested")
 
 
 @dataclass(frozen=True)
@@ -57,6 +68,7 @@ class ReferenceCheck:
     chi2_after: float | None = None  # of the attitude differences with the joint model
     rank_after: int = 0  # parameters the joint model determines
     ambiguous: list[dict] = field(default_factory=list)  # pairs the reference cannot tell apart
+    mount: dict | None = None  # the reference's fitted misalignment, when it is free (:func:`reference_check`)
 
     @property
     def tested(self) -> list[str]:
@@ -67,16 +79,23 @@ class ReferenceCheck:
         return {"sigma_arcsec": self.sigma_arcsec, "frames": self.frames, "chi2": self.chi2, "dof": self.dof,
                 "z": z, "candidates": self.rows, "model": self.model_params,
                 "chi2_after": self.chi2_after if self.model else self.chi2, "dof_after": self.dof - self.rank_after,
-                "ambiguous": self.ambiguous}
+                "ambiguous": self.ambiguous, "mount": self.mount}
 
 
 def reference_check(data, model, cands: dict[str, Candidate], names: list[str], reference: Rotation,
                     covered: np.ndarray, sigma_arcsec: float, min_delta_bic: float,
-                    base: dict[str, dict] | None = None) -> ReferenceCheck:
+                    base: dict[str, dict] | None = None, mount_free: bool = False) -> ReferenceCheck:
     """Test the candidates ``names`` against ``reference`` (one attitude per frame at its reference
     time; frames where ``covered`` is False are left out). ``data``: the diagnosis's dataset,
     ``model``: the named model (its attitudes and prediction); ``base``: the scenario's effects
-    (kind -> parameters), to which the values reported are added."""
+    (kind -> parameters), to which the values reported are added.
+
+    ``mount_free``: the reference is not aligned with the camera (a second tracker, a mount): a
+    constant rotation ``m`` (``R_ref = R_camera exp(m)``, camera axes) is fitted with every model,
+    by projecting it out of ``e`` and of every candidate's rotations (Frisch-Waugh-Lovell: the same
+    estimates as fitting it jointly), and reported. An effect that is a constant rotation (a
+    boresight roll, over a narrow field a principal-point shift) then cannot be tested. Without it,
+    such an effect is reported as not told apart from a misaligned reference."""
     obs, pred = data.obs, model.prediction
     sigma = sigma_arcsec * ARCSEC_TO_RAD
     e = (reference.inv() * model.nuisance.attitude).as_rotvec()  # (F, 3)
@@ -92,10 +111,16 @@ def reference_check(data, model, cands: dict[str, Candidate], names: list[str], 
     for name in names:
         j = whiten(obs, cands[name].signature(pred.ctx, model.effects, pred.exposure_ns))
         cols[name] = absorbed_rotations(obs.frame[idx], obs.n_frames, aj[idx], j[idx])[use]  # (F', 3, p) rad per unit
-    sel = _Selection(cols, w, e, cands, np.log(max(n_rows, 2)), base or {})
+    e_given, cols_given = e, dict(cols)
+    if mount_free:
+        e, cols = _without_mount(e, w), {n: _mount_projected(a, w) for n, a in cols.items()}
+        chi2 = float(np.einsum("ki,kij,kj->", e, w, e))
+    sel = _Selection(cols, w, e, cands, np.log(max(n_rows, 2)), base or {}, mount_fixed=not mount_free)
     rows = [sel.alone(name, min_delta_bic) for name in names]
     chosen = sel.forward(names, min_delta_bic)
-    out = ReferenceCheck(float(sigma_arcsec), int(use.sum()), chi2, n_rows, rows)
+    out = ReferenceCheck(float(sigma_arcsec), int(use.sum()), chi2, n_rows - 3 * mount_free, rows)
+    if mount_free:
+        out = replace(out, mount=_mount(e_given, cols_given, w, chosen, sel))
     if not chosen:
         return out
     theta, inv, removed, rank = sel.fit(chosen)
@@ -108,6 +133,33 @@ def reference_check(data, model, cands: dict[str, Candidate], names: list[str], 
         k += p
     return replace(out, model=model, model_params=params, chi2_after=max(chi2 - removed, 0.0), rank_after=rank,
                    ambiguous=sel.ambiguous(chosen, names))
+
+
+def _without_mount(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``x`` (F', 3[, p]) less its weighted least-squares fit by one rotation common to every frame."""
+    common = np.linalg.solve(w.sum(axis=0), np.einsum("kij,kj...->i...", w, x))
+    return x - common
+
+
+def _mount_projected(a: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """A candidate's rotations ``a`` (F', 3, p) without the common rotation; a column the common
+    rotation absorbs (numerically zero against its norm, ``ABSORBED_FRACTION``, as the stars'
+    selection judges) is set to zero, so that the fit counts it as undetermined."""
+    projected = _without_mount(a, w)
+    norm = np.sqrt(np.einsum("kip,kij,kjp->p", a, w, a))
+    kept = np.sqrt(np.einsum("kip,kij,kjp->p", projected, w, projected)) > ABSORBED_FRACTION * norm
+    return np.where(kept, projected, 0.0)
+
+
+def _mount(e: np.ndarray, cols: dict[str, np.ndarray], w: np.ndarray, chosen: list[str], sel) -> dict:
+    """The reference's misalignment ``m`` (``R_ref = R_camera exp(m)``, arcsec per camera axis) and
+    its sigma, fitted with the joint model ``chosen``: the common rotation of what the model leaves
+    of ``e``, which is ``-m``."""
+    left = e - (np.concatenate([cols[n] for n in chosen], axis=2) @ sel.fit(chosen)[0] if chosen else 0.0)
+    info = w.sum(axis=0)
+    common = np.linalg.solve(info, np.einsum("kij,kj->i", w, left))
+    sigma = np.sqrt(np.clip(np.diag(np.linalg.pinv(info, hermitian=True)), 0.0, None))
+    return {"rotation_arcsec": (-common / ARCSEC_TO_RAD).tolist(), "sigma_arcsec": (sigma / ARCSEC_TO_RAD).tolist()}
 
 
 def weighted_fit(a: np.ndarray, w: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, int]:
@@ -128,8 +180,9 @@ class _Selection:
     A fit that puts a candidate outside its bounds is no explanation: that candidate is not chosen,
     and not offered as an alternative, in that set."""
 
-    def __init__(self, cols, w, e, cands, log_n: float, base: dict[str, dict]):
+    def __init__(self, cols, w, e, cands, log_n: float, base: dict[str, dict], mount_fixed: bool = True):
         self.cols, self.w, self.e, self.cands, self.log_n, self.base = cols, w, e, cands, log_n, base
+        self.mount_fixed = mount_fixed
         self._fits: dict[tuple, tuple] = {(): (np.zeros(0), np.zeros((0, 0)), 0.0, 0)}
 
     def fit(self, names) -> tuple[np.ndarray, np.ndarray, float, int]:
@@ -161,12 +214,14 @@ class _Selection:
                          "unit": p.unit} for p, t, s in zip(self.cands[name].parameters, theta, np.diag(cov))}
 
     def alone(self, name: str, min_delta_bic: float) -> dict:
-        """The candidate fitted alone: tested when it lowers BIC by the margin within its bounds."""
-        theta, inv, removed, _ = self.fit((name,))
+        """The candidate fitted alone: tested when it lowers BIC by the margin within its bounds (an
+        effect the free mount absorbs has nothing left to fit: rank 0, not tested)."""
+        theta, inv, removed, rank = self.fit((name,))
         dbic = self.bic(()) - self.bic((name,))
         inside = self.within_bounds((name,))
         return {"name": name, "params": self.params(name, theta, inv), "delta_chi2": removed,
-                "delta_bic": float(dbic), "within_bounds": inside, "tested": bool(dbic > min_delta_bic and inside)}
+                "delta_bic": float(dbic), "within_bounds": inside, "determined": rank > 0,
+                "tested": bool(dbic > min_delta_bic and inside and rank > 0)}
 
     def forward(self, names: list[str], min_delta_bic: float) -> list[str]:
         """Forward selection: add the candidate that lowers BIC most, within bounds, while it lowers it
@@ -200,6 +255,13 @@ class _Selection:
                 corr = canonical_correlation(self._whitened(g), self._whitened(h))
                 if corr > CORR_LIMIT:
                     rows.append(self._pair(g, h, corr, 0.0))
+        if self.mount_fixed:  # an effect that is a constant rotation: a misaligned reference shows the same
+            const = np.broadcast_to(np.eye(3), (self.e.shape[0], 3, 3))
+            for g in chosen:
+                corr = canonical_correlation(self._whitened(g), self._whitened_cols(const))
+                if corr > CORR_LIMIT:
+                    rows.append({"candidates": [g, MISALIGNED], "corr": corr, "delta_bic_swap": None,
+                                 "separating_experiment": MISALIGNED_EXPERIMENT})
         return rows
 
     def _pair(self, g: str, h: str, corr: float, swap: float) -> dict:
@@ -207,8 +269,11 @@ class _Selection:
                 "separating_experiment": separating_experiment(self.cands[g], self.cands[h])}
 
     def _whitened(self, name: str) -> np.ndarray:
-        """The candidate's rotations whitened by ``w`` (``R^T a`` with ``w = R R^T``; ``R`` from the
+        return self._whitened_cols(self.cols[name])
+
+    def _whitened_cols(self, a: np.ndarray) -> np.ndarray:
+        """Rotations ``a`` (F', 3, p) whitened by ``w`` (``R^T a`` with ``w = R R^T``; ``R`` from the
         eigen-decomposition, so that a singular ``w`` is whitened too), stacked over frames."""
         vals, vecs = np.linalg.eigh(self.w)
         root = vecs * np.sqrt(np.clip(vals, 0.0, None))[:, None, :]
-        return np.einsum("kji,kjp->kip", root, self.cols[name]).reshape(-1, self.cols[name].shape[2])
+        return np.einsum("kji,kjp->kip", root, a).reshape(-1, a.shape[2])

@@ -125,15 +125,20 @@ def _reference(r: dict) -> str:
     tested = [c for c in ref["candidates"] if c["tested"]]
     head = (f"Against the recording's reference attitude ({ref['sigma_arcsec']:g} arcsec per axis, {ref['frames']} frames, "
             f"chi2 {ref['chi2']:.3g} over {ref['dof']} dof without an effect)")
+    mount = ref.get("mount")
+    tail = (" The reference's misalignment, fitted: " + ", ".join(
+        f"{v:.3g} +- {sg:.2g}" for v, sg in zip(mount["rotation_arcsec"], mount["sigma_arcsec"]))
+        + " arcsec about the camera's x, y, z.") if mount else ""
     if not tested:
-        return head + ", no effect the attitude absorbs is seen."
+        return head + ", no effect the attitude absorbs is seen." + tail
     found = "; ".join(f"{c['name']} ({_values(c['params'])}, delta BIC {c['delta_bic']:.3g})" for c in tested)
     names = [c["name"] for c in ref["model"]]
     joint = (f"Fitted together, {', '.join(names[:-1])} and {names[-1]} leave" if len(names) > 1
              else f"{names[0]} leaves")
-    amb = "".join(f" It cannot tell {a['candidates'][0]} from {a['candidates'][1]} (swap delta BIC {a['delta_bic_swap']:.3g}; "
-                  f"separate them with: {a['separating_experiment']})." for a in ref.get("ambiguous", []))
-    return f"{head}: each alone, {found}. {joint} chi2 {ref['chi2_after']:.3g} over {ref['dof_after']} dof.{amb}"
+    amb = "".join(f" It cannot tell {a['candidates'][0]} from {a['candidates'][1]} ("
+                  + (f"swap delta BIC {a['delta_bic_swap']:.3g}; " if a["delta_bic_swap"] is not None else "")
+                  + f"separate them with: {a['separating_experiment']})." for a in ref.get("ambiguous", []))
+    return f"{head}: each alone, {found}. {joint} chi2 {ref['chi2_after']:.3g} over {ref['dof_after']} dof.{amb}{tail}"
 
 
 def _values(params: dict) -> str:
@@ -144,7 +149,10 @@ def _values(params: dict) -> str:
 def _untestable(r: dict) -> str:
     ref = r.get("attitude_reference") or {}
     tested = {c["name"] for c in ref.get("candidates", []) if c["tested"]}
-    rows = [f"{a['name']} ({a['separating_experiment']})" for a in r.get("absorbed_by_attitude", []) if a["name"] not in tested]
+    mounted = {c["name"] for c in ref.get("candidates", []) if not c.get("determined", True)}
+    rows = [f"{a['name']} (" + ("a constant rotation, which the reference's fitted misalignment takes up: a reference "
+                                "aligned with the camera" if a["name"] in mounted else a["separating_experiment"]) + ")"
+            for a in r.get("absorbed_by_attitude", []) if a["name"] not in tested]
     rows += [f"{a['name']} ({a['reason']})" for a in r.get("not_testable", [])]
     if not rows:
         return ""

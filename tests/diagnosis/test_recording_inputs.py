@@ -53,3 +53,16 @@ def test_a_recording_with_a_reference_attitude_says_how_to_use_it(small_recordin
     with_ref, _ = diagnose_recording(small_recording, options=DiagnoseOptions(seed=0, n_boot=10, resimulate=False,
                                                                                 reference_sigma_arcsec=1.0))
     assert with_ref["reference_available"] is None and with_ref["attitude_reference"] is not None
+
+
+def test_a_free_reference_mount_without_a_reference_is_refused(small_recording):
+    """``--reference-mount-free`` fits the misalignment of a reference: without the reference's
+    accuracy there is none to fit, and the run says so (exit 2 from the CLI) instead of ignoring it."""
+    from typer.testing import CliRunner
+
+    from rollingstar.cli import app
+
+    res = CliRunner().invoke(app, ["diagnose", "--recording", str(small_recording), "--reference-mount-free", "--json",
+                                   "-q"])
+    assert res.exit_code == 2 and "--reference-attitude-arcsec" in res.output, res.output
+    assert "Traceback" not in res.output

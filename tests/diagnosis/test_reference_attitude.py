@@ -112,7 +112,11 @@ def test_two_absorbed_effects_are_fitted_together_and_a_collinear_pair_is_report
     roll = model["boresight_rotation"]["roll_arcsec"]
     assert abs(roll["value"] - 60.0) < 4 * roll["sigma"], roll
     if offset_ms == 20.0:
-        assert set(model) == {"boresight_rotation", "time_offset"} and pairs == [], ref
+        assert set(model) == {"boresight_rotation", "time_offset"}, ref
+        # at a constant rate both are constant rotations, as a misaligned reference would show; the
+        # clock offset is not paired with the smear
+        assert sorted(pairs) == [["a misaligned reference", "boresight_rotation"],
+                                 ["a misaligned reference", "time_offset"]], ref["ambiguous"]
         offset = model["time_offset"]["offset_ms"]
         assert abs(offset["value"] - offset_ms) < 0.05 * offset_ms, offset
     else:
@@ -123,6 +127,50 @@ def test_two_absorbed_effects_are_fitted_together_and_a_collinear_pair_is_report
     assert stats.chi2.sf(ref["chi2_after"], ref["dof_after"]) > 1e-4, ref
     page = write_report(result, d, tmp_path / "report").read_text()
     assert "Against the reference attitude" in page and "value in the joint model" in page
+
+
+def _misaligned_reference(monkeypatch, rotvec_arcsec) -> None:
+    """Read the reference as a second tracker misaligned by ``rotvec_arcsec`` (camera axes) would give it."""
+    read = P.read_reference
+
+    def misaligned(recording, obs):
+        attitude, covered = read(recording, obs)
+        return attitude * Rotation.from_rotvec(np.asarray(rotvec_arcsec) * ARCSEC_TO_RAD), covered
+
+    monkeypatch.setattr(P, "read_reference", misaligned)
+
+
+def test_a_misaligned_reference_is_fitted_as_such_not_named_as_physics(tmp_path, monkeypatch):
+    """A recording with no effect, against a reference misaligned by (20, -15, 10) arcsec. Taken as
+    aligned, whatever the reference shows is a constant rotation, and every effect it names is
+    reported as not told apart from a misaligned reference. With ``reference_mount_free`` the
+    misalignment is fitted (within 4 sigma per axis) and nothing is named."""
+    m = np.array([20.0, -15.0, 10.0])
+    cfg, _, rec = _recording(tmp_path, 6, [])
+    _misaligned_reference(monkeypatch, m)
+    aligned = diagnose_recording(rec, cfg, None, replace(OPTIONS, reference_sigma_arcsec=0.5))[0]["attitude_reference"]
+    for effect in aligned["model"]:
+        assert [effect["name"], "a misaligned reference"] in [a["candidates"] for a in aligned["ambiguous"]], aligned
+    free_opts = replace(OPTIONS, reference_sigma_arcsec=0.5, reference_mount_free=True)
+    result = diagnose_recording(rec, cfg, None, free_opts)[0]
+    free = result["attitude_reference"]
+    assert free["model"] == [] and not any(c["tested"] for c in free["candidates"]), free
+    fitted, sigma = np.array(free["mount"]["rotation_arcsec"]), np.array(free["mount"]["sigma_arcsec"])
+    assert np.all(np.abs(fitted - m) < 4 * sigma), (fitted, sigma)
+    assert stats.chi2.sf(free["chi2"], free["dof"]) > 1e-3, free
+    assert "misalignment, fitted" in result["summary"]
+
+
+def test_a_free_mount_leaves_a_roll_untested_and_says_why(tmp_path):
+    """A boresight roll is a constant rotation: with the reference's misalignment free it cannot be
+    told from it, and is not tested (nothing determined), where an aligned reference measures it."""
+    cfg, _, rec = _recording(tmp_path, 5, ROLL)
+    result = diagnose_recording(rec, cfg, None, replace(OPTIONS, reference_sigma_arcsec=0.5, reference_mount_free=True))[0]
+    ref, summary = result["attitude_reference"], result["summary"]
+    row = next(c for c in ref["candidates"] if c["name"] == "boresight_rotation")
+    assert not row["determined"] and not row["tested"] and ref["model"] == [], row
+    assert abs(ref["mount"]["rotation_arcsec"][2] + 60.0) < 4 * ref["mount"]["sigma_arcsec"][2], ref["mount"]
+    assert "boresight_rotation (a constant rotation, which the reference's fitted misalignment takes up" in summary
 
 
 @pytest.mark.long_study
