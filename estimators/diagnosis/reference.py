@@ -120,7 +120,9 @@ def reference_check(data, model, cands: dict[str, Candidate], names: list[str], 
     chosen = sel.forward(names, min_delta_bic)
     out = ReferenceCheck(float(sigma_arcsec), int(use.sum()), chi2, n_rows - 3 * mount_free, rows)
     if mount_free:
-        out = replace(out, mount=_mount(e_given, cols_given, w, chosen, sel))
+        # the model's columns as given, less those the common rotation absorbs (zero when projected)
+        given = {n: np.where(np.any(cols[n] != 0.0, axis=(0, 1)), cols_given[n], 0.0) for n in chosen}
+        out = replace(out, mount=_mount(e_given, given, w, chosen))
     if not chosen:
         return out
     theta, inv, removed, rank = sel.fit(chosen)
@@ -151,15 +153,15 @@ def _mount_projected(a: np.ndarray, w: np.ndarray) -> np.ndarray:
     return np.where(kept, projected, 0.0)
 
 
-def _mount(e: np.ndarray, cols: dict[str, np.ndarray], w: np.ndarray, chosen: list[str], sel) -> dict:
+def _mount(e: np.ndarray, cols: dict[str, np.ndarray], w: np.ndarray, chosen: list[str]) -> dict:
     """The reference's misalignment ``m`` (``R_ref = R_camera exp(m)``, arcsec per camera axis) and
-    its sigma, fitted with the joint model ``chosen``: the common rotation of what the model leaves
-    of ``e``, which is ``-m``."""
-    left = e - (np.concatenate([cols[n] for n in chosen], axis=2) @ sel.fit(chosen)[0] if chosen else 0.0)
-    info = w.sum(axis=0)
-    common = np.linalg.solve(info, np.einsum("kij,kj->i", w, left))
-    sigma = np.sqrt(np.clip(np.diag(np.linalg.pinv(info, hermitian=True)), 0.0, None))
-    return {"rotation_arcsec": (-common / ARCSEC_TO_RAD).tolist(), "sigma_arcsec": (sigma / ARCSEC_TO_RAD).tolist()}
+    its sigma: the common rotation (``-m``) fitted jointly with the model ``chosen`` (columns as
+    given, not projected), its sigma marginal over the model's parameters."""
+    common = np.broadcast_to(np.eye(3), (e.shape[0], 3, 3))
+    design = np.concatenate([common, *(cols[n] for n in chosen)], axis=2)
+    estimate, cov, _, _ = weighted_fit(design, w, e)
+    sigma = np.sqrt(np.clip(np.diag(cov)[:3], 0.0, None))
+    return {"rotation_arcsec": (-estimate[:3] / ARCSEC_TO_RAD).tolist(), "sigma_arcsec": (sigma / ARCSEC_TO_RAD).tolist()}
 
 
 def weighted_fit(a: np.ndarray, w: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, int]:
