@@ -270,6 +270,9 @@ def diagnose_recording(recording: str | Path, scenario: ScenarioConfig | None = 
     recording = Path(recording)
     if not recording.exists():
         raise UserError(f"{recording}: recording not found")
+    if options.reference_mount_free and options.reference_sigma_arcsec is None:
+        raise UserError(f"{recording}: --reference-mount-free fits the misalignment of a reference attitude; "
+                        "state the reference's accuracy with --reference-attitude-arcsec S to use one")
     if scenario is None:
         scenario = recording_scenario(recording)
         sim_source = sim_source or f"{recording} (metadata 'scenario')"
@@ -283,9 +286,6 @@ def diagnose_recording(recording: str | Path, scenario: ScenarioConfig | None = 
             obs, att0 = build_observations(stars, att, scenario, catalog)
         except UserError as exc:
             raise UserError(f"{recording}: {exc} (pipeline {pipeline.name})") from None
-        if options.reference_mount_free and options.reference_sigma_arcsec is None:
-            raise UserError(f"{recording}: --reference-mount-free fits the misalignment of a reference attitude; "
-                            "state the reference's accuracy with --reference-attitude-arcsec S to use one")
         reference = read_reference(recording, obs) if options.reference_sigma_arcsec is not None else None
         with progress_bar("diagnose", len(algorithm.PHASES), options.show_progress) as advance:
             d = algorithm.diagnose(obs, att0, scenario, read_gyro(recording, scenario), options, exclude_effects,

@@ -111,11 +111,12 @@ def reference_check(data, model, cands: dict[str, Candidate], names: list[str], 
     for name in names:
         j = whiten(obs, cands[name].signature(pred.ctx, model.effects, pred.exposure_ns))
         cols[name] = absorbed_rotations(obs.frame[idx], obs.n_frames, aj[idx], j[idx])[use]  # (F', 3, p) rad per unit
-    e_given, cols_given = e, dict(cols)
+    e_given, cols_given, like = e, dict(cols), {}
     if mount_free:
+        like = {n: _like_a_constant(a, w) for n, a in cols.items()}
         e, cols = _without_mount(e, w), {n: _mount_projected(a, w) for n, a in cols.items()}
         chi2 = float(np.einsum("ki,kij,kj->", e, w, e))
-    sel = _Selection(cols, w, e, cands, np.log(max(n_rows, 2)), base or {}, mount_fixed=not mount_free)
+    sel = _Selection(cols, w, e, cands, np.log(max(n_rows, 2)), base or {}, not mount_free, like)
     rows = [sel.alone(name, min_delta_bic) for name in names]
     chosen = sel.forward(names, min_delta_bic)
     out = ReferenceCheck(float(sigma_arcsec), int(use.sum()), chi2, n_rows - 3 * mount_free, rows)
@@ -153,6 +154,21 @@ def _mount_projected(a: np.ndarray, w: np.ndarray) -> np.ndarray:
     return np.where(kept, projected, 0.0)
 
 
+def _like_a_constant(a: np.ndarray, w: np.ndarray) -> bool:
+    """Whether rotations ``a`` (F', 3, p) are collinear with a constant one (canonical correlation
+    above ``CORR_LIMIT`` of the whitened columns): a free mount takes up nearly all of them."""
+    const = np.broadcast_to(np.eye(3), (a.shape[0], 3, 3))
+    return canonical_correlation(_whiten_rotations(a, w), _whiten_rotations(const, w)) > CORR_LIMIT
+
+
+def _whiten_rotations(a: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Rotations ``a`` (F', 3, p) whitened by ``w`` (``R^T a`` with ``w = R R^T``; ``R`` from the
+    eigen-decomposition, so that a singular ``w`` is whitened too), stacked over frames."""
+    vals, vecs = np.linalg.eigh(w)
+    root = vecs * np.sqrt(np.clip(vals, 0.0, None))[:, None, :]
+    return np.einsum("kji,kjp->kip", root, a).reshape(-1, a.shape[2])
+
+
 def _mount(e: np.ndarray, cols: dict[str, np.ndarray], w: np.ndarray, chosen: list[str]) -> dict:
     """The reference's misalignment ``m`` (``R_ref = R_camera exp(m)``, arcsec per camera axis) and
     its sigma: the common rotation (``-m``) fitted jointly with the model ``chosen`` (columns as
@@ -182,9 +198,10 @@ class _Selection:
     A fit that puts a candidate outside its bounds is no explanation: that candidate is not chosen,
     and not offered as an alternative, in that set."""
 
-    def __init__(self, cols, w, e, cands, log_n: float, base: dict[str, dict], mount_fixed: bool = True):
+    def __init__(self, cols, w, e, cands, log_n: float, base: dict[str, dict], mount_fixed: bool = True,
+                 like_the_mount: dict[str, bool] | None = None):
         self.cols, self.w, self.e, self.cands, self.log_n, self.base = cols, w, e, cands, log_n, base
-        self.mount_fixed = mount_fixed
+        self.mount_fixed, self.like_the_mount = mount_fixed, like_the_mount or {}
         self._fits: dict[tuple, tuple] = {(): (np.zeros(0), np.zeros((0, 0)), 0.0, 0)}
 
     def fit(self, names) -> tuple[np.ndarray, np.ndarray, float, int]:
@@ -223,6 +240,7 @@ class _Selection:
         inside = self.within_bounds((name,))
         return {"name": name, "params": self.params(name, theta, inv), "delta_chi2": removed,
                 "delta_bic": float(dbic), "within_bounds": inside, "determined": rank > 0,
+                "like_the_mount": bool(self.like_the_mount.get(name, False)),
                 "tested": bool(dbic > min_delta_bic and inside and rank > 0)}
 
     def forward(self, names: list[str], min_delta_bic: float) -> list[str]:
@@ -257,12 +275,13 @@ class _Selection:
                 corr = canonical_correlation(self._whitened(g), self._whitened(h))
                 if corr > CORR_LIMIT:
                     rows.append(self._pair(g, h, corr, 0.0))
-        if self.mount_fixed:  # an effect that is a constant rotation: a misaligned reference shows the same
-            const = np.broadcast_to(np.eye(3), (self.e.shape[0], 3, 3))
+        if self.mount_fixed:  # a misaligned reference (a constant rotation) as the alternative, by the same rule
+            self.cols[MISALIGNED] = np.broadcast_to(np.eye(3), (self.e.shape[0], 3, 3))
             for g in chosen:
-                corr = canonical_correlation(self._whitened(g), self._whitened_cols(const))
-                if corr > CORR_LIMIT:
-                    rows.append({"candidates": [g, MISALIGNED], "corr": corr, "delta_bic_swap": None,
+                swap = self.bic([*(n for n in chosen if n != g), MISALIGNED]) - base
+                corr = canonical_correlation(self._whitened(g), self._whitened(MISALIGNED))
+                if swap < BIC_WINDOW or (corr > CORR_LIMIT and swap < DECISIVE_SWAP_BIC):
+                    rows.append({"candidates": [g, MISALIGNED], "corr": corr, "delta_bic_swap": float(swap),
                                  "separating_experiment": MISALIGNED_EXPERIMENT})
         return rows
 
@@ -271,11 +290,4 @@ class _Selection:
                 "separating_experiment": separating_experiment(self.cands[g], self.cands[h])}
 
     def _whitened(self, name: str) -> np.ndarray:
-        return self._whitened_cols(self.cols[name])
-
-    def _whitened_cols(self, a: np.ndarray) -> np.ndarray:
-        """Rotations ``a`` (F', 3, p) whitened by ``w`` (``R^T a`` with ``w = R R^T``; ``R`` from the
-        eigen-decomposition, so that a singular ``w`` is whitened too), stacked over frames."""
-        vals, vecs = np.linalg.eigh(self.w)
-        root = vecs * np.sqrt(np.clip(vals, 0.0, None))[:, None, :]
-        return np.einsum("kji,kjp->kip", root, a).reshape(-1, a.shape[2])
+        return _whiten_rotations(self.cols[name], self.w)

@@ -124,7 +124,8 @@ def _reference(r: dict) -> str:
         return ""
     tested = [c for c in ref["candidates"] if c["tested"]]
     head = (f"Against the recording's reference attitude ({ref['sigma_arcsec']:g} arcsec per axis, {ref['frames']} frames, "
-            f"chi2 {ref['chi2']:.3g} over {ref['dof']} dof without an effect)")
+            f"chi2 {ref['chi2']:.3g} over {ref['dof']} dof " + ("with only its misalignment fitted)" if ref.get("mount")
+                                                                 else "without an effect)"))
     mount = ref.get("mount")
     tail = (" The reference's misalignment, fitted: " + ", ".join(
         f"{v:.3g} +- {sg:.2g}" for v, sg in zip(mount["rotation_arcsec"], mount["sigma_arcsec"]))
@@ -149,9 +150,11 @@ def _values(params: dict) -> str:
 def _untestable(r: dict) -> str:
     ref = r.get("attitude_reference") or {}
     tested = {c["name"] for c in ref.get("candidates", []) if c["tested"]}
-    mounted = {c["name"] for c in ref.get("candidates", []) if not c.get("determined", True)}
-    rows = [f"{a['name']} (" + ("a constant rotation, which the reference's fitted misalignment takes up: a reference "
-                                "aligned with the camera" if a["name"] in mounted else a["separating_experiment"]) + ")"
+    mounted = {c["name"] for c in ref.get("candidates", []) if not c["determined"] or c["like_the_mount"]} \
+        if ref.get("mount") else set()
+    rows = [f"{a['name']} (" + ("a constant rotation, which the reference's fitted misalignment takes up; separate "
+                                "them with a reference aligned with the camera" if a["name"] in mounted
+                                else a["separating_experiment"]) + ")"
             for a in r.get("absorbed_by_attitude", []) if a["name"] not in tested]
     rows += [f"{a['name']} ({a['reason']})" for a in r.get("not_testable", [])]
     if not rows:

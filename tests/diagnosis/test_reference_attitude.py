@@ -149,6 +149,8 @@ def test_a_misaligned_reference_is_fitted_as_such_not_named_as_physics(tmp_path,
     cfg, _, rec = _recording(tmp_path, 6, [])
     _misaligned_reference(monkeypatch, m)
     aligned = diagnose_recording(rec, cfg, None, replace(OPTIONS, reference_sigma_arcsec=0.5))[0]["attitude_reference"]
+    print("taken as aligned:", [m["name"] for m in aligned["model"]], aligned["ambiguous"])
+    assert aligned["model"], aligned  # the misalignment shows as effects: each must carry the caveat
     for effect in aligned["model"]:
         assert [effect["name"], "a misaligned reference"] in [a["candidates"] for a in aligned["ambiguous"]], aligned
     free_opts = replace(OPTIONS, reference_sigma_arcsec=0.5, reference_mount_free=True)
@@ -240,3 +242,28 @@ def test_the_reference_test_is_the_joint_fit_with_the_reference_as_a_prior():
     assert rank == p
     np.testing.assert_allclose(estimate, joint, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(cov, joint_cov, rtol=1e-9, atol=1e-12)
+
+
+def test_the_mount_is_the_joint_fit_with_a_constant_rotation():
+    """The reference's misalignment and its sigma are those of the dense joint fit of a constant
+    rotation and the chosen effect (here one partly collinear with a constant rotation), and the
+    effect's estimate and covariance from the projected problem are the joint fit's too."""
+    from rollingstar.estimators.diagnosis.reference import _mount, _without_mount, weighted_fit
+
+    rng = np.random.default_rng(8)
+    n_frames = 12
+    w = np.stack([(lambda q: q @ q.T + 0.1 * np.eye(3))(rng.normal(size=(3, 3))) for _ in range(n_frames)])
+    a = rng.normal(size=(n_frames, 3, 1)) + np.array([2.0, 0.0, 0.0])[None, :, None]  # partly a constant rotation
+    m = np.array([20.0, -15.0, 10.0]) * ARCSEC_TO_RAD
+    e = -m + (a @ np.array([3e-5]))[..., None].reshape(n_frames, 3) + 1e-6 * rng.normal(size=(n_frames, 3))
+    design = np.concatenate([np.broadcast_to(np.eye(3), (n_frames, 3, 3)), a], axis=2)
+    joint, joint_cov, _, _ = weighted_fit(design, w, e)
+    mount = _mount(e, {"x": a}, w, ["x"])
+    np.testing.assert_allclose(np.array(mount["rotation_arcsec"]) * ARCSEC_TO_RAD, -joint[:3], rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(np.array(mount["sigma_arcsec"]) * ARCSEC_TO_RAD, np.sqrt(np.diag(joint_cov)[:3]), rtol=1e-9)
+    projected, projected_cov, _, _ = weighted_fit(_without_mount(a, w), w, _without_mount(e, w))
+    np.testing.assert_allclose(projected, joint[3:], rtol=1e-9)
+    np.testing.assert_allclose(projected_cov, joint_cov[3:, 3:], rtol=1e-9)
+    # the marginal sigma is not the one of the constant rotation alone: about x, the axis the effect shares
+    alone = np.sqrt(np.diag(np.linalg.inv(w.sum(axis=0))))
+    assert alone[0] < 0.8 * np.sqrt(joint_cov[0, 0]), (alone, np.sqrt(np.diag(joint_cov)))
