@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import fnmatch
 import re
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
 import numpy as np
@@ -233,13 +234,15 @@ def _frame_times(sidecar: RecordingSidecar, files: list[Path], base: Path, sourc
                                   f"{' ...' if len(missing) > 5 else ''}")
         t0 = np.array([by_name[f.name] for f in files], dtype=np.int64)
         how = {"source": "csv", "csv": str(table.path), "column": column}
+    elif ts.frame_rate_hz is None and (headers := _fits_header_times(files)) is not None:
+        t0, how = headers, {"source": "fits_headers"}
     else:
         rate = ts.frame_rate_hz
         if rate is None:
             rate = DEFAULT_FRAME_RATE_HZ
             if n > 1:
-                    log(f"{source}: no frame times given (timestamps.frame_rate_hz, t0_ns or csv); assuming "
-                    f"{rate:g} Hz from t = {ts.start_ns} ns, in file-name order")
+                log(f"{source}: no frame times given (timestamps.frame_rate_hz, t0_ns or csv, or a time in every FITS "
+                    f"header); assuming {rate:g} Hz from t = {ts.start_ns} ns, in file-name order")
         t0 = ts.start_ns + np.rint(np.arange(n) * NS_PER_S / rate).astype(np.int64)
         how = {"source": "frame_rate_hz", "frame_rate_hz": rate, "start_ns": ts.start_ns}
     step = np.diff(t0)
@@ -248,6 +251,25 @@ def _frame_times(sidecar: RecordingSidecar, files: list[Path], base: Path, sourc
         raise ImportDataError(f"{source}: frame times must increase strictly in file order: "
                               f"{files[i].name} has t0 = {t0[i]} ns after {files[i - 1].name} at {t0[i - 1]} ns")
     return t0, how
+
+
+def _fits_header_times(files: list[Path]) -> np.ndarray | None:
+    """Every file's observation time from its FITS header (:func:`fits_observation`) as Unix
+    nanoseconds (to the microsecond the header time is read to), or None unless every file is
+    FITS and states a full time without a warning."""
+    if not all(f.suffix.lower() in FITS_SUFFIXES for f in files):
+        return None
+    times = []
+    for f in files:
+        said: list[str] = []
+        when = fits_observation(f, said.append).time
+        if when is None or said:
+            return None
+        times.append((when - _UNIX_EPOCH) // timedelta(microseconds=1) * 1000)
+    return np.asarray(times, dtype=np.int64)
+
+
+_UNIX_EPOCH = datetime(1970, 1, 1, tzinfo=timezone.utc)
 
 
 def _read_gyro(path: Path, log: WarningLog) -> tuple[np.ndarray, np.ndarray]:

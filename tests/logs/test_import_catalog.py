@@ -131,6 +131,30 @@ def test_fits_date_obs_sets_the_epoch(tmp_path, cards, extension):
     assert scenario.catalog.epoch_year == 2019.5739 and "FITS header" in cat["epoch_reason"]
 
 
+def test_fits_header_times_are_the_frame_times(tmp_path):
+    """FITS frames with a full DATE-OBS each and no frame times in the sidecar: the headers give the
+    frame times (to the microsecond) instead of an assumed frame rate; one file without a time and
+    the rate is assumed again, with the warning."""
+    from astropy.io import fits
+
+    folder = tmp_path / "fits"
+    folder.mkdir()
+    for k, stamp in enumerate(["20:47:26.000", "20:47:26.250", "20:47:26.500125"]):
+        hdu = fits.PrimaryHDU(np.zeros((300, 400), np.uint16))
+        hdu.header["DATE-OBS"] = f"2019-07-29T{stamp}"
+        hdu.writeto(folder / f"f{k}.fits")
+    (folder / "recording.yaml").write_text(CAMERA_6DEG)
+    rec = _quiet_import(folder, tmp_path / "r.mcap")
+    details = json.loads(LogReader(rec).metadata()["import"]["details"])
+    t0 = np.array(details["t0_ns"])
+    assert details["timestamps"] == {"source": "fits_headers"}
+    assert t0[0] == int(OBSERVED.timestamp()) * 1_000_000_000 and list(np.diff(t0)) == [250_000_000, 250_125_000]
+    fits.PrimaryHDU(np.zeros((300, 400), np.uint16)).writeto(folder / "f3.fits")
+    with pytest.warns(ImportDataWarning, match="a time in every FITS header.*assuming"):
+        rec = import_images(folder, tmp_path / "r2.mcap")
+    assert json.loads(LogReader(rec).metadata()["import"]["details"])["timestamps"]["source"] == "frame_rate_hz"
+
+
 @pytest.mark.parametrize("cards,expect", [
     ({"DATE-OBS": "29/07/99"}, r"DATE-OBS 29/07/99 states no time of day"),  # the pre-2000 form: 1999-07-29
     ({"DATE-OBS": "1850-07-29T20:47:26"}, r"outside the years 1900-2100; not used"),
