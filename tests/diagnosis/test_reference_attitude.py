@@ -12,6 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import yaml
 from scipy import stats
 from scipy.spatial.transform import Rotation
 
@@ -173,6 +174,54 @@ def test_a_free_mount_leaves_a_roll_untested_and_says_why(tmp_path):
     assert not row["determined"] and not row["tested"] and ref["model"] == [], row
     assert abs(ref["mount"]["rotation_arcsec"][2] + 60.0) < 4 * ref["mount"]["sigma_arcsec"][2], ref["mount"]
     assert "boresight_rotation (a constant rotation, which the reference's fitted misalignment takes up" in summary
+
+
+def _raw_copy(src, dst, edit) -> None:
+    """Copy a recording with the plain ``mcap`` package, ``edit`` changing every /truth/attitude
+    message's JSON as a hostile writer could (our writer refuses such records)."""
+    import json
+
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with open(src, "rb") as f, open(dst, "wb") as g:
+        reader, writer = make_reader(f), Writer(g)
+        writer.start(profile="", library="a hostile writer")
+        for md in reader.iter_metadata():
+            writer.add_metadata(md.name, md.metadata)
+        schemas, channels = {}, {}
+        for schema, channel, msg in reader.iter_messages():
+            if schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding,
+                                                               schemas[schema.id], channel.metadata)
+            data = msg.data
+            if channel.topic == "/truth/attitude":
+                record = json.loads(data)
+                edit(record)
+                data = json.dumps(record).encode()
+            writer.add_message(channels[channel.id], msg.log_time, data, msg.publish_time, msg.sequence)
+        writer.finish()
+
+
+@pytest.mark.parametrize("edit, needle", [
+    (lambda r: r["qx"].__setitem__(len(r["qx"]) // 2, None), "Input should be a valid number"),
+    (lambda r: r["t_ns"].__setitem__(len(r["t_ns"]) // 2, r["t_ns"][0]), "t_ns must be non-decreasing"),
+])
+def test_a_damaged_reference_is_refused_with_the_message_and_field(tmp_path, edit, needle):
+    """A reference attitude with a null quaternion component or times running back, written with
+    the plain mcap package: the diagnosis with --reference-attitude-arcsec exits 2 and names the
+    topic and the field; no traceback, no reference quietly ignored."""
+    from tests.reliability.helpers import cli
+
+    cfg, _, rec = _recording(tmp_path, 5, ROLL)
+    (tmp_path / "sim.yaml").write_text(yaml.safe_dump(cfg.model_dump(mode="json")))
+    _raw_copy(rec, tmp_path / "damaged.mcap", edit)
+    code, out, err = cli("diagnose", "--sim", tmp_path / "sim.yaml", "--recording", tmp_path / "damaged.mcap",
+                         "--reference-attitude-arcsec", "0.5", "--json", "-q")
+    assert code == 2 and "/truth/attitude" in err and needle in err, (code, err[-500:])
+    assert "Traceback" not in out + err
 
 
 @pytest.mark.long_study
