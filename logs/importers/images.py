@@ -234,7 +234,7 @@ def _frame_times(sidecar: RecordingSidecar, files: list[Path], base: Path, sourc
                                   f"{' ...' if len(missing) > 5 else ''}")
         t0 = np.array([by_name[f.name] for f in files], dtype=np.int64)
         how = {"source": "csv", "csv": str(table.path), "column": column}
-    elif ts.frame_rate_hz is None and (headers := _fits_header_times(files)) is not None:
+    elif ts.frame_rate_hz is None and (headers := _fits_header_times(files, log)) is not None:
         t0, how = headers, {"source": "fits_headers"}
     else:
         rate = ts.frame_rate_hz
@@ -253,10 +253,11 @@ def _frame_times(sidecar: RecordingSidecar, files: list[Path], base: Path, sourc
     return t0, how
 
 
-def _fits_header_times(files: list[Path]) -> np.ndarray | None:
+def _fits_header_times(files: list[Path], log: WarningLog) -> np.ndarray | None:
     """Every file's observation time from its FITS header (:func:`fits_observation`) as Unix
     nanoseconds (to the microsecond the header time is read to), or None unless every file is
-    FITS and states a full time without a warning."""
+    FITS and states a full time without a warning, and the times increase strictly in file order
+    (headers that state whole seconds for a faster camera do not: a warning says so)."""
     if not all(f.suffix.lower() in FITS_SUFFIXES for f in files):
         return None
     times = []
@@ -266,7 +267,13 @@ def _fits_header_times(files: list[Path]) -> np.ndarray | None:
         if when is None or said:
             return None
         times.append((when - _UNIX_EPOCH) // timedelta(microseconds=1) * 1000)
-    return np.asarray(times, dtype=np.int64)
+    t0 = np.asarray(times, dtype=np.int64)
+    if t0.size > 1 and (np.diff(t0) <= 0).any():
+        k = int(np.flatnonzero(np.diff(t0) <= 0)[0]) + 1
+        log(f"{files[0].parent}: the FITS headers' times do not increase strictly in file order ({files[k].name} is "
+            f"{(t0[k] - t0[k - 1]) * 1e-9:g} s after {files[k - 1].name}); they are not used as frame times")
+        return None
+    return t0
 
 
 _UNIX_EPOCH = datetime(1970, 1, 1, tzinfo=timezone.utc)

@@ -153,6 +153,13 @@ def test_fits_header_times_are_the_frame_times(tmp_path):
     with pytest.warns(ImportDataWarning, match="a time in every FITS header.*assuming"):
         rec = import_images(folder, tmp_path / "r2.mcap")
     assert json.loads(LogReader(rec).metadata()["import"]["details"])["timestamps"]["source"] == "frame_rate_hz"
+    # whole seconds for a faster camera: two frames at one time, said and not used
+    (folder / "f3.fits").unlink()
+    with fits.open(folder / "f2.fits", mode="update") as hdul:
+        hdul[0].header["DATE-OBS"] = "2019-07-29T20:47:26.250"
+    with pytest.warns(ImportDataWarning, match=r"do not increase strictly in file order \(f2\.fits is 0 s after f1\.fits\)"):
+        rec = import_images(folder, tmp_path / "r3.mcap")
+    assert json.loads(LogReader(rec).metadata()["import"]["details"])["timestamps"]["source"] == "frame_rate_hz"
 
 
 @pytest.mark.parametrize("cards,expect", [
