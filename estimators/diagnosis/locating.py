@@ -181,31 +181,33 @@ def _gate(obs: Observations, attitudes, model: SensorModel, att_mask: np.ndarray
     """The gross outliers of ``model``, the gate (sigmas) that found them and whether it started from
     the trimmed fit.
 
-    The ``OUTLIER_SIGMA`` gate from the attitudes fitted to every star; when it leaves too few
-    training stars or rejects too many, the gate :func:`_robust_gate` sets. When that still leaves
-    too few, the attitudes of the fit every star pulled were too far off to start from (a few
-    wrong identifications hundreds of pixels off, on a lens the model as given also misses): both
-    gates again from the least-trimmed-squares attitudes (:func:`trimmed_prediction`)."""
-    far = gross_outliers(obs, attitudes, model, att_mask, pred)
-    if _enough(obs, far) and far.mean() <= MAX_GROSS_FRACTION:
-        return far, OUTLIER_SIGMA, False
-    gate_sigmas = _robust_gate(obs, attitudes, model, att_mask, pred)
-    far = gross_outliers(obs, attitudes, model, att_mask, gate_sigmas=gate_sigmas)
+    The gates of :func:`_gates_from` the attitudes fitted to every star. When they leave too few
+    training stars, those attitudes were too far off to start from (a few wrong identifications
+    hundreds of pixels off, on a lens the model as given also misses): the same gates from the
+    least-trimmed-squares attitudes (:func:`trimmed_gate`)."""
+    far, gate_sigmas = _gates_from(obs, attitudes, model, att_mask, pred)
     if _enough(obs, far):
         return far, gate_sigmas, False
     return (*trimmed_gate(obs, attitudes, model, att_mask), True)
 
 
 def trimmed_gate(obs: Observations, attitudes, model: SensorModel, att_mask: np.ndarray) -> tuple[np.ndarray, float]:
-    """The gross outliers of ``model`` and the gate (sigmas) that found them, starting from the
-    least-trimmed-squares attitudes (:func:`trimmed_prediction`): the ``OUTLIER_SIGMA`` gate, or,
-    when it leaves too few training stars or rejects too many, :func:`_robust_gate`'s."""
-    trimmed = trimmed_prediction(obs, attitudes, model, att_mask)
-    far = gross_outliers(obs, attitudes, model, att_mask, trimmed)
+    """The gross outliers of ``model`` and the gate (sigmas) that found them (:func:`_gates_from`),
+    starting from the least-trimmed-squares attitudes (:func:`trimmed_prediction`)."""
+    return _gates_from(obs, attitudes, model, att_mask, trimmed_prediction(obs, attitudes, model, att_mask))
+
+
+def _gates_from(obs: Observations, attitudes, model: SensorModel, att_mask: np.ndarray,
+                pred: Prediction | None) -> tuple[np.ndarray, float]:
+    """The ``OUTLIER_SIGMA`` gate from ``pred`` (None: ``model``'s fit to every star); when it leaves
+    too few training stars or rejects too many, :func:`_robust_gate`'s."""
+    if pred is None:
+        _, pred = fit_nuisance(obs, attitudes, model.camera, model.timing, model.effects, att_mask, model.moving)
+    far = gross_outliers(obs, attitudes, model, att_mask, pred)
     if _enough(obs, far) and far.mean() <= MAX_GROSS_FRACTION:
         return far, OUTLIER_SIGMA
-    gate_sigmas = _robust_gate(obs, attitudes, model, att_mask, trimmed)
-    return gross_outliers(obs, attitudes, model, att_mask, trimmed, gate_sigmas), gate_sigmas
+    gate_sigmas = _robust_gate(obs, attitudes, model, att_mask, pred)
+    return gross_outliers(obs, attitudes, model, att_mask, pred, gate_sigmas), gate_sigmas
 
 
 def _enough(obs: Observations, far: np.ndarray) -> bool:

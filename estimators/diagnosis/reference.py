@@ -113,7 +113,8 @@ def reference_check(data, model, cands: dict[str, Candidate], names: list[str], 
         cols[name] = absorbed_rotations(obs.frame[idx], obs.n_frames, aj[idx], j[idx])[use]  # (F', 3, p) rad per unit
     e_given, cols_given, like = e, dict(cols), {}
     if mount_free:
-        like = {n: _like_a_constant(a, w) for n, a in cols.items()}
+        root = _whitening_root(w)
+        like = {n: _like_a_constant(a, root) for n, a in cols.items()}
         e, cols = _without_mount(e, w), {n: _mount_projected(a, w) for n, a in cols.items()}
         chi2 = float(np.einsum("ki,kij,kj->", e, w, e))
     sel = _Selection(cols, w, e, cands, np.log(max(n_rows, 2)), base or {}, not mount_free, like)
@@ -154,18 +155,27 @@ def _mount_projected(a: np.ndarray, w: np.ndarray) -> np.ndarray:
     return np.where(kept, projected, 0.0)
 
 
-def _like_a_constant(a: np.ndarray, w: np.ndarray) -> bool:
+def _constant(n_frames: int) -> np.ndarray:
+    """The rotations (F', 3, 3) of one rotation common to every frame, per axis: the misalignment's."""
+    return np.broadcast_to(np.eye(3), (n_frames, 3, 3))
+
+
+def _like_a_constant(a: np.ndarray, root: np.ndarray) -> bool:
     """Whether rotations ``a`` (F', 3, p) are collinear with a constant one (canonical correlation
-    above ``CORR_LIMIT`` of the whitened columns): a free mount takes up nearly all of them."""
-    const = np.broadcast_to(np.eye(3), (a.shape[0], 3, 3))
-    return canonical_correlation(_whiten_rotations(a, w), _whiten_rotations(const, w)) > CORR_LIMIT
+    above ``CORR_LIMIT`` of the whitened columns, ``root``: :func:`_whitening_root`): a free mount
+    takes up nearly all of them."""
+    return canonical_correlation(_whiten(a, root), _whiten(_constant(a.shape[0]), root)) > CORR_LIMIT
 
 
-def _whiten_rotations(a: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Rotations ``a`` (F', 3, p) whitened by ``w`` (``R^T a`` with ``w = R R^T``; ``R`` from the
-    eigen-decomposition, so that a singular ``w`` is whitened too), stacked over frames."""
+def _whitening_root(w: np.ndarray) -> np.ndarray:
+    """``R`` (F', 3, 3) with ``w = R R^T``, from the eigen-decomposition, so that a singular ``w``
+    has one too."""
     vals, vecs = np.linalg.eigh(w)
-    root = vecs * np.sqrt(np.clip(vals, 0.0, None))[:, None, :]
+    return vecs * np.sqrt(np.clip(vals, 0.0, None))[:, None, :]
+
+
+def _whiten(a: np.ndarray, root: np.ndarray) -> np.ndarray:
+    """Rotations ``a`` (F', 3, p) whitened (``R^T a``), stacked over frames."""
     return np.einsum("kji,kjp->kip", root, a).reshape(-1, a.shape[2])
 
 
@@ -173,8 +183,7 @@ def _mount(e: np.ndarray, cols: dict[str, np.ndarray], w: np.ndarray, chosen: li
     """The reference's misalignment ``m`` (``R_ref = R_camera exp(m)``, arcsec per camera axis) and
     its sigma: the common rotation (``-m``) fitted jointly with the model ``chosen`` (columns as
     given, not projected), its sigma marginal over the model's parameters."""
-    common = np.broadcast_to(np.eye(3), (e.shape[0], 3, 3))
-    design = np.concatenate([common, *(cols[n] for n in chosen)], axis=2)
+    design = np.concatenate([_constant(e.shape[0]), *(cols[n] for n in chosen)], axis=2)
     estimate, cov, _, _ = weighted_fit(design, w, e)
     sigma = np.sqrt(np.clip(np.diag(cov)[:3], 0.0, None))
     return {"rotation_arcsec": (-estimate[:3] / ARCSEC_TO_RAD).tolist(), "sigma_arcsec": (sigma / ARCSEC_TO_RAD).tolist()}
@@ -200,8 +209,11 @@ class _Selection:
 
     def __init__(self, cols, w, e, cands, log_n: float, base: dict[str, dict], mount_fixed: bool = True,
                  like_the_mount: dict[str, bool] | None = None):
-        self.cols, self.w, self.e, self.cands, self.log_n, self.base = cols, w, e, cands, log_n, base
+        self.cols, self.w, self.e, self.cands, self.log_n, self.base = dict(cols), w, e, cands, log_n, base
         self.mount_fixed, self.like_the_mount = mount_fixed, like_the_mount or {}
+        self.root = _whitening_root(w)
+        if mount_fixed:  # a misaligned reference, the alternative :meth:`ambiguous` offers every chosen effect
+            self.cols[MISALIGNED] = _constant(e.shape[0])
         self._fits: dict[tuple, tuple] = {(): (np.zeros(0), np.zeros((0, 0)), 0.0, 0)}
 
     def fit(self, names) -> tuple[np.ndarray, np.ndarray, float, int]:
@@ -276,18 +288,16 @@ class _Selection:
                 if corr > CORR_LIMIT:
                     rows.append(self._pair(g, h, corr, 0.0))
         if self.mount_fixed:  # a misaligned reference (a constant rotation) as the alternative, by the same rule
-            self.cols[MISALIGNED] = np.broadcast_to(np.eye(3), (self.e.shape[0], 3, 3))
             for g in chosen:
                 swap = self.bic([*(n for n in chosen if n != g), MISALIGNED]) - base
                 corr = canonical_correlation(self._whitened(g), self._whitened(MISALIGNED))
                 if swap < BIC_WINDOW or (corr > CORR_LIMIT and swap < DECISIVE_SWAP_BIC):
-                    rows.append({"candidates": [g, MISALIGNED], "corr": corr, "delta_bic_swap": float(swap),
-                                 "separating_experiment": MISALIGNED_EXPERIMENT})
+                    rows.append(self._pair(g, MISALIGNED, corr, swap))
         return rows
 
     def _pair(self, g: str, h: str, corr: float, swap: float) -> dict:
-        return {"candidates": [g, h], "corr": corr, "delta_bic_swap": float(swap),
-                "separating_experiment": separating_experiment(self.cands[g], self.cands[h])}
+        experiment = MISALIGNED_EXPERIMENT if h == MISALIGNED else separating_experiment(self.cands[g], self.cands[h])
+        return {"candidates": [g, h], "corr": corr, "delta_bic_swap": float(swap), "separating_experiment": experiment}
 
     def _whitened(self, name: str) -> np.ndarray:
-        return _whiten_rotations(self.cols[name], self.w)
+        return _whiten(self.cols[name], self.root)
