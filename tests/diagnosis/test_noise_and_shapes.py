@@ -157,3 +157,34 @@ def test_too_few_stars_to_train_on_is_said_as_such(tmp_path):
     simulate_to_log(cfg, rec, show_progress=False)
     with pytest.raises(UserError, match="left for training"):
         diagnose_recording(rec, cfg, None, OPTIONS)
+
+
+@pytest.mark.parametrize("with_cov", [False, True])
+def test_the_period_search_projects_single_axis_columns_as_the_general_projection(with_cov):
+    """The period search's sparse projection (``describe._SingleAxisRows``) gives the rows of the
+    general one (``_Projector.rows`` of the whitened single-axis columns): several frames, one of
+    them with a single star (no attitude fit), 2 x 2 star covariances, named effects free."""
+    from dataclasses import replace
+
+    from rollingstar.estimators.diagnosis import describe as S
+    from rollingstar.estimators.diagnosis.observations import predict
+    from tests.diagnosis.synthetic import synthetic
+
+    obs, truth, camera, timing = synthetic(frames=5, stars=12, seed=3)
+    keep = ~((obs.frame == 2) & (np.arange(obs.n) % 12 > 0))  # frame 2 keeps one star
+    obs = replace(obs, **{k: getattr(obs, k)[keep] for k in ("frame", "x", "y", "sigma", "t_ns", "u_icrs", "magnitude",
+                                                             "catalog_id", "flux")})
+    rng = np.random.default_rng(8)
+    if with_cov:
+        a = rng.normal(0, 0.05, (obs.n, 2, 2))
+        obs = replace(obs, cov=a @ a.transpose(0, 2, 1) + 0.01 * np.eye(2))
+    pred = predict(obs, truth, camera, timing)
+    train = rng.uniform(size=obs.n) < 0.7
+    named = rng.normal(size=(2 * int(train.sum()), 2))
+    proj = S._Projector(obs, pred, named)
+    values = S._wave(obs.y, np.array([37.0, 150.0, 600.0]))
+    for axis in (0, 1):
+        general = proj.rows(S.whiten(obs, S._single_axis(values, axis)), train)
+        fast = S._SingleAxisRows(proj, axis, train).rows(values)
+        np.testing.assert_allclose(fast, general, rtol=0, atol=1e-12 * np.abs(general).max())
+        assert np.abs(general).max() > 0.1  # the columns are not projected away
