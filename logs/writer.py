@@ -24,7 +24,7 @@ from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from foxglove_schemas_protobuf.TextAnnotation_pb2 import TextAnnotation
 from google.protobuf.timestamp_pb2 import Timestamp
-from mcap.writer import CompressionType, Writer
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 from mcap_protobuf.schema import register_schema
 
 from rollingstar.errors import UserError
@@ -35,6 +35,7 @@ from .errors import LogWriteError
 from .records import FORMAT_VERSION, TOPIC_RECORDS, _Record
 
 KINDS = ("simulation", "run", "import")
+RECORDING = (MCAP0_MAGIC, "an MCAP recording")  # what an output a recording replaces must be (outputs.safe_output)
 CHUNK_SIZE = 256 * 1024
 PROFILE = "rollingstar"
 

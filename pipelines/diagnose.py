@@ -11,6 +11,7 @@ the JSON object (``--json``), the report directory (``index.html``, PNGs, ``resu
 """
 from __future__ import annotations
 
+import math
 import tempfile
 import warnings
 from pathlib import Path
@@ -46,6 +47,8 @@ from rollingstar.sensors.scenario import ScenarioConfig, load_scenario
 from rollingstar.sensors.timing import DetectorTiming
 
 __all__ = ["DiagnoseOptions", "diagnose_recording", "run_diagnose", "print_summary"]
+
+MAX_REFERENCE_ARCSEC = 648_000.0  # 180 deg: a reference no better than this carries no attitude
 
 # The identifier starts from the recording's declared initial attitude when it has one (tracking,
 # verified against the false-match bound on every frame) and by a pattern search when it has none
@@ -270,6 +273,10 @@ def diagnose_recording(recording: str | Path, scenario: ScenarioConfig | None = 
     recording = Path(recording)
     if not recording.exists():
         raise UserError(f"{recording}: recording not found")
+    s = options.reference_sigma_arcsec
+    if s is not None and not (math.isfinite(s) and 0.0 <= s <= MAX_REFERENCE_ARCSEC):
+        raise UserError(f"--reference-attitude-arcsec {s}: expected the reference's accuracy per axis in arcsec, a "
+                        f"finite number from 0 to {MAX_REFERENCE_ARCSEC:g} (180 deg)")
     if options.reference_mount_free and options.reference_sigma_arcsec is None:
         raise UserError(f"{recording}: --reference-mount-free fits the misalignment of a reference attitude; "
                         "state the reference's accuracy with --reference-attitude-arcsec S to use one")

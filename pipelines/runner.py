@@ -26,7 +26,7 @@ from rollingstar.config import format_validation_error, to_yaml
 from rollingstar.errors import ConfigError
 from rollingstar.estimators.plugin import Plugin
 from rollingstar.logs.errors import LogWriteError
-from rollingstar.logs.writer import LogWriter
+from rollingstar.logs.writer import RECORDING, LogWriter
 from rollingstar.outputs import PARTIAL_SUFFIX, check_not_an_input, safe_output
 from rollingstar.pipelines.checkpoint import (
     DEFAULT_EVERY,
@@ -111,7 +111,7 @@ def run_pipeline(recording: str | Path, pipeline: PipelineConfig, output: str | 
                 IDENTITY_RECORD: identity.as_metadata()}
     tmp = None
     try:
-        with safe_output(output, inputs) as tmp:
+        with safe_output(output, inputs, replaces=RECORDING) as tmp:
             start = _Start.find(rec, stages, identity, output, resume, checkpoint_every if tmp != output else 0)
             summary = _run(rec, pipeline.name, start, tmp, metadata, output, max_frames, show_progress,
                            pipeline.max_false_match_prob, with_images)

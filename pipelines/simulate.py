@@ -22,7 +22,7 @@ from rollingstar.logs.topics import (
     TOPIC_TRUTH_ATTITUDE,
     TOPIC_TRUTH_STARS,
 )
-from rollingstar.logs.writer import LogWriter
+from rollingstar.logs.writer import RECORDING, LogWriter
 from rollingstar.outputs import PARTIAL_SUFFIX, safe_output
 from rollingstar.pipelines.interrupt import Interrupted, stop_on_sigint
 from rollingstar.progress import progress_bar
@@ -89,7 +89,7 @@ def simulate_to_log(cfg: ScenarioConfig, output: str | Path, frames: int | None 
         gyro = simulate_gyro(gyro_model, motion, timing.frame_start_ns(0) - period, timing.frame_start_ns(n_frames), cfg.seed)
         gyro = dataclasses.replace(gyro, omega_rad_s=sim.apply_gyro(gyro.t_ns, gyro.omega_rad_s))  # gyro effects
     star_counts = []
-    with safe_output(output, inputs) as tmp, stop_on_sigint() as stop, \
+    with safe_output(output, inputs, replaces=RECORDING) as tmp, stop_on_sigint() as stop, \
             LogWriter(tmp, kind="simulation", metadata={"scenario": {"yaml": to_yaml(cfg)}},
                       compression=compression) as writer, \
             progress_bar(f"simulate {cfg.name}", n_frames, show_progress) as advance:

@@ -132,6 +132,15 @@ def _check_target_kind(target: Path, directory: bool) -> None:
                         "is replaced as a whole, so give a new or empty folder")
 
 
+def _check_replaceable(target: Path, magic: bytes, kind: str) -> None:
+    if target.is_file() and target.stat().st_size:
+        with open(target, "rb") as f:
+            head = f.read(len(magic))
+        if head != magic:
+            raise UserError(f"{target}: exists and is not {kind}; this command writes {kind} and would replace it: "
+                            "remove it or choose another output path")
+
+
 def _holds_other_files(folder: Path) -> bool:
     return folder.is_dir() and any(folder.iterdir()) and not (folder / FOLDER_MARK).is_file()
 
@@ -162,18 +171,23 @@ def _install(tmp: Path, target: Path, directory: bool) -> None:
 
 
 @contextlib.contextmanager
-def safe_output(target: str | Path, inputs: Iterable[str | Path] = (), directory: bool = False) -> Iterator[Path]:
+def safe_output(target: str | Path, inputs: Iterable[str | Path] = (), directory: bool = False,
+                replaces: tuple[bytes, str] | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``target`` to write to; rename it into place on success.
 
     On an exception (Ctrl-C included) the target is untouched and the temporary path becomes
     ``<target>.partial`` (replacing an older one); the exception propagates. A ``target`` that is a
-    device or pipe is yielded itself: there is nothing to replace atomically or to keep."""
+    device or pipe is yielded itself: there is nothing to replace atomically or to keep.
+    ``replaces``: (the first bytes of, name of) the kind of file written; an existing file of
+    another kind (a user's notes given as the output by mistake) is refused, never replaced."""
     target = Path(target)
     check_not_an_input(target, inputs)
     if not directory and _is_special_file(target):
         yield target
         return
     _check_target_kind(target, directory)
+    if replaces is not None and not directory:
+        _check_replaceable(target, *replaces)
     with output_lock(target):
         if _has_content(target):
             warnings.warn(OverwriteWarning(f"{target} exists: it is replaced when this command completes "

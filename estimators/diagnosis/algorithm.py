@@ -35,7 +35,7 @@ from rollingstar.estimators.diagnosis.describe import Description, describe, ref
 from rollingstar.estimators.diagnosis.gyro_channel import GyroData
 from rollingstar.estimators.diagnosis.inputs import DiagnoseOptions, SensorModel, sensor_model, sequence_moves
 from rollingstar.estimators.diagnosis.library import Candidate, library
-from rollingstar.estimators.diagnosis.locating import Location, check_parity, locate
+from rollingstar.estimators.diagnosis.locating import Location, check_parity, locate, with_noise
 from rollingstar.estimators.diagnosis.modelling import (
     EffectModel,
     known_noise,
@@ -133,6 +133,7 @@ def diagnose(observations: Observations, attitudes: Rotation, scenario: Scenario
         sensor = sensor_model(scenario)
         moves = sensor.moving or sequence_moves(observations, attitudes, sensor.camera, sensor.timing)
         sensor = replace(sensor, moving=moves)
+        observations = with_noise(observations, attitudes, sensor)
         check_parity(observations, sensor)
         choice = choose_projection(observations, attitudes, sensor, options)
         if choice is not None and choice.restated:

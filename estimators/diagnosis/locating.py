@@ -141,10 +141,8 @@ def prepare_data(obs: Observations, attitudes: Rotation, sensor: SensorModel, gy
     obs = replace(obs, heldout=heldout)
     frame_has_train, att_mask = attitude_mask(obs)
     fit = (sensor.camera, sensor.timing, sensor.effects)
+    obs = with_noise(obs, attitudes, sensor)
     nuis0, pred0 = fit_nuisance(obs, attitudes, *fit, att_mask, sensor.moving)
-    if obs.sigma_source == "estimated":
-        obs = estimate_sigma(obs, pred0)
-        nuis0, pred0 = fit_nuisance(obs, attitudes, *fit, att_mask, sensor.moving)
     # gross outliers (misidentified stars: the tracking refine gate is 2 px = 40 sigma at 0.05 px),
     # against the named model's misses when one is given
     model = sensor if gate is None else gate
@@ -376,6 +374,16 @@ def attitude_mask(obs: Observations) -> tuple[np.ndarray, np.ndarray]:
     train = ~obs.heldout
     frame_has_train = np.bincount(obs.frame[train], minlength=obs.n_frames) > 0
     return frame_has_train, train | ~frame_has_train[obs.frame]
+
+
+def with_noise(obs: Observations, attitudes, sensor: SensorModel) -> Observations:
+    """``obs`` with a noise: as they are when they state one, else :func:`estimate_sigma` of the
+    model's fit with every star weighted alike."""
+    if obs.sigma_source != "estimated":
+        return obs
+    equal = replace(obs, sigma=np.where(np.isfinite(obs.sigma), obs.sigma, 1.0))
+    fit = fit_nuisance(equal, attitudes, sensor.camera, sensor.timing, sensor.effects, None, sensor.moving)
+    return estimate_sigma(obs, fit[1])
 
 
 def estimate_sigma(obs: Observations, pred: Prediction) -> Observations:

@@ -9,9 +9,17 @@ from __future__ import annotations
 
 def paragraph(result: dict) -> str:
     """One paragraph summarising ``result`` (a :func:`.algorithm.as_json` object)."""
-    parts = [_what_differs(result), _heldout(result), *_ambiguous(result), _unexplained(result), _isolated(result),
+    parts = [_noise_estimated(result), _what_differs(result), _heldout(result), *_ambiguous(result), _unexplained(result), _isolated(result),
              _reference(result), _untestable(result), result.get("reference_available") or ""]
     return " ".join(p for p in parts if p)
+
+
+def _noise_estimated(r: dict) -> str:
+    if not r["noise"]["source"].startswith("estimated"):
+        return ""
+    return (f"The recording states no centroid noise: {r['noise']['sigma_px_median']:.3g} px was estimated from the "
+            "residual scatter (MAD), so every chi-square and BIC below is measured against that estimate, not a "
+            "stated noise.")
 
 
 def _what_differs(r: dict) -> str:

@@ -52,7 +52,7 @@ from rollingstar.logs.importers.observation import (
 from rollingstar.logs.importers.sidecar import CameraSpec, ObservationSpec, load_camera, scenario_for
 from rollingstar.logs.records import arrays_to_stars
 from rollingstar.logs.topics import TOPIC_CENTROIDS
-from rollingstar.logs.writer import LogWriter
+from rollingstar.logs.writer import RECORDING, LogWriter
 from rollingstar.outputs import safe_output
 from rollingstar.sensors.build import build_timing
 from rollingstar.sensors.conventions import radec_to_unit
@@ -209,7 +209,7 @@ def import_centroids(csv: str | Path, out: str | Path, camera: CameraSpec | str 
     star_cols = [k for k in ("flux", "sigma_px", "snr", "peak", "npix", "saturated", "catalog_id", "ref_icrs",
                              "magnitude", *COVARIANCE) if k in cols]
     inputs = [csv, *([camera] if isinstance(camera, (str, Path)) else [])]
-    with safe_output(out, inputs) as tmp, LogWriter(tmp, kind="import", metadata=metadata) as writer:
+    with safe_output(out, inputs, replaces=RECORDING) as tmp, LogWriter(tmp, kind="import", metadata=metadata) as writer:
         for a, b in zip(starts, ends):
             t0 = int(cols["t0_ns"][a])
             y = cols["y"][a:b]

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -42,6 +43,13 @@ from rollingstar.logs.importers.common import (
     import_metadata,
     output_path,
 )
+from rollingstar.logs.importers.corr_checks import (
+    check_centre,
+    check_positions,
+    check_scale,
+    residual_of,
+    unique_rows,
+)
 from rollingstar.logs.importers.images import read_image
 from rollingstar.logs.importers.observation import NO_OBSERVATION, catalog_for, mean_per_frame
 from rollingstar.logs.importers.sidecar import (
@@ -53,7 +61,7 @@ from rollingstar.logs.importers.sidecar import (
 from rollingstar.logs.reader import LogReader
 from rollingstar.logs.records import arrays_to_stars
 from rollingstar.logs.topics import TOPIC_CENTROIDS, TOPIC_EST_ATTITUDE
-from rollingstar.logs.writer import LogWriter
+from rollingstar.logs.writer import RECORDING, LogWriter
 from rollingstar.outputs import safe_output
 from rollingstar.sensors.build import build_timing
 from rollingstar.sensors.conventions import quat_from_fields, radec_roll_from_attitude, radec_to_unit
@@ -63,6 +71,7 @@ FRAME_SPACING_NS = 1_000_000_000
 FOV_TOLERANCE = 0.01
 """Largest relative spread of log.json fields of view within one recording (one camera)."""
 REQUIRED_COLUMNS = ("field_x", "field_y", "index_ra", "index_dec")
+TABLE_SUFFIXES = (".fits", ".fit", ".fts", ".corr")  # astrometry.net's solve-field names its table <image>.corr
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")  # the solved image beside a corr table (its FITS is the table)
 STAR_CONTRAST = 5.0  # robust sigmas above the background at the median star for an image to be the solved one
 EPOCH_REASON = ("the scenario default: log.json's dates are not read (local wall-clock time of no stated zone, "
@@ -139,6 +148,9 @@ def read_log_json(path: str | Path, log: WarningLog | None = None) -> LogJson:
         text = path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise ImportDataError(f"{path}: log.json not found") from None
+    except UnicodeDecodeError as exc:  # an editor's legacy encoding: every byte is a Latin-1 character
+        text = path.read_bytes().decode("latin-1")
+        log(f"{path}: not UTF-8 (byte {exc.start}); read as Latin-1")
     data = None
     try:
         data = json.loads(text)
@@ -205,15 +217,51 @@ def find_corr_folders(root: str | Path) -> list[Path]:
                               "*.fits table and a log.json, or a folder of such folders)")
     if _fits_in(root):
         return [root]
-    folders = sorted({p.parent for p in root.rglob("*") if p.is_file() and p.suffix.lower() == ".fits"},
-                     key=lambda p: p.relative_to(root).as_posix())
+    folders, seen = [], set()
+    for here, dirs, files in os.walk(root, followlinks=True):  # a folder linked in is read like any other
+        real = os.path.realpath(here)
+        if real in seen:  # a link back up the tree, or a second link to one folder
+            dirs.clear()
+            continue
+        seen.add(real)
+        if any(Path(f).suffix.lower() in TABLE_SUFFIXES and Path(here, f).is_file() for f in files):
+            folders.append(Path(here))
+    folders.sort(key=lambda p: p.relative_to(root).as_posix())
     if not folders:
         raise ImportDataError(f"{root}: no astrometry.net corr table (*.fits) in it or below it")
     return folders
 
 
 def _fits_in(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() == ".fits")
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in TABLE_SUFFIXES)
+
+
+def _corr_table_in(folder: Path) -> Path:
+    """The folder's corr table: its one FITS file, or, among several (a solve's whole output: wcs,
+    rdls, axy, the image), the one whose binary table has the corr columns."""
+    files = _fits_in(folder)
+    if len(files) == 1:
+        return files[0]
+    tables = [p for p in files if _has_corr_columns(p)]
+    if len(tables) == 1:
+        return tables[0]
+    which = "none has" if not tables else f"{len(tables)} have ({', '.join(p.name for p in tables)})"
+    raise ImportDataError(f"{folder}: holds {len(files)} FITS files ({', '.join(p.name for p in files)}) and {which} "
+                          f"a binary table with the corr columns {', '.join(REQUIRED_COLUMNS)}; expected one corr table "
+                          "per folder")
+
+
+def _has_corr_columns(path: Path) -> bool:
+    """Whether the first binary table of the FITS file ``path`` has the corr columns (False when unreadable)."""
+    from astropy.io import fits
+
+    try:
+        with fits.open(path, memmap=False) as hdul:
+            table = next((h for h in hdul if isinstance(h, fits.BinTableHDU)), None)
+            names = set() if table is None else {n.lower() for n in table.columns.names}
+    except Exception:  # noqa: BLE001 - any unreadable file is simply not the table (the others say why)
+        return False
+    return set(REQUIRED_COLUMNS) <= names
 
 
 def _json_in(folder: Path) -> Path:
@@ -250,6 +298,10 @@ def read_corr_table(path: str | Path, log: WarningLog | None = None) -> dict[str
                                       f"{', '.join(table.columns.names)}; an astrometry.net corr table has "
                                       f"{', '.join(REQUIRED_COLUMNS)})")
             data = table.data
+            complex_ = [n for n in table.columns.names if np.iscomplexobj(data[n])]
+            if complex_:
+                raise ImportDataError(f"{path}: column(s) {', '.join(complex_)} hold complex numbers; an "
+                                      "astrometry.net corr table has real ones")
             cols = {c: np.asarray(data[names[c]], dtype=float) for c in REQUIRED_COLUMNS}
             for c in ("index_x", "index_y", "flux", "match_weight"):
                 if c in names:
@@ -260,8 +312,15 @@ def read_corr_table(path: str | Path, log: WarningLog | None = None) -> dict[str
         raise
     except FileNotFoundError:
         raise ImportDataError(f"{path}: corr table not found") from None
+    except ValueError as exc:  # e.g. a column of vectors, which numpy cannot make one number per row of
+        raise ImportDataError(f"{path}: a column is not one number per star ({exc}); an astrometry.net corr "
+                              "table has scalar columns") from None
     except Exception as exc:  # astropy raises OSError/ValueError/TypeError for damaged files
         raise ImportDataError(f"{path}: cannot read FITS table ({type(exc).__name__}: {exc})") from None
+    shaped = [c for c, v in cols.items() if v.ndim != 1]
+    if shaped:
+        raise ImportDataError(f"{path}: column(s) {', '.join(shaped)} hold {cols[shaped[0]].shape[1:]} values per "
+                              "star; an astrometry.net corr table has one number per star in each column")
     finite = np.all([np.isfinite(cols[c]) for c in REQUIRED_COLUMNS], axis=0)
     cols = _drop_rows(cols, finite, f"a non-finite {'/'.join(REQUIRED_COLUMNS)}", path, log)
     on_sky = (np.abs(cols["index_ra"]) <= 360.0) & (np.abs(cols["index_dec"]) <= 90.0)
@@ -279,16 +338,14 @@ def _drop_rows(cols: dict[str, np.ndarray], keep: np.ndarray, what: str, path: P
 
 
 def _read_frame(folder: Path, log: WarningLog) -> CorrFrame:
-    fits_files = _fits_in(folder)
-    if len(fits_files) != 1:
-        raise ImportDataError(f"{folder}: holds {len(fits_files)} .fits files ({', '.join(p.name for p in fits_files)}); "
-                              "expected one corr table per folder")
+    fits_files = [_corr_table_in(folder)]
     json_path = _json_in(folder)
     meta = read_log_json(json_path, log)
-    cols = read_corr_table(fits_files[0], log)
+    cols = unique_rows(read_corr_table(fits_files[0], log), fits_files[0], log)
+    check_positions(cols, fits_files[0])
     n = cols["field_x"].size
-    if n == 0:
-        log(f"{fits_files[0]}: no matched stars; the frame will have no stars")
+    if n < 2:
+        log(f"{fits_files[0]}: {n} matched star(s); an attitude needs at least 2, so this frame gets no estimate")
     x, y = cols["field_x"] - 1.0, cols["field_y"] - 1.0  # FITS 1-based pixel centres -> ours (0-based)
     w, h = meta.image_size.x, meta.image_size.y
     outside = (x < -0.5) | (y < -0.5) | (x > w - 0.5) | (y > h - 0.5)
@@ -300,13 +357,12 @@ def _read_frame(folder: Path, log: WarningLog) -> CorrFrame:
     ids = cols.get("index_id", np.arange(n, dtype=np.int64))
     if (ids < 0).any():
         raise ImportDataError(f"{fits_files[0]}: index_id has negative values; catalogue ids must be >= 0")
-    if "index_x" in cols and "index_y" in cols:
-        resid = np.column_stack([cols["field_x"] - cols["index_x"], cols["field_y"] - cols["index_y"]])
-    else:
-        resid = np.full((n, 2), np.nan)
-    ref = radec_to_unit(np.radians(cols["index_ra"]), np.radians(cols["index_dec"]))
-    return CorrFrame(folder, fits_files[0], json_path, meta, x, y, np.asarray(ref).reshape(n, 3), ids,
-                     cols.get("flux", np.full(n, np.nan)), resid)
+    resid = residual_of(cols, fits_files[0], math.hypot(w, h), log)
+    ref = np.asarray(radec_to_unit(np.radians(cols["index_ra"]), np.radians(cols["index_dec"]))).reshape(n, 3)
+    check_scale(x, y, ref, focal_px_from_fov(meta.fov_deg, w, h), fits_files[0], meta.fov_deg)
+    centre = radec_to_unit(math.radians(meta.center.ra_degrees), math.radians(meta.center.dec_degrees))
+    check_centre(ref, np.asarray(centre), meta.fov_deg, str(json_path), log)
+    return CorrFrame(folder, fits_files[0], json_path, meta, x, y, ref, ids, cols.get("flux", np.full(n, np.nan)), resid)
 
 
 def focal_px_from_fov(fov_deg: float, width: int, height: int) -> float:
@@ -437,11 +493,14 @@ def import_corr(folder: str | Path, out: str | Path, remeasure: Callable | None 
     if remeasure is not None:
         frames, remeasured = zip(*(remeasured_frame(f, remeasure, log) for f in frames))
     cam, fov = camera_for(frames, root)
+    _same_tables(frames, log)
     sigma = _residual_rms([f.residual_px for f in frames])
     if sigma is not None and not (np.isfinite(sigma) and sigma < math.hypot(cam.width_px, cam.height_px)):
         log(f"{root}: field_xy - index_xy residuals of {sigma:.3g} px RMS are not a centroid noise (damaged "
-            f"index_x/index_y?); the recording declares the default centroid noise instead")
+            f"index_x/index_y?); the recording states no centroid noise")
         sigma = None
+    if sigma is None:  # no table states its residual: no noise is assumed (`diagnose` estimates it)
+        sigma = 0.0
     first = frames[0].meta.center
     prior = AttitudeConfig(ra_deg=first.ra_degrees, dec_deg=first.dec_degrees, roll_deg=0.0)
     catalog, catalog_details = catalog_for(cam, ObservationSpec(), NO_OBSERVATION, log, source=str(root),
@@ -455,7 +514,8 @@ def import_corr(folder: str | Path, out: str | Path, remeasure: Callable | None 
     timing = build_timing(scenario)
     details = {
         "focal_px": cam.focal_px, "fov_deg": fov, "fov_rule": "focal_px = hypot(W, H) / radians(fov_deg)",
-        "centroid_sigma_px": sigma, "centroid_sigma_rule": "RMS per axis of field_xy - index_xy over all stars",
+        "centroid_sigma_px": sigma, "centroid_sigma_rule": "RMS per axis of field_xy - index_xy over all stars" if sigma
+        else "none stated: no table gives field_xy - index_xy",
         "frame_spacing_ns": FRAME_SPACING_NS, "catalog": catalog_details,
         "positions": "astrometry.net's field_x, field_y" if remeasured is None else (
             "measured again on each table's image (rollingstar.estimators.centroiders.remeasure); "
@@ -473,13 +533,24 @@ def import_corr(folder: str | Path, out: str | Path, remeasure: Callable | None 
     metadata = {"scenario": {"yaml": to_yaml(scenario)},
                 "sensor": {"yaml": yaml.safe_dump(cam.model_dump(mode="json"), sort_keys=False)},
                 "import": import_metadata("corr", root, details, log)}
-    with safe_output(out, [folder]) as tmp, LogWriter(tmp, kind="import", metadata=metadata) as writer:
+    with safe_output(out, [folder], replaces=RECORDING) as tmp, LogWriter(tmp, kind="import", metadata=metadata) as writer:
         for k, f in enumerate(frames):
             t0 = k * FRAME_SPACING_NS
             writer.write_json(TOPIC_CENTROIDS, arrays_to_stars(
                 k, t0, x=f.x, y=f.y, t_ns=timing.row_mid_exposure_ns(t0, f.y), row_time_ns=timing.row_start_ns(t0, f.y),
                 flux=f.flux, catalog_id=f.catalog_id, ref_icrs=f.ref_icrs, **_covariance_columns(f.cov)), t0)
     return out
+
+
+def _same_tables(frames: list[CorrFrame], log: WarningLog) -> None:
+    """Warn about tables that list the same stars at the same positions (one image imported twice)."""
+    seen: dict[bytes, CorrFrame] = {}
+    for f in frames:
+        key = b"".join(np.ascontiguousarray(a).tobytes() for a in (f.x, f.y, f.catalog_id))
+        if f.x.size and key in seen:
+            log(f"{f.fits}: the same stars at the same positions as {seen[key].fits}: one image imported twice counts "
+                "its stars twice (its held-out copy is then no test); remove one of the folders")
+        seen.setdefault(key, f)
 
 
 def _covariance_columns(cov: np.ndarray | None) -> dict:

@@ -58,7 +58,7 @@ from rollingstar.logs.importers.sidecar import (
 )
 from rollingstar.logs.records import AttitudeSamplesRecord, GyroSamplesRecord
 from rollingstar.logs.topics import TOPIC_GYRO, TOPIC_IMAGE, TOPIC_TRUTH_ATTITUDE
-from rollingstar.logs.writer import LogWriter
+from rollingstar.logs.writer import RECORDING, LogWriter
 from rollingstar.outputs import safe_output
 from rollingstar.progress import progress_bar
 from rollingstar.sensors.conventions import NS_PER_S
@@ -388,7 +388,7 @@ def import_images(folder: str | Path, out: str | Path, camera: CameraSpec | str 
                 "sensor": {"yaml": yaml.safe_dump(cam.model_dump(mode="json"), sort_keys=False)},
                 "import": import_metadata("images", folder, details, log)}
     inputs = [folder, *(p for p in (sidecar_path, camera) if isinstance(p, (str, Path)))]
-    with safe_output(out, inputs) as tmp, LogWriter(tmp, kind="import", metadata=metadata) as writer, \
+    with safe_output(out, inputs, replaces=RECORDING) as tmp, LogWriter(tmp, kind="import", metadata=metadata) as writer, \
             progress_bar(f"import {folder.name}", len(files), show_progress) as advance:
         _write_samples(writer, t0, gyro, truth)
         for f, t in zip(files, t0.tolist()):

@@ -323,12 +323,15 @@ def test_corr_damaged_rows_dropped_and_overflowing_residuals_not_taken_as_noise(
         rec = import_corr(tmp_path / "sky", tmp_path / "rec.mcap")
     text = " ".join(str(w.message) for w in caught)
     assert "1 star(s) outside the 808x608 image of log.json dropped (rows 3)" in text
-    assert "not a centroid noise" in text
+    assert "1 row(s) with field_xy - index_xy beyond" in text and "left out of the centroid noise" in text
     s = stars_to_arrays(next(iter(iter_frames(LogReader(rec), "/camera/centroids"))).frame.data)
-    np.testing.assert_array_equal(s["catalog_id"], np.delete(table["ids"], 3))
+    np.testing.assert_array_equal(s["catalog_id"], np.delete(table["ids"], 3))  # the star itself is kept
     scenario = scenario_from_yaml(LogReader(rec).metadata()["scenario"]["yaml"])
-    from rollingstar.sensors.scenario import NoiseConfig
-    assert scenario.noise.centroid_sigma_px == NoiseConfig().centroid_sigma_px  # the default, not inf
+    with fits.open(path) as hdul:
+        d = hdul[1].data
+        keep = np.setdiff1d(np.arange(len(d)), [3, 5])
+        r = np.concatenate([d["field_x"][keep] - d["index_x"][keep], d["field_y"][keep] - d["index_y"][keep]])
+    assert scenario.noise.centroid_sigma_px == pytest.approx(np.sqrt(np.mean(r**2)))  # the other rows' residual
 
 
 def test_corr_log_json_missing_comma_is_recovered_with_a_warning(tmp_path):
@@ -374,7 +377,7 @@ def test_corr_cli_errors_exit_2(tmp_path):
                        str(tmp_path / "a" / "log.json"), "image_size.y", "Field required")
     write_corr(tmp_path / "b" / "one", R)
     write_corr(tmp_path / "b" / "two", R, log_json=json.dumps(
-        {"fov_deg": 36.0, "image_size": {"x": W, "y": H}, "center": {"ra_degrees": 1, "dec_degrees": 2}}))
+        {"fov_deg": 18.5, "image_size": {"x": W, "y": H}, "center": {"ra_degrees": 1, "dec_degrees": 2}}))
     assert_clean_error(cli("import", "corr", tmp_path / "b", "-o", tmp_path / "r.mcap"),
                        "fields of view differ", "one/log.json", "two/log.json", "import the sub-folders separately")
     from astropy.io import fits

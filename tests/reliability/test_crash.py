@@ -171,12 +171,13 @@ def test_a_second_run_to_one_output_is_refused_naming_the_first(tmp_path, record
 
 def test_interrupted_simulate_exits_130_keeping_a_finalised_partial_log(tmp_path):
     out = tmp_path / "sim.mcap"
-    out.write_bytes(b"an earlier recording")
+    earlier = b"\x89MCAP0\r\n an earlier recording"  # a recording (another kind of file is never replaced)
+    out.write_bytes(earlier)
     proc = _start(["simulate", SCENARIO, "-o", out, "--frames", "3000", "-q"], out, 300_000)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
-    assert out.read_bytes() == b"an earlier recording"  # the previous output is untouched
+    assert out.read_bytes() == earlier  # the previous output is untouched
     assert "sim.mcap.partial" in err
     msgs, _, truncated = _read(tmp_path / "sim.mcap.partial")
     assert not truncated
