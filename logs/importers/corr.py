@@ -29,7 +29,7 @@ import os
 import re
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 import yaml
@@ -97,7 +97,7 @@ class LogJson(NoBooleanNumbers):
     fov_deg: float = Field(gt=0, lt=180, description="diagonal field of view at the central pixel scale, deg")
     image_size: _Size
     center: _Centre
-    timestamp: dict | None = None
+    timestamp: Any = None  # kept in the metadata as given, whatever its form (not read: EPOCH_REASON)
 
 
 # field path -> regex for the salvage of a malformed file: each must match exactly once.
@@ -134,6 +134,17 @@ def _repair_commas(text: str) -> tuple[dict | None, list[str]]:
     return None, notes
 
 
+def _pairs(path: Path, log: WarningLog):
+    """A ``json.loads`` object hook that says when a key is given twice (the last value is taken)."""
+    def hook(pairs: list) -> dict:
+        keys = [k for k, _ in pairs]
+        twice = sorted({k for k in keys if keys.count(k) > 1})
+        if twice:
+            log(f"{path}: key(s) {', '.join(map(repr, twice))} given more than once in one object; the last value is used")
+        return dict(pairs)
+    return hook
+
+
 def read_log_json(path: str | Path, log: WarningLog | None = None) -> LogJson:
     """Parse a log.json; recover a malformed file where that is unambiguous, else fail naming the field.
 
@@ -153,7 +164,7 @@ def read_log_json(path: str | Path, log: WarningLog | None = None) -> LogJson:
         log(f"{path}: not UTF-8 (byte {exc.start}); read as Latin-1")
     data = None
     try:
-        data = json.loads(text)
+        data = json.loads(text, object_pairs_hook=_pairs(path, log))
     except json.JSONDecodeError as exc:
         first_error = f"line {exc.lineno}, column {exc.colno}: {exc.msg}"
         data, notes = _repair_commas(text)

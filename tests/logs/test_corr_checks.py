@@ -171,3 +171,15 @@ def test_the_real_creusot_tables_pass_every_check(tmp_path):
     frames = [_read_frame(f, log) for f in find_corr_folders(root / "creusot")]
     assert len(frames) == 31
     assert [m for m in log.messages if "not valid JSON" not in m] == []  # Nunki's log.json lacks a comma (repaired)
+
+
+def test_a_log_json_key_given_twice_is_said_and_an_unread_timestamp_of_any_form_is_kept(tmp_path):
+    write_corr(tmp_path / "sky", R)
+    text = (tmp_path / "sky" / "log.json").read_text()
+    data = json.loads(text)
+    body = json.dumps({**data, "timestamp": "2023-09-07T21:26:00Z"})
+    (tmp_path / "sky" / "log.json").write_text(body[:-1] + ', "fov_deg": ' + str(data["fov_deg"]) + "}")
+    with pytest.warns(UserWarning, match="'fov_deg' given more than once"):
+        rec = import_corr(tmp_path / "sky", tmp_path / "r.mcap")
+    details = json.loads(LogReader(rec).metadata()["import"]["details"])
+    assert details["frames"][0]["timestamp"] == "2023-09-07T21:26:00Z"
