@@ -44,7 +44,7 @@ from rollingstar.estimators.diagnosis.modelling import (
     with_stability,
 )
 from rollingstar.estimators.diagnosis.naming import Naming, name_effects
-from rollingstar.estimators.diagnosis.noise import NoiseCheck, combined, scaled
+from rollingstar.estimators.diagnosis.noise import NoiseCheck, combined, overstated, scaled
 from rollingstar.estimators.diagnosis.noise import measure as measure_noise
 from rollingstar.estimators.diagnosis.observations import Observations, fit_nuisance, star_chi2
 from rollingstar.estimators.diagnosis.projection import (
@@ -347,6 +347,9 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
         "projection": d.projection.as_json() if d.projection is not None else None,
         "noise": {"sigma_px_median": float(np.median(data.obs.sigma)), "source": data.obs.sigma_source},
         "noise_check": d.noise.as_json() if d.noise is not None else None,
+        "noise_overstated": (overstated(data.obs, d.model.prediction, data.train, data.n_train_frames,
+                                        sum(len(c.parameters) for c in d.model.chosen))
+                             if d.noise is None and known_noise(data) else None),
         "rejected_outliers": data.n_rejected,
         "outlier_gate_sigmas": data.gate_sigmas,
         "outlier_gate_trimmed_start": data.gate_trimmed,

@@ -126,3 +126,25 @@ def combined(first: NoiseCheck, again: NoiseCheck) -> NoiseCheck:
     factor = (first.factor if first.applied else 1.0) * again.factor
     big = abs(np.log(factor)) > max(NOISE_Z * again.sigma_ln, MIN_CHANGE)
     return NoiseCheck(factor, again.sigma_ln, again.pairs, first.stated_source, first.stated_sigma_px, bool(big))
+
+
+OVERSTATED_P = 1e-3  # lower-tail probability of the fit's chi-square below which the stated noise is said to be too large
+
+
+def overstated(obs: Observations, pred: Prediction, train: np.ndarray, frames_fitted: int, k: int) -> dict | None:
+    """The stated noise against the final fit's own training chi-square, when the recording has no
+    repeated stars to measure a factor from (a single image, unrelated scenes): a chi-square in
+    its lower tail (below ``OVERSTATED_P``) says the stated noise is larger than the residuals
+    show (as a table whose stated accuracy includes a few poorly fitted stars does). Not applied:
+    it makes every test conservative, not wrong. ``k``: the named effects' parameters. None when
+    the chi-square is not in that tail."""
+    from scipy import stats
+
+    dof = 2 * int(train.sum()) - 3 * frames_fitted - k
+    if dof < 10:
+        return None
+    c = float(np.sum(np.sum(whitened_residuals(obs, pred)[train] ** 2, axis=1)))
+    p = float(stats.chi2.cdf(c, dof))
+    if p >= OVERSTATED_P:
+        return None
+    return {"factor": float(np.sqrt(c / dof)), "chi2": c, "dof": dof, "p": p}

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 def paragraph(result: dict) -> str:
     """One paragraph summarising ``result`` (a :func:`.algorithm.as_json` object)."""
-    parts = [_noise_estimated(result), _what_differs(result), _heldout(result), *_ambiguous(result), _unexplained(result), _isolated(result),
+    parts = [_noise_estimated(result), _what_differs(result), _heldout(result), _overstated(result), *_ambiguous(result), _unexplained(result), _isolated(result),
              _reference(result), _untestable(result), result.get("reference_available") or ""]
     return " ".join(p for p in parts if p)
 
@@ -20,6 +20,15 @@ def _noise_estimated(r: dict) -> str:
     return (f"The recording states no centroid noise: {r['noise']['sigma_px_median']:.3g} px was estimated from the "
             "residual scatter (MAD), so every chi-square and BIC below is measured against that estimate, not a "
             "stated noise.")
+
+
+def _overstated(r: dict) -> str:
+    o = r.get("noise_overstated")
+    if not o:
+        return ""
+    return (f"The stated noise is larger than this recording's residuals: the final fit leaves chi2 {o['chi2']:.3g} over "
+            f"{o['dof']} dof (p = {o['p']:.2g}), as if the noise were {o['factor']:.2f} x the stated, so every test "
+            "here is conservative.")
 
 
 def _what_differs(r: dict) -> str:

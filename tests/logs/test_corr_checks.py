@@ -183,3 +183,16 @@ def test_a_log_json_key_given_twice_is_said_and_an_unread_timestamp_of_any_form_
         rec = import_corr(tmp_path / "sky", tmp_path / "r.mcap")
     details = json.loads(LogReader(rec).metadata()["import"]["details"])
     assert details["frames"][0]["timestamp"] == "2023-09-07T21:26:00Z"
+
+
+def test_a_stated_noise_larger_than_the_residuals_is_said(tmp_path):
+    """write_corr's measured positions are exact and its index positions 0.1 px off: the table states
+    0.1 px, the single image's fit leaves far less, and the report says the tests are conservative."""
+    write_corr(tmp_path / "sky", R, n=40)
+    rec = import_corr(tmp_path / "sky", tmp_path / "r.mcap")
+    proc = cli("diagnose", "--recording", rec, "-o", tmp_path / "d", "--json", "-q")
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(proc.stdout)
+    over = result["noise_overstated"]
+    assert over is not None and over["factor"] < 0.2 and over["p"] < 1e-3
+    assert "The stated noise is larger than this recording's residuals" in result["summary"]
