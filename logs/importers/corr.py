@@ -27,6 +27,7 @@ import json
 import math
 import os
 import re
+import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
@@ -39,6 +40,7 @@ from scipy.spatial.transform import Rotation
 from rollingstar.config import NoBooleanNumbers, format_validation_error, to_yaml
 from rollingstar.logs.importers.common import (
     ImportDataError,
+    ImportDataWarning,
     WarningLog,
     import_metadata,
     output_path,
@@ -226,8 +228,21 @@ def find_corr_folders(root: str | Path) -> list[Path]:
     if not root.is_dir():
         raise ImportDataError(f"{root}: not a directory (expected a folder with an astrometry.net corr "
                               "*.fits table and a log.json, or a folder of such folders)")
+    folders = _table_folders(root)
     if _fits_in(root):
+        below = [f for f in folders if f != root]
+        if below:
+            warnings.warn(ImportDataWarning(f"{root}: holds a corr table, so it is read as one image; the {len(below)} "
+                                            f"folder(s) below it that hold tables ({below[0].relative_to(root)}, ...) "
+                                            "are not read: import them separately"), stacklevel=2)
         return [root]
+    if not folders:
+        raise ImportDataError(f"{root}: no astrometry.net corr table (*.fits) in it or below it")
+    return folders
+
+
+def _table_folders(root: Path) -> list[Path]:
+    """Every folder at or below ``root`` that holds a FITS or corr file, sorted; linked folders followed once."""
     folders, seen = [], set()
     for here, dirs, files in os.walk(root, followlinks=True):  # a folder linked in is read like any other
         real = os.path.realpath(here)
@@ -237,10 +252,7 @@ def find_corr_folders(root: str | Path) -> list[Path]:
         seen.add(real)
         if any(Path(f).suffix.lower() in TABLE_SUFFIXES and Path(here, f).is_file() for f in files):
             folders.append(Path(here))
-    folders.sort(key=lambda p: p.relative_to(root).as_posix())
-    if not folders:
-        raise ImportDataError(f"{root}: no astrometry.net corr table (*.fits) in it or below it")
-    return folders
+    return sorted(folders, key=lambda p: p.relative_to(root).as_posix())
 
 
 def _fits_in(folder: Path) -> list[Path]:
