@@ -297,7 +297,23 @@ def diagnose_recording(recording: str | Path, scenario: ScenarioConfig | None = 
         with progress_bar("diagnose", len(algorithm.PHASES), options.show_progress) as advance:
             d = algorithm.diagnose(obs, att0, scenario, read_gyro(recording, scenario), options, exclude_effects,
                                    reference, on_phase=lambda name: advance(), carries_reference=_carries_truth(recording))
-    return algorithm.as_json(d, recording=str(recording), sim=sim_source or scenario.name, pipeline=pipeline.name), d
+    result = algorithm.as_json(d, recording=str(recording), sim=sim_source or scenario.name, pipeline=pipeline.name)
+    _refuse_non_finite(result, recording)
+    return result, d
+
+
+def _refuse_non_finite(result: dict, recording: Path) -> None:
+    """No verdict on statistics that are not numbers: a model that cannot place the stars (times in
+    another unit, a sensor model far from the camera) gives NaN residuals, and "no mismatch" on them
+    would be a verdict on nothing."""
+    keys = ("train_rms_before_px", "train_rms_after_px", "train_chi2_dof_before", "train_chi2_dof_after",
+            "heldout_rms_before_px", "heldout_rms_after_px")
+    bad = {k: result.get(k) for k in keys if result.get(k) is not None and not math.isfinite(result[k])}
+    if bad:
+        listing = ", ".join(f"{k} = {v}" for k, v in bad.items())
+        raise UserError(f"{recording}: the model given cannot place this recording's stars ({listing}), so no "
+                        "verdict is given; check the frame and star times (nanoseconds), the sensor model and the "
+                        "catalogue directions")
 
 
 def _carries_truth(recording: Path) -> bool:

@@ -12,7 +12,10 @@
   since every stage places the star at that time;
 - a gap between frames longer than 1.5 declared frame periods (frames lost or a clock jump): the
   frame is processed and flagged ``time_gap:<ms>`` with a warning, so stages and readers of the
-  output know its predecessor is not the previous frame.
+  output know its predecessor is not the previous frame;
+- frames closer than half what one camera can take (:func:`min_frame_spacing_ns`: a row cannot
+  expose twice at once, and a frame cannot start before the last one is read out): times in
+  another unit (microseconds in ``t0_ns``), :class:`~rollingstar.logs.errors.LogFormatError`.
 """
 from __future__ import annotations
 
@@ -42,6 +45,7 @@ class FrameChecker:
         self.height = int(context.camera.height)
         self.bit_depth = getattr(context, "bit_depth", None)
         self.period_ns = getattr(context.timing, "frame_period_ns", None)
+        self.min_gap_ns = min_frame_spacing_ns(context.timing)
         if self.period_ns:
             self._star_span_ns = (-self.period_ns, context.timing.frame_end_ns(0) + self.period_ns)
         self._prev: tuple[int, int] | None = None  # (index, t0_ns) of the previous frame
@@ -65,6 +69,11 @@ class FrameChecker:
                 f"{prev[1]} ns); frames must be in time order with distinct times")
         if frame.stars is not None:
             self._check_star_times(frame)
+        if prev is not None and self.min_gap_ns and frame.t0_ns - prev[1] < 0.5 * self.min_gap_ns:
+            raise LogFormatError(
+                f"{self._where(frame)}: {frame.t0_ns - prev[1]} ns after the previous frame; the declared shutter needs "
+                f"at least {self.min_gap_ns * 1e-6:.3g} ms between frames of one camera (its exposure, or its readout "
+                "of every row): frame times must be in nanoseconds (t0_ns, t_ns; docs/log-format.md)")
         if prev is not None and self.period_ns:
             gap = frame.t0_ns - prev[1]
             if gap > GAP_FACTOR * self.period_ns:
@@ -75,6 +84,10 @@ class FrameChecker:
                 frame = frame.flagged(f"time_gap:{ms:.0f}ms")
         self._prev, self._prev_payload = (frame.index, frame.t0_ns), payload
         return frame
+
+    def __setstate__(self, state: dict) -> None:
+        state.setdefault("min_gap_ns", 0)  # a checkpoint written before this check: frames not checked for it
+        self.__dict__.update(state)
 
     def __getstate__(self) -> dict:
         """For run checkpoints: the previous frame's content as its digest (protobuf messages do not
@@ -122,3 +135,11 @@ def _digest(payload) -> bytes:
     else:
         data = json.dumps(payload, sort_keys=True, default=repr).encode()
     return hashlib.sha256(data).digest()
+
+
+def min_frame_spacing_ns(timing) -> int:
+    """The least time between two frames' starts one camera allows: its exposure (a row cannot
+    expose twice at once) or the readout of every row, whichever is longer; 0 without a timing."""
+    if timing is None or not hasattr(timing, "exposure_ns"):
+        return 0
+    return int(max(timing.exposure_ns, timing.rows * timing.effective_line_delay_ns))

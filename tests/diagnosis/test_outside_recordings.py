@@ -5,6 +5,8 @@ on the other worker."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 
@@ -60,3 +62,44 @@ def test_diagnosis_of_the_outside_image_folder_finds_no_mismatch(tmp_path):
     assert result["effects"] == [] and not result["unexplained_systematic"]["present"], result["summary"]
     assert not result["mismatch"]
     assert len(result["isolated_misfits"]) <= 2
+
+
+def _times_in_microseconds(src, dst) -> None:
+    """What an outsider whose clock counts microseconds writes: every log time and every time field of
+    the outside recording divided by 1000 (plain mcap reader and writer, the metadata kept)."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    def us(v):
+        return [us(x) for x in v] if isinstance(v, list) else v // 1000
+
+    with open(src, "rb") as f, open(dst, "wb") as g:
+        reader = make_reader(f)
+        w = Writer(g)
+        w.start(profile="rollingstar", library="outside")
+        for meta in reader.iter_metadata():
+            w.add_metadata(meta.name, meta.metadata)
+        channels = {}
+        for schema, channel, message in reader.iter_messages():
+            if channel.id not in channels:
+                sid = w.register_schema(schema.name, schema.encoding, schema.data)
+                channels[channel.id] = w.register_channel(channel.topic, channel.message_encoding, sid)
+            record = json.loads(message.data)
+            record = {k: (us(v) if k.endswith("_ns") or k == "t_ns" else v) for k, v in record.items()}
+            w.add_message(channels[channel.id], message.log_time // 1000, json.dumps(record).encode(),
+                          message.publish_time // 1000)
+        w.finish()
+
+
+def test_an_outside_recording_with_times_in_microseconds_is_refused_not_diagnosed(tmp_path):
+    """Frames 100 us apart on a camera whose shutter needs 50 ms between frames: the times are in
+    another unit. Both commands that read the frames refuse it naming the spacing and the unit,
+    instead of a verdict on residuals that are not numbers."""
+    ns, us_ = tmp_path / "ns.mcap", tmp_path / "us.mcap"
+    write_centroid_recording(ns, 4, sigma_px=0.1, seed=5)
+    _times_in_microseconds(ns, us_)
+    for args in (("diagnose", "--recording", us_, "-o", tmp_path / "d", "-q"),
+                 ("run", "baseline", us_, "-o", tmp_path / "out.mcap", "-q")):
+        proc = subprocess.run([sys.executable, "-m", "rollingstar.cli", *map(str, args)], capture_output=True, text=True)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+        assert "ns after the previous frame" in proc.stderr and "nanoseconds" in proc.stderr, proc.stderr
