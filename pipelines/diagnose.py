@@ -49,6 +49,9 @@ from rollingstar.sensors.timing import DetectorTiming
 __all__ = ["DiagnoseOptions", "diagnose_recording", "run_diagnose", "print_summary"]
 
 MAX_REFERENCE_ARCSEC = 648_000.0  # 180 deg: a reference no better than this carries no attitude
+# a reference further than this from the stars' attitude (median) is no reference of this camera
+# (as `rollingstar evaluate` reads a truth that far from the estimates)
+REFERENCE_MISMATCH_DEG = 1.0
 
 # The identifier starts from the recording's declared initial attitude when it has one (tracking,
 # verified against the false-match bound on every frame) and by a pattern search when it has none
@@ -230,16 +233,46 @@ def _position_covariance(cov3: np.ndarray, sigma: np.ndarray, source: str) -> tu
     return cov, source + "; 2 x 2 position covariances (cov_xx, cov_xy, cov_yy)"
 
 
-def read_reference(recording: Path, obs: Observations) -> tuple[Rotation, np.ndarray]:
+def read_reference(recording: Path, obs: Observations, stars_attitude: Rotation | None = None,
+                   mount_free: bool = False) -> tuple[Rotation, np.ndarray]:
     """The recording's ``/truth/attitude`` at every frame's reference time, and the frames its
-    samples cover; exit 2 (UserError) when the recording carries none."""
+    samples cover; exit 2 (UserError) when the recording carries none, or when it misses the
+    attitude the stars give (``stars_attitude``, per frame) by more than ``REFERENCE_MISMATCH_DEG``
+    (median; after the best constant rotation when the mount is free): no accuracy a user would
+    state covers that, and the message names the convention that reading it would fit, when one does."""
     samples = LogReader(recording).truth_attitude()
     if samples["t_ns"].size < 2:
         raise UserError(f"{recording}: --reference-attitude-arcsec needs a reference attitude in the recording "
                         f"(/truth/attitude, at least two samples); it has {samples['t_ns'].size}")
     truth = TruthTrajectory(**samples)
     covered = truth.covers(obs.t_ref_ns)
+    if stars_attitude is not None and covered.any():
+        _check_reference(recording, truth, obs.t_ref_ns[covered], stars_attitude[covered], mount_free)
     return truth.attitude(np.where(covered, obs.t_ref_ns, truth.t_ns[0])), covered
+
+
+def _reference_miss_deg(truth: TruthTrajectory, t_ns: np.ndarray, stars: Rotation, mount_free: bool) -> float:
+    d = truth.attitude(t_ns).inv() * stars
+    if mount_free:
+        d = d.mean().inv() * d
+    return float(np.degrees(np.median(d.magnitude())))
+
+
+def _check_reference(recording: Path, truth: TruthTrajectory, t_ns: np.ndarray, stars: Rotation, mount_free: bool):
+    miss = _reference_miss_deg(truth, t_ns, stars, mount_free)
+    if miss <= REFERENCE_MISMATCH_DEG:
+        return
+    for reading, other in truth.other_readings().items():
+        if _reference_miss_deg(other, t_ns, stars, mount_free) <= REFERENCE_MISMATCH_DEG:
+            raise UserError(f"{recording}: /truth/attitude misses the attitude the stars give by {miss:.3g} deg (median) "
+                            f"but agrees with it when read {reading}: the recording's reference follows another "
+                            "convention than docs/conventions.md (camera-to-ICRS, our camera frame, named quaternion "
+                            "fields); write it in ours to use it as a reference")
+    raise UserError(f"{recording}: /truth/attitude misses the attitude the stars give by {miss:.3g} deg (median"
+                    + (", after the best constant rotation" if mount_free else "") + "), and no other convention "
+                    "explains it: it is not a reference of any stated accuracy for this camera (another camera, "
+                    "another clock?)" + ("" if mount_free else "; a reference on another mount takes "
+                                         "--reference-mount-free"))
 
 
 def read_gyro(recording: Path, scenario: ScenarioConfig) -> GyroData | None:
@@ -293,7 +326,8 @@ def diagnose_recording(recording: str | Path, scenario: ScenarioConfig | None = 
             obs, att0 = build_observations(stars, att, scenario, catalog)
         except UserError as exc:
             raise UserError(f"{recording}: {exc} (pipeline {pipeline.name})") from None
-        reference = read_reference(recording, obs) if options.reference_sigma_arcsec is not None else None
+        reference = (read_reference(recording, obs, att0, options.reference_mount_free)
+                     if options.reference_sigma_arcsec is not None else None)
         with progress_bar("diagnose", len(algorithm.PHASES), options.show_progress) as advance:
             d = algorithm.diagnose(obs, att0, scenario, read_gyro(recording, scenario), options, exclude_effects,
                                    reference, on_phase=lambda name: advance(), carries_reference=_carries_truth(recording))

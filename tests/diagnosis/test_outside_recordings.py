@@ -64,14 +64,11 @@ def test_diagnosis_of_the_outside_image_folder_finds_no_mismatch(tmp_path):
     assert len(result["isolated_misfits"]) <= 2
 
 
-def _times_in_microseconds(src, dst) -> None:
-    """What an outsider whose clock counts microseconds writes: every log time and every time field of
-    the outside recording divided by 1000 (plain mcap reader and writer, the metadata kept)."""
+def _rewritten(src, dst, record_edit, time_edit=lambda t: t) -> None:
+    """The outside recording rewritten by an outsider's own converter (plain mcap reader and writer,
+    the metadata kept): ``record_edit(topic, record)`` on every JSON record, ``time_edit`` on log times."""
     from mcap.reader import make_reader
     from mcap.writer import Writer
-
-    def us(v):
-        return [us(x) for x in v] if isinstance(v, list) else v // 1000
 
     with open(src, "rb") as f, open(dst, "wb") as g:
         reader = make_reader(f)
@@ -84,11 +81,19 @@ def _times_in_microseconds(src, dst) -> None:
             if channel.id not in channels:
                 sid = w.register_schema(schema.name, schema.encoding, schema.data)
                 channels[channel.id] = w.register_channel(channel.topic, channel.message_encoding, sid)
-            record = json.loads(message.data)
-            record = {k: (us(v) if k.endswith("_ns") or k == "t_ns" else v) for k, v in record.items()}
-            w.add_message(channels[channel.id], message.log_time // 1000, json.dumps(record).encode(),
-                          message.publish_time // 1000)
+            record = record_edit(channel.topic, json.loads(message.data))
+            w.add_message(channels[channel.id], time_edit(message.log_time), json.dumps(record).encode(),
+                          time_edit(message.publish_time))
         w.finish()
+
+
+def _times_in_microseconds(src, dst) -> None:
+    """What an outsider whose clock counts microseconds writes: every log time and time field / 1000."""
+    def us(v):
+        return [us(x) for x in v] if isinstance(v, list) else v // 1000
+
+    _rewritten(src, dst, lambda topic, r: {k: (us(v) if k.endswith("_ns") else v) for k, v in r.items()},
+               lambda t: t // 1000)
 
 
 def test_an_outside_recording_with_times_in_microseconds_is_refused_not_diagnosed(tmp_path):
@@ -103,3 +108,22 @@ def test_an_outside_recording_with_times_in_microseconds_is_refused_not_diagnose
         proc = subprocess.run([sys.executable, "-m", "rollingstar.cli", *map(str, args)], capture_output=True, text=True)
         assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
         assert "ns after the previous frame" in proc.stderr and "nanoseconds" in proc.stderr, proc.stderr
+
+
+def test_a_reference_attitude_in_another_convention_is_refused_naming_it(tmp_path):
+    """The outsider's /truth/attitude written with the quaternion's scalar first: used as a reference
+    of 1 arcsec it would be 1e12 chi-square off; the diagnosis names the convention instead."""
+    ok, wxyz = tmp_path / "ok.mcap", tmp_path / "wxyz.mcap"
+    write_centroid_recording(ok, 6, sigma_px=0.1, seed=5)
+
+    def scalar_first(topic, r):
+        if topic != "/truth/attitude":
+            return r
+        return {**r, "qx": r["qw"], "qy": r["qx"], "qz": r["qy"], "qw": r["qz"]}
+
+    _rewritten(ok, wxyz, scalar_first)
+    args = ("diagnose", "--recording", wxyz, "-o", tmp_path / "d", "-q", "--reference-attitude-arcsec", "1")
+    proc = subprocess.run([sys.executable, "-m", "rollingstar.cli", *map(str, args)], capture_output=True, text=True)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert "misses the attitude the stars give" in proc.stderr and "scalar first" in proc.stderr, proc.stderr
+    assert cli("diagnose", "--recording", ok, "-o", tmp_path / "d2", "-q", "--reference-attitude-arcsec", "1")
