@@ -41,8 +41,8 @@ def _noisy_reference(monkeypatch, rng: np.random.Generator, sigma_arcsec: float)
     """Read the reference with a random rotation of ``sigma_arcsec`` per axis on every frame."""
     read = P.read_reference
 
-    def noisy(recording, obs):
-        attitude, covered = read(recording, obs)
+    def noisy(recording, obs, *checks):
+        attitude, covered = read(recording, obs, *checks)
         return Rotation.from_rotvec(rng.normal(0.0, sigma_arcsec * ARCSEC_TO_RAD, (len(attitude), 3))) * attitude, covered
 
     monkeypatch.setattr(P, "read_reference", noisy)
@@ -134,8 +134,8 @@ def _misaligned_reference(monkeypatch, rotvec_arcsec) -> None:
     """Read the reference as a second tracker misaligned by ``rotvec_arcsec`` (camera axes) would give it."""
     read = P.read_reference
 
-    def misaligned(recording, obs):
-        attitude, covered = read(recording, obs)
+    def misaligned(recording, obs, *checks):
+        attitude, covered = read(recording, obs, *checks)
         return attitude * Rotation.from_rotvec(np.asarray(rotvec_arcsec) * ARCSEC_TO_RAD), covered
 
     monkeypatch.setattr(P, "read_reference", misaligned)
