@@ -100,7 +100,7 @@ def reference_check(data, model, cands: dict[str, Candidate], names: list[str], 
     sigma = sigma_arcsec * ARCSEC_TO_RAD
     e = (reference.inv() * model.nuisance.attitude).as_rotvec()  # (F, 3)
     cov = attitude_covariances(obs.frame, obs.n_frames, pred.att_jac, obs.sigma, data.att_mask, obs.cov)
-    use = covered & np.all(np.isfinite(e), axis=1) & data.frame_has_train
+    use = covered & np.all(np.isfinite(e), axis=1) & data.frame_has_train & np.all(np.isfinite(cov), axis=(1, 2))
     w = np.linalg.pinv(cov[use] + sigma**2 * np.eye(3), hermitian=True)  # (F', 3, 3)
     e = e[use]
     chi2 = float(np.einsum("ki,kij,kj->", e, w, e))
@@ -110,7 +110,10 @@ def reference_check(data, model, cands: dict[str, Candidate], names: list[str], 
     cols = {}
     for name in names:
         j = whiten(obs, cands[name].signature(pred.ctx, model.effects, pred.exposure_ns))
-        cols[name] = absorbed_rotations(obs.frame[idx], obs.n_frames, aj[idx], j[idx])[use]  # (F', 3, p) rad per unit
+        a = absorbed_rotations(obs.frame[idx], obs.n_frames, aj[idx], j[idx])[use]  # (F', 3, p) rad per unit
+        # a signature the recording cannot evaluate (times that place stars outside what the effect
+        # models) determines nothing: a zero column, reported as not determined, never a NaN fit
+        cols[name] = a if np.all(np.isfinite(a)) else np.zeros_like(a)
     e_given, cols_given, like = e, dict(cols), {}
     if mount_free:
         root = _whitening_root(w)
