@@ -193,18 +193,39 @@ def effect_row(c: Candidate, theta: np.ndarray, sigma: np.ndarray, naming: Namin
     unstable = [s for s in model.stability if s["effect"] == c.name and s["stable"] is False]
     at_bound = [p.name for p, v in zip(c.parameters, theta) if v <= p.bounds[0] + 1e-9 * (p.bounds[1] - p.bounds[0])
                 or v >= p.bounds[1] - 1e-9 * (p.bounds[1] - p.bounds[0])]
+    origin = _pixel_origin(c, theta)
     doubts = [why for why, flag in (("residual structure left", unexplained),
                                     ("unstable across subsets", bool(unstable)),
                                     ("parameter at its bound", bool(at_bound)),
-                                    ("no held-out improvement", not confirms)) if flag]
+                                    ("no held-out improvement", not confirms),
+                                    (origin, origin is not None)) if flag]
     return {"name": c.name, "params": params, "delta_bic": naming.delta_bic.get(c.name),
             "delta_bic_method": naming.delta_bic_method.get(c.name),
             "inclusion_probability": naming.selection["inclusion"].get(c.name),
             "inclusion_with_aliases": naming.pooled_inclusion.get(c.name), "aliases_checked": checked,
             "declared_aliases": [getattr(a, "other", str(a)) for a in c.aliases],
             "explanation": c.explanation, "stable": not unstable, "at_bound": at_bound,
-            "confidence": "tentative" if (unexplained or unstable or at_bound or not confirms) else "confident",
+            "confidence": "tentative" if doubts else "confident",
             "tentative_because": doubts}
+
+
+# pixel-origin conventions a recording written elsewhere may use instead of docs/conventions.md's
+# (x, y from 0 at the first pixel's centre): counted from 1, or from the first pixel's corner
+PIXEL_ORIGINS = {(1.0, 1.0): "x, y counted from 1", (-1.0, -1.0): "x, y counted from 1 the other way",
+                 (0.5, 0.5): "x, y from the first pixel's corner", (-0.5, -0.5): "x, y from the first pixel's corner"}
+
+
+def _pixel_origin(c: Candidate, theta: np.ndarray) -> str | None:
+    """The doubt that a principal-point shift is a pixel-origin convention: both offsets within 0.1 px
+    of one of ``PIXEL_ORIGINS`` (a lens centred to a tenth of a pixel on a convention's value is
+    far less likely than the convention)."""
+    if c.name != "principal_point" or len(theta) != 2:
+        return None
+    for target, what in PIXEL_ORIGINS.items():
+        if np.all(np.abs(np.asarray(theta, dtype=float) - target) <= 0.1):
+            return (f"equal to a pixel-origin shift of ({target[0]:+g}, {target[1]:+g}) px ({what}; "
+                    "docs/conventions.md counts from 0 at the first pixel's centre)")
+    return None
 
 
 def ambiguity_rows(naming: Naming, cands: dict[str, Candidate]) -> list[dict]:

@@ -9,6 +9,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from tests.test_outside_writer import cli, write_centroid_recording, write_image_folder
 
@@ -127,3 +128,26 @@ def test_a_reference_attitude_in_another_convention_is_refused_naming_it(tmp_pat
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
     assert "misses the attitude the stars give" in proc.stderr and "scalar first" in proc.stderr, proc.stderr
     assert cli("diagnose", "--recording", ok, "-o", tmp_path / "d2", "-q", "--reference-attitude-arcsec", "1")
+
+
+
+@pytest.mark.parametrize("theta, convention", [((0.99, 0.96), "counted from 1"), ((0.52, 0.47), "corner"),
+                                               ((0.80, 0.96), None), ((3.0, 1.0), None)])
+def test_a_principal_point_at_a_pixel_origin_convention_is_tentative_and_says_so(theta, convention):
+    """A recording whose pixels count from 1 (or from the first pixel's corner) shows a principal
+    point shifted by exactly that: named, the report says so and keeps it tentative; a shift
+    that is not a convention's value is not doubted for it."""
+    from types import SimpleNamespace
+
+    from rollingstar.estimators.diagnosis.library import library
+    from rollingstar.estimators.diagnosis.verifying import effect_row
+
+    naming = SimpleNamespace(correlations={}, delta_bic={}, delta_bic_method={}, selection={"inclusion": {}},
+                             pooled_inclusion={})
+    row = effect_row(library()["principal_point"], np.array(theta), np.array([0.02, 0.02]), naming,
+                     SimpleNamespace(stability=[]), unexplained=False, confirms=True)
+    doubts = " ".join(row["tentative_because"])
+    if convention is None:
+        assert row["confidence"] == "confident" and "pixel-origin" not in doubts
+    else:
+        assert row["confidence"] == "tentative" and convention in doubts and "docs/conventions.md" in doubts
