@@ -31,6 +31,7 @@ from rollingstar.estimators.diagnosis.locating import MIN_STARS_PER_FRAME
 from rollingstar.estimators.diagnosis.observations import (
     Observations,
     frame_reference_times,
+    rates_from_attitudes,
 )
 from rollingstar.estimators.diagnosis.report import write_report
 from rollingstar.logs.errors import LogFormatError
@@ -291,6 +292,53 @@ def read_gyro(recording: Path, scenario: ScenarioConfig) -> GyroData | None:
     return GyroData(t[keep], w[keep], float(arw))
 
 
+# Readings of a gyro written elsewhere (docs/conventions.md: rad/s about the camera axes): the
+# matrix that maps the rates as written to ours
+GYRO_READINGS = {
+    "in deg/s (rad/s expected)": np.deg2rad(1.0) * np.eye(3),
+    "about the OpenCV camera axes (x and y reversed)": np.diag([-1.0, -1.0, 1.0]),
+    "in deg/s about the OpenCV camera axes": np.deg2rad(1.0) * np.diag([-1.0, -1.0, 1.0]),
+}
+GYRO_MISS = 0.5  # median |star rate - gyro rate| / median |star rate| beyond which another reading is tried
+GYRO_READING_FITS = 0.1  # and below which that reading is taken to be the one the recording used
+MIN_STAR_RATE = np.deg2rad(0.01)  # rad/s: a slower camera shows no rate to compare a gyro with
+
+
+def check_gyro(recording: Path, gyro: GyroData | None, obs: Observations, attitudes: Rotation) -> None:
+    """Refuse a gyro that cannot be this camera's as written: no sample within the frames' times
+    (times in another unit or clock), or rates that miss those the frames' attitudes show by
+    more than ``GYRO_MISS`` of them while a reading of :data:`GYRO_READINGS` fits them within
+    ``GYRO_READING_FITS`` (a large bias or scale error fits none and is left to the diagnosis)."""
+    if gyro is None or gyro.m == 0:
+        return
+    t = obs.t_ref_ns
+    inside = (t >= gyro.t_ns[0]) & (t <= gyro.t_ns[-1])
+    if not inside.any():
+        raise UserError(f"{recording}: /gyro: its {gyro.m} samples span t = {gyro.t_ns[0]} to {gyro.t_ns[-1]} ns and "
+                        f"the frames t = {t.min()} to {t.max()} ns: no frame falls within the gyro's samples (gyro "
+                        "times in another unit or on another clock? both are nanoseconds on one clock, docs/log-format.md)")
+    if obs.n_frames < 3 or inside.sum() < 3:
+        return
+    stars = rates_from_attitudes(attitudes, t)[2][inside]
+    scale = float(np.median(np.linalg.norm(stars, axis=1)))
+    if scale < MIN_STAR_RATE:
+        return
+    written = np.stack([np.interp(t[inside], gyro.t_ns, gyro.omega[:, i]) for i in range(3)], axis=-1)
+
+    def miss(m: np.ndarray) -> float:
+        return float(np.median(np.linalg.norm(stars - written @ m.T, axis=1))) / scale
+
+    base = miss(np.eye(3))
+    if base <= GYRO_MISS:
+        return
+    for reading, m in GYRO_READINGS.items():
+        if miss(m) <= GYRO_READING_FITS:
+            raise UserError(f"{recording}: /gyro rates miss those the frames' attitudes show by {base:.3g} of them "
+                            f"(median) but agree within {miss(m):.2g} when read {reading}: the recording's gyro follows "
+                            "another convention than docs/conventions.md (rad/s about the camera axes); write it in "
+                            "ours to use it")
+
+
 # ------------------------------------------------------------------------------------ the command
 def diagnose_recording(recording: str | Path, scenario: ScenarioConfig | None = None,
                        pipeline: PipelineConfig | None = None, options: DiagnoseOptions = DiagnoseOptions(),
@@ -329,7 +377,9 @@ def diagnose_recording(recording: str | Path, scenario: ScenarioConfig | None = 
         reference = (read_reference(recording, obs, att0, options.reference_mount_free)
                      if options.reference_sigma_arcsec is not None else None)
         with progress_bar("diagnose", len(algorithm.PHASES), options.show_progress) as advance:
-            d = algorithm.diagnose(obs, att0, scenario, read_gyro(recording, scenario), options, exclude_effects,
+            gyro = read_gyro(recording, scenario)
+            check_gyro(recording, gyro, obs, att0)
+            d = algorithm.diagnose(obs, att0, scenario, gyro, options, exclude_effects,
                                    reference, on_phase=lambda name: advance(), carries_reference=_carries_truth(recording))
     result = algorithm.as_json(d, recording=str(recording), sim=sim_source or scenario.name, pipeline=pipeline.name)
     _refuse_non_finite(result, recording)

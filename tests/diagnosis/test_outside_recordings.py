@@ -151,3 +151,36 @@ def test_a_principal_point_at_a_pixel_origin_convention_is_tentative_and_says_so
         assert row["confidence"] == "confident" and "pixel-origin" not in doubts
     else:
         assert row["confidence"] == "tentative" and convention in doubts and "docs/conventions.md" in doubts
+
+
+@pytest.mark.parametrize("convert, reading", [
+    (lambda w: np.degrees(w), "in deg/s"),
+    (lambda w: w * np.array([-1.0, -1.0, 1.0]), "about the OpenCV camera axes"),
+])
+def test_a_gyro_in_another_convention_is_refused_naming_it(tmp_path, convert, reading):
+    """The outsider's /gyro rewritten in degrees per second, or about the OpenCV camera axes: the
+    diagnosis would otherwise name a noise factor or a gyro bias of twice the rate; it names the
+    reading that fits the frames' own rates instead."""
+    ok, bad = tmp_path / "ok.mcap", tmp_path / "bad.mcap"
+    write_centroid_recording(ok, 8, sigma_px=0.1, seed=5)
+
+    def rates(topic, r):
+        if topic != "/gyro":
+            return r
+        w = convert(np.column_stack([r["x"], r["y"], r["z"]]))
+        return {**r, "x": w[:, 0].tolist(), "y": w[:, 1].tolist(), "z": w[:, 2].tolist()}
+
+    _rewritten(ok, bad, rates)
+    args = ("diagnose", "--recording", bad, "-o", tmp_path / "d", "-q")
+    proc = subprocess.run([sys.executable, "-m", "rollingstar.cli", *map(str, args)], capture_output=True, text=True)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert "/gyro rates miss those the frames' attitudes show" in proc.stderr and reading in proc.stderr, proc.stderr
+
+
+def test_a_gyro_whose_times_are_in_microseconds_is_refused(tmp_path):
+    ok, bad = tmp_path / "ok.mcap", tmp_path / "bad.mcap"
+    write_centroid_recording(ok, 6, sigma_px=0.1, seed=5)
+    _rewritten(ok, bad, lambda topic, r: {**r, "t_ns": [t // 1000 for t in r["t_ns"]]} if topic == "/gyro" else r)
+    args = ("diagnose", "--recording", bad, "-o", tmp_path / "d", "-q")
+    proc = subprocess.run([sys.executable, "-m", "rollingstar.cli", *map(str, args)], capture_output=True, text=True)
+    assert proc.returncode == 2 and "no frame falls within the gyro's samples" in proc.stderr, proc.stderr
