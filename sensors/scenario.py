@@ -205,7 +205,7 @@ class ScenarioConfig(Strict):
     sensor: SensorConfig
     shutter: ShutterConfig
     catalog: CatalogConfig = CatalogConfig()
-    motion: MotionConfig
+    motion: MotionConfig = MotionConfig()
     gyro: GyroConfig = GyroConfig()
     noise: NoiseConfig = NoiseConfig()
     image: ImageConfig = ImageConfig()
