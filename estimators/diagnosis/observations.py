@@ -499,14 +499,14 @@ def fit_nuisance(obs: Observations, start, camera, timing=None, effects=(), mask
         return nuis, pred
     for _ in range(2):
         options = rates_from_attitudes(nuis.attitude, obs.t_ref_ns)
-        chis = []
-        for omega in options:
-            _, p_j = fit_attitudes(obs, Nuisance(nuis.attitude, omega), camera, timing, effects, mask)
-            chis.append(frame_chi2(obs, p_j, mask))
-        chis = np.stack(chis)  # (3, F): backward, forward, central
+        fits = [fit_attitudes(obs, Nuisance(nuis.attitude, omega), camera, timing, effects, mask) for omega in options]
+        chis = np.stack([frame_chi2(obs, p_j, mask) for _, p_j in fits])  # (3, F): backward, forward, central
         one_sided = np.argmin(chis[:2], axis=0)
         gain = chis[2] - chis[:2].min(axis=0)
         best = np.where(gain > RATE_SWITCH_CHI2, one_sided, 2)
+        if np.all(best == best[0]):  # one choice for every frame: that fit is the refit (the same inputs)
+            nuis, pred = fits[int(best[0])]
+            continue
         omega = np.stack(options)[best, np.arange(obs.n_frames)]
         nuis, pred = fit_attitudes(obs, Nuisance(nuis.attitude, omega), camera, timing, effects, mask)
     return nuis, pred
