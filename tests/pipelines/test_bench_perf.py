@@ -18,7 +18,8 @@ pytestmark = [pytest.mark.slow, pytest.mark.long_study]  # every benchmark line,
 
 EXPECTED = {"quest", "kf", "rate", "centroid_full", "centroid_windowed", "render", "render_speedup",
             "replay_centroid", "replay_image", "compare",
-            "chain_high_dynamic_0_5", "chain_baseline_0_5", "chain_high_dynamic_10", "chain_baseline_10", "diagnose"}
+            "chain_high_dynamic_0_5", "chain_baseline_0_5", "chain_high_dynamic_10", "chain_baseline_10", "diagnose",
+            "diagnose_outside"}
 
 
 @pytest.fixture(scope="module")
