@@ -66,3 +66,18 @@ def test_a_free_reference_mount_without_a_reference_is_refused(small_recording):
                                    "-q"])
     assert res.exit_code == 2 and "--reference-attitude-arcsec" in res.output, res.output
     assert "Traceback" not in res.output
+
+
+def test_no_verdict_is_given_on_residuals_that_are_not_numbers():
+    from pathlib import Path
+
+    import pytest
+
+    from rollingstar.errors import UserError
+    from rollingstar.pipelines.diagnose import _refuse_non_finite
+
+    finite = {"train_rms_before_px": 0.1, "train_rms_after_px": 0.1, "heldout_rms_before_px": 0.2,
+              "heldout_rms_after_px": None}
+    _refuse_non_finite(finite, Path("r.mcap"))  # None (no held-out data) is no number to refuse
+    with pytest.raises(UserError, match=r"r.mcap: the model given cannot place .*heldout_rms_before_px = nan"):
+        _refuse_non_finite({**finite, "heldout_rms_before_px": float("nan")}, Path("r.mcap"))
