@@ -13,9 +13,12 @@
 - a gap between frames longer than 1.5 declared frame periods (frames lost or a clock jump): the
   frame is processed and flagged ``time_gap:<ms>`` with a warning, so stages and readers of the
   output know its predecessor is not the previous frame;
-- frames closer than half what one camera can take (:func:`min_frame_spacing_ns`: a row cannot
-  expose twice at once, and a frame cannot start before the last one is read out): times in
-  another unit (microseconds in ``t0_ns``), :class:`~rollingstar.logs.errors.LogFormatError`.
+- frames over 100 times closer than one camera can take them (:func:`min_frame_spacing_ns`: a row
+  cannot expose twice at once, and a frame cannot start before the last one is read out): times
+  in another unit (microseconds in ``t0_ns`` are 1000 times closer),
+  :class:`~rollingstar.logs.errors.LogFormatError`. Only a unit error is refused: a burst, or a
+  sensor model whose exposure is a default and not the camera's, can put frames closer than
+  that bound by far less.
 """
 from __future__ import annotations
 
@@ -29,6 +32,7 @@ from rollingstar.estimators.data import FrameData
 from rollingstar.logs.errors import LogFormatError
 
 GAP_FACTOR = 1.5
+UNIT_FACTOR = 0.01  # frames this much closer than one camera allows: times in another unit
 
 
 class FrameChecker:
@@ -69,11 +73,12 @@ class FrameChecker:
                 f"{prev[1]} ns); frames must be in time order with distinct times")
         if frame.stars is not None:
             self._check_star_times(frame)
-        if prev is not None and self.min_gap_ns and frame.t0_ns - prev[1] < 0.5 * self.min_gap_ns:
+        if prev is not None and self.min_gap_ns and frame.t0_ns - prev[1] < UNIT_FACTOR * self.min_gap_ns:
             raise LogFormatError(
-                f"{self._where(frame)}: {frame.t0_ns - prev[1]} ns after the previous frame; the declared shutter needs "
-                f"at least {self.min_gap_ns * 1e-6:.3g} ms between frames of one camera (its exposure, or its readout "
-                "of every row): frame times must be in nanoseconds (t0_ns, t_ns; docs/log-format.md)")
+                f"{self._where(frame)}: {frame.t0_ns - prev[1]} ns after the previous frame, over {1 / UNIT_FACTOR:g} times "
+                f"closer than the recording's sensor model lets one camera take frames ({self.min_gap_ns * 1e-6:.3g} "
+                "ms: its shutter's exposure or its readout of every row): frame times must be in nanoseconds "
+                "(t0_ns, t_ns; docs/log-format.md)")
         if prev is not None and self.period_ns:
             gap = frame.t0_ns - prev[1]
             if gap > GAP_FACTOR * self.period_ns:

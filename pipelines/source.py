@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from rollingstar.estimators.data import (
+    DEFAULT_CENTROID_SIGMA_PX,
     FrameData,
     GyroSamples,
     SensorContext,
@@ -85,6 +86,10 @@ def open_recording(path: str | Path) -> Recording:
     meta = reader.metadata()
     scenario = reader.scenario("import real data with `rollingstar import` so that it does")
     context = SensorContext.from_scenario(scenario)
+    if scenario.level == "centroid" and not scenario.noise.centroid_sigma_px:
+        warnings.warn(f"{path}: the recording states no centroid noise (scenario noise.centroid_sigma_px is 0): the "
+                      f"stages weight stars without their own sigma_px as {DEFAULT_CENTROID_SIGMA_PX:g} px, and the "
+                      "attitude covariances they report assume it")
     topics = reader.summary_info().topics
     frame_topic = TOPIC_IMAGE if TOPIC_IMAGE in topics else TOPIC_CENTROIDS
     reader.require_topics([frame_topic])

@@ -347,7 +347,8 @@ def as_json(d: Diagnosis, recording: str, sim: str, pipeline: str) -> dict:
         "projection": d.projection.as_json() if d.projection is not None else None,
         "noise": {"sigma_px_median": float(np.median(data.obs.sigma)), "source": data.obs.sigma_source},
         "noise_check": d.noise.as_json() if d.noise is not None else None,
-        "noise_overstated": (overstated(data.obs, d.model.prediction, data.train, data.n_train_frames,
+        "noise_overstated": (overstated(data.obs, d.model.prediction, data.train | data.heldout,
+                                        data.n_train_frames + data.heldout_frames_fitted,
                                         sum(len(c.parameters) for c in d.model.chosen))
                              if d.noise is None and known_noise(data) else None),
         "rejected_outliers": data.n_rejected,

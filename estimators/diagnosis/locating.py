@@ -381,7 +381,7 @@ def with_noise(obs: Observations, attitudes, sensor: SensorModel) -> Observation
     model's fit with every star weighted alike."""
     if obs.sigma_source != "estimated":
         return obs
-    equal = replace(obs, sigma=np.where(np.isfinite(obs.sigma), obs.sigma, 1.0))
+    equal = replace(obs, sigma=np.ones(obs.n), cov=None)
     fit = fit_nuisance(equal, attitudes, sensor.camera, sensor.timing, sensor.effects, None, sensor.moving)
     return estimate_sigma(obs, fit[1])
 

@@ -131,19 +131,21 @@ def combined(first: NoiseCheck, again: NoiseCheck) -> NoiseCheck:
 OVERSTATED_P = 1e-3  # lower-tail probability of the fit's chi-square below which the stated noise is said to be too large
 
 
-def overstated(obs: Observations, pred: Prediction, train: np.ndarray, frames_fitted: int, k: int) -> dict | None:
-    """The stated noise against the final fit's own training chi-square, when the recording has no
-    repeated stars to measure a factor from (a single image, unrelated scenes): a chi-square in
-    its lower tail (below ``OVERSTATED_P``) says the stated noise is larger than the residuals
-    show (as a table whose stated accuracy includes a few poorly fitted stars does). Not applied:
-    it makes every test conservative, not wrong. ``k``: the named effects' parameters. None when
-    the chi-square is not in that tail."""
+def overstated(obs: Observations, pred: Prediction, kept: np.ndarray, frames_fitted: int, k: int) -> dict | None:
+    """The stated noise against the final model's chi-square over every star it kept (training and
+    held out), when the recording has no repeated stars to measure a factor from (a single image,
+    unrelated scenes): a chi-square in its lower tail (below ``OVERSTATED_P``) says the stated
+    noise is larger than the residuals show (as a table whose stated accuracy includes a few
+    poorly fitted stars does). Held-out stars the model misses raise the sum, so a model that
+    fails the held-out test is never called overfitted to noise here. Not applied: with a noise
+    too large the tests lose sensitivity, they do not name more. ``frames_fitted``: the attitudes
+    fitted to these stars; ``k``: the named effects' parameters. None outside that tail."""
     from scipy import stats
 
-    dof = 2 * int(train.sum()) - 3 * frames_fitted - k
+    dof = 2 * int(kept.sum()) - 3 * frames_fitted - k
     if dof < 10:
         return None
-    c = float(np.sum(np.sum(whitened_residuals(obs, pred)[train] ** 2, axis=1)))
+    c = float(np.sum(np.sum(whitened_residuals(obs, pred)[kept] ** 2, axis=1)))
     p = float(stats.chi2.cdf(c, dof))
     if p >= OVERSTATED_P:
         return None

@@ -26,9 +26,9 @@ def _overstated(r: dict) -> str:
     o = r.get("noise_overstated")
     if not o:
         return ""
-    return (f"The stated noise is larger than this recording's residuals: the final fit leaves chi2 {o['chi2']:.3g} over "
-            f"{o['dof']} dof (p = {o['p']:.2g}), as if the noise were {o['factor']:.2f} x the stated, so every test "
-            "here is conservative.")
+    return (f"The stated noise is larger than this recording's residuals: the final model leaves chi2 {o['chi2']:.3g} "
+            f"over {o['dof']} dof on every star it kept (p = {o['p']:.2g}), as if the noise were {o['factor']:.2f} x the "
+            "stated, so the tests here are less sensitive than the right noise would make them.")
 
 
 def _what_differs(r: dict) -> str:

@@ -211,8 +211,10 @@ def effect_row(c: Candidate, theta: np.ndarray, sigma: np.ndarray, naming: Namin
 
 # pixel-origin conventions a recording written elsewhere may use instead of docs/conventions.md's
 # (x, y from 0 at the first pixel's centre): counted from 1, or from the first pixel's corner
-PIXEL_ORIGINS = {(1.0, 1.0): "x, y counted from 1", (-1.0, -1.0): "x, y counted from 1 the other way",
-                 (0.5, 0.5): "x, y from the first pixel's corner", (-0.5, -0.5): "x, y from the first pixel's corner"}
+PIXEL_ORIGINS = {(1.0, 1.0): "x, y counted from 1",
+                 (-1.0, -1.0): "1 subtracted from x, y already counted from 0",
+                 (0.5, 0.5): "x, y from the first pixel's corner, pixel centres at k + 0.5",
+                 (-0.5, -0.5): "half a pixel subtracted from x, y already at the pixel centres"}
 
 
 def _pixel_origin(c: Candidate, theta: np.ndarray) -> str | None:

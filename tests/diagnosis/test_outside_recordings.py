@@ -184,3 +184,24 @@ def test_a_gyro_whose_times_are_in_microseconds_is_refused(tmp_path):
     args = ("diagnose", "--recording", bad, "-o", tmp_path / "d", "-q")
     proc = subprocess.run([sys.executable, "-m", "rollingstar.cli", *map(str, args)], capture_output=True, text=True)
     assert proc.returncode == 2 and "no frame falls within the gyro's samples" in proc.stderr, proc.stderr
+
+
+def test_a_burst_of_frames_closer_than_a_default_exposure_is_run(tmp_path):
+    """A camera file without a shutter (the sensor model's exposure is then a default, 100 ms) and
+    one pair of frames 40 ms apart among frames 200 ms apart: not a unit error, so `run` runs."""
+    from rollingstar.sensors.camera import PinholeCamera
+    from rollingstar.sensors.conventions import attitude_from_radec_roll, unit_to_radec
+
+    w, h, f_mm, pix_um = 1280, 1024, 25.0, 5.3
+    cam = PinholeCamera(f_mm * 1e-3, pix_um * 1e-6, w, h)
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(20, w - 20, 25), rng.uniform(20, h - 20, 25)
+    ra, dec = (np.degrees(a) for a in unit_to_radec(attitude_from_radec_roll(80.0, 20.0, 10.0).apply(cam.unproject(x, y))))
+    rows = ["frame,t_ns,x,y,flux,catalog_id,ra_deg,dec_deg"]
+    for k, ms in enumerate([0, 200, 400, 440, 640, 840]):
+        rows += [f"{k},{1_000_000_000 + ms * 1_000_000},{x[i] + rng.normal(0, .05):.4f},{y[i] + rng.normal(0, .05):.4f},"
+                 f"100,{i + 1},{ra[i]:.8f},{dec[i]:.8f}" for i in range(25)]
+    (tmp_path / "c.csv").write_text("\n".join(rows) + "\n")
+    (tmp_path / "cam.yaml").write_text(f"width_px: {w}\nheight_px: {h}\nfocal_length_mm: {f_mm}\npixel_size_um: {pix_um}\n")
+    cli("import", "centroids", tmp_path / "c.csv", "--camera", tmp_path / "cam.yaml", "-o", tmp_path / "r.mcap")
+    assert "6 frames: 6 valid" in cli("run", "baseline", tmp_path / "r.mcap", "-o", tmp_path / "o.mcap", "-q").stdout
