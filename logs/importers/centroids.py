@@ -41,6 +41,7 @@ from rollingstar.logs.importers.common import (
     read_csv,
     time_column,
 )
+from rollingstar.logs.importers.identified import check_identified
 from rollingstar.logs.importers.observation import (
     NO_OBSERVATION,
     Observation,
@@ -99,6 +100,10 @@ def read_centroid_table(path: str | Path, camera: CameraSpec, log: WarningLog | 
         raise ImportDataError(f"{table.where(i, 'sigma_px')}: {cols['sigma_px'][i]}; a position uncertainty is "
                               "> 0 px (leave the cell empty when it is unknown)")
     cols.update(_covariance_columns(table))
+    if "cov_xx" in cols:  # a star's stated covariance also states its sigma (sqrt(trace / 2)) where no sigma_px does
+        from_cov = np.sqrt(0.5 * (cols["cov_xx"] + cols["cov_yy"]))
+        cols["sigma_px"] = np.where(np.isfinite(cols["sigma_px"]), cols["sigma_px"], from_cov) if "sigma_px" in cols \
+            else from_cov
     if "npix" in table.columns:
         cols["npix"] = int_column(table, "npix", default=0)
     if "saturated" in table.columns:
@@ -188,6 +193,8 @@ def import_centroids(csv: str | Path, out: str | Path, camera: CameraSpec | str 
         first = int(starts[lonely[0]])
         log(f"{csv}: {lonely.size} of {counts.size} frames hold a single star (the first: frame {frame[first]}, "
             f"line {int(cols['lines'][first])}); an attitude needs at least 2 stars, so those frames get no estimate")
+    if "catalog_id" in cols:
+        _check_identification(cols, starts, ends, cam, csv)
     t0s = cols["t0_ns"][starts]
     period = float(np.median(np.diff(t0s))) * 1e-6 if t0s.size > 1 else None
     column = str(cols.pop("time_column"))
@@ -217,6 +224,16 @@ def import_centroids(csv: str | Path, out: str | Path, camera: CameraSpec | str 
                 int(frame[a]), t0, x=cols["x"][a:b], y=y, t_ns=timing.row_mid_exposure_ns(t0, y),
                 row_time_ns=timing.row_start_ns(t0, y), **{k: cols[k][a:b] for k in star_cols}), t0)
     return out
+
+
+def _check_identification(cols: dict, starts: np.ndarray, ends: np.ndarray, cam: CameraSpec, csv: Path) -> None:
+    """Every frame's identified stars against their catalogue directions (:mod:`.identified`)."""
+    cx, cy = cam.principal_point_px or ((cam.width_px - 1) / 2.0, (cam.height_px - 1) / 2.0)
+    for a, b in zip(starts, ends):
+        known = cols["catalog_id"][a:b] >= 0
+        where = f"{csv}: frame {cols['frame'][a]} (line {int(cols['lines'][a])})"
+        check_identified(cols["x"][a:b][known], cols["y"][a:b][known], cols["ref_icrs"][a:b][known], cam.focal_px,
+                         cx, cy, where)
 
 
 def _check_frame_spacing(table, frame: np.ndarray, t: np.ndarray, starts: np.ndarray, tname: str,

@@ -52,6 +52,7 @@ from rollingstar.logs.importers.corr_checks import (
     residual_of,
     unique_rows,
 )
+from rollingstar.logs.importers.identified import check_identified
 from rollingstar.logs.importers.images import read_image
 from rollingstar.logs.importers.observation import NO_OBSERVATION, catalog_for, mean_per_frame
 from rollingstar.logs.importers.sidecar import (
@@ -383,6 +384,7 @@ def _read_frame(folder: Path, log: WarningLog) -> CorrFrame:
     resid = residual_of(cols, fits_files[0], math.hypot(w, h), log)
     ref = np.asarray(radec_to_unit(np.radians(cols["index_ra"]), np.radians(cols["index_dec"]))).reshape(n, 3)
     check_scale(x, y, ref, focal_px_from_fov(meta.fov_deg, w, h), fits_files[0], meta.fov_deg)
+    check_identified(x, y, ref, focal_px_from_fov(meta.fov_deg, w, h), (w - 1) / 2.0, (h - 1) / 2.0, str(fits_files[0]))
     centre = radec_to_unit(math.radians(meta.center.ra_degrees), math.radians(meta.center.dec_degrees))
     check_centre(ref, np.asarray(centre), meta.fov_deg, str(json_path), log)
     return CorrFrame(folder, fits_files[0], json_path, meta, x, y, ref, ids, cols.get("flux", np.full(n, np.nan)), resid)
