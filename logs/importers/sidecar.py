@@ -48,6 +48,7 @@ DEFAULT_FRAME_RATE_HZ = 1.0
 """Frame rate assumed when a sidecar gives neither timestamps nor a frame rate."""
 NOMINAL_PIXEL_SIZE_UM = 1.0
 """Pixel pitch written when only the field of view is known: only focal / pixel matters."""
+MAX_PINHOLE_FIELD_DEG = 170.0  # a perspective (pinhole) lens with a wider diagonal field: units confused
 
 FITS_SUFFIXES = (".fits", ".fit", ".fts")
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg", *FITS_SUFFIXES)
@@ -117,6 +118,12 @@ class CameraSpec(_Strict):
                              "(with fov_axis), not both and not neither")
         if self.focal_length_mm is not None and self.pixel_size_um is None:
             raise ValueError("focal_length_mm needs pixel_size_um")
+        diagonal = math.degrees(2.0 * math.atan(math.hypot(self.width_px, self.height_px) / 2.0 / self.focal_px))
+        if self.projection == "perspective" and diagonal > MAX_PINHOLE_FIELD_DEG:
+            raise ValueError(f"the optics give a focal length of {self.focal_px:.3g} px, a pinhole field of {diagonal:.1f} "
+                             f"deg across the diagonal, beyond the {MAX_PINHOLE_FIELD_DEG:g} deg a perspective lens images: "
+                             "focal_length_mm in millimetres and pixel_size_um in micrometres (or a wide-angle "
+                             "projection) expected")
         return self
 
     @property

@@ -662,3 +662,23 @@ def test_the_camera_gain_reaches_the_centroiders(tmp_path):
     default = import_images(folder, tmp_path / "d.mcap", camera=small_camera())
     assert open_recording(stated).context.gain_e_per_adu == 8.0
     assert open_recording(default).context.gain_e_per_adu == 1.0
+
+
+def test_centroid_csv_covariance_columns_state_each_stars_sigma(tmp_path):
+    """An isotropic covariance (cov_xx = cov_yy, cov_xy = 0) states the star's accuracy as much as
+    sigma_px does: the star carries sigma_px = sqrt(trace / 2), which the estimators weight by."""
+    rows = ["frame,t_ns,x,y,flux,cov_xx,cov_xy,cov_yy"]
+    rows += [f"0,0,{100 + 50 * i},{200 + 30 * i},100,0.09,0,0.09" for i in range(5)]
+    (tmp_path / "c.csv").write_text("\n".join(rows) + "\n")
+    rec = import_centroids(tmp_path / "c.csv", tmp_path / "r.mcap", CSV_CAMERA)
+    s = stars_to_arrays(next(iter(iter_frames(LogReader(rec), "/camera/centroids"))).frame.data)
+    np.testing.assert_allclose(s["sigma_px"], 0.3)
+
+
+def test_a_camera_whose_pinhole_field_passes_170_degrees_is_refused(tmp_path):
+    """focal_length_mm written in metres (0.025 for 25 mm): a 4.7 px focal length, a 179 deg pinhole."""
+    cam = tmp_path / "cam.yaml"
+    cam.write_text("width_px: 1280\nheight_px: 1024\nfocal_length_mm: 0.025\npixel_size_um: 5.3\n")
+    (tmp_path / "c.csv").write_text("frame,t_ns,x,y\n0,0,10,10\n0,0,20,30\n")
+    assert_clean_error(cli("import", "centroids", tmp_path / "c.csv", "--camera", cam, "-o", tmp_path / "r.mcap"),
+                       "cam.yaml", "focal length of 4.72 px", "179.3 deg", "millimetres")
