@@ -91,7 +91,7 @@ def run_and_read(recording: Path, pipeline: PipelineConfig, source: str, show_pr
         # the run's output is scratch, removed with its folder: a failed run keeps no partial worth naming
         warnings.simplefilter("ignore", PartialOutputWarning)
         out = Path(tmp) / "diagnose_run.mcap"
-        run_pipeline(recording, pipeline, out, pipeline_source=source, show_progress=show_progress)
+        summary = run_pipeline(recording, pipeline, out, pipeline_source=source, show_progress=show_progress)
         reader = LogReader(out)
         stars = {k: (m.record.t0_ns, {**stars_to_arrays(m.record), "t0_ns": m.record.t0_ns, "frame": m.record.frame})
                  for k, m in enumerate(reader.messages([TOPIC_EST_STARS]))}
@@ -106,6 +106,9 @@ def run_and_read(recording: Path, pipeline: PipelineConfig, source: str, show_pr
             if d.get("valid") and d.get("q") is not None and started and started[-1] not in att:
                 q = d["q"]
                 att[started[-1]] = np.array([q["x"], q["y"], q["z"], q["w"]], dtype=float)
+    if not att and summary.outcomes is not None:  # what became of the frames says why, as `run` says it
+        raise UserError(f"{recording}: no frame has a valid attitude to diagnose from; the pipeline {pipeline.name} "
+                        f"gave {summary.outcomes.sentence()}" + "".join(f" {h}" for h in summary.outcomes.hints()))
     return stars, att
 
 
