@@ -24,6 +24,9 @@ from rollingstar.estimators.identifiers.tracking import (
 from rollingstar.sensors.conventions import S_PER_NS
 from rollingstar.sensors.so3 import skew
 
+# the narrowest field whose pattern database fits in memory (tetra3 lattice of field centres)
+MIN_FIELD_DEG = 1.0
+
 
 class LostInSpaceParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -264,6 +267,10 @@ class LostInSpaceIdentifier(Identifier):
             # the field range is widened to a quarter-degree grid so that cameras a little apart (one
             # lens' per-image or calibrated focal lengths) share one memoised database
             tol = self.params.fov_tolerance
+            if self._fov_deg < MIN_FIELD_DEG:  # the pattern lattice of a narrower field is beyond memory
+                raise ValueError(f"the camera's field is {self._fov_deg:.3g} deg, narrower than the {MIN_FIELD_DEG:g} deg "
+                                 "lost-in-space's pattern database covers: check focal_length_mm and pixel_size_um "
+                                 "(a focal length given in pixels?), or start from a declared attitude (tracking)")
             lo = np.floor(self._fov_deg * (1 - tol) * 4.0) / 4.0
             hi = np.ceil(self._fov_deg * (1 + tol) * 4.0) / 4.0
             self._db = solver_database(cat, lo, hi, self.params.magnitude_limit)
