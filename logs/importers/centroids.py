@@ -91,6 +91,10 @@ def read_centroid_table(path: str | Path, camera: CameraSpec, log: WarningLog | 
             raise ImportDataError(f"{table.where(i, name)}: {cols[name][i]} is outside the detector "
                                   f"[-0.5, {size - 0.5}] of the {w}x{h} camera")
     _check_repeated_stars(table, frame, cols["x"], cols["y"])
+    flux = cols["flux"][np.isfinite(cols["flux"])]
+    if flux.size and not (flux > 0).any():
+        log(f"{table.path}: column 'flux' holds no positive value; identifiers rank stars by flux (brightest "
+            "first), so every star is equal to them: a column of magnitudes, or a background-subtracted sum gone wrong?")
     for name in ("sigma_px", "snr", "peak", "magnitude"):
         if name in table.columns:
             cols[name] = float_column(table, name, required=False)

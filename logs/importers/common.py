@@ -221,8 +221,10 @@ def time_column(table: CsvTable) -> tuple[np.ndarray, str]:
         beyond = np.flatnonzero(np.abs(seconds) >= INT64_MAX / NS_PER_S)
         if beyond.size:
             i = int(beyond[0])
+            hint = (f"; {seconds[i] / 1e3:g} s if it is milliseconds: {name} holds seconds" if "unix" in name
+                    and abs(seconds[i]) / 1e3 < 4e9 else ": shift the time origin")
             raise ImportDataError(f"{table.where(i, name)}: {seconds[i]:g} s is beyond the nanosecond clock "
-                                  "(int64 ns reach about 292 years): shift the time origin")
+                                  f"(int64 ns reach about 292 years){hint}")
         t = np.asarray(seconds_to_ns(seconds), dtype=np.int64).reshape(-1)
     bad = np.flatnonzero(t < 0)
     if bad.size:

@@ -449,6 +449,7 @@ def test_centroid_csv_with_catalogue_ids_is_solved_without_identifier(tmp_path):
     ("frame,t_ns,x,y,flux,catalog_id\n0,0,1,2,3,7\n", "catalog_id given without ra_deg, dec_deg"),
     ("", "empty CSV file"),
     ("frame,time_s,x,y,flux\n0,9.3e9,1,2,3\n", "line 2, column 'time_s': 9.3e+09 s is beyond the nanosecond clock"),
+    ("frame,time_unix_s,x,y,flux\n0,1700000000000,1,2,3\n", "1.7e+09 s if it is milliseconds: time_unix_s holds seconds"),
     ("frame,t_ns,x,y,flux\n0,99999999999999999999,1,2,3\n", "line 2, column 't_ns': '99999999999999999999' is beyond a 64-bit integer"),
     ("frame,t_ns,x,y,flux,sigma_px\n0,0,1,2,3,0\n", "line 2, column 'sigma_px': 0.0; a position uncertainty is > 0"),
     ("frame,t_ns,x,y,flux,sigma_px\n0,0,1,2,3,\n0,0,5,2,3,-0.1\n", "line 3, column 'sigma_px': -0.1"),
@@ -682,3 +683,9 @@ def test_a_camera_whose_pinhole_field_passes_170_degrees_is_refused(tmp_path):
     (tmp_path / "c.csv").write_text("frame,t_ns,x,y\n0,0,10,10\n0,0,20,30\n")
     assert_clean_error(cli("import", "centroids", tmp_path / "c.csv", "--camera", cam, "-o", tmp_path / "r.mcap"),
                        "cam.yaml", "focal length of 4.72 px", "179.3 deg", "millimetres")
+
+
+def test_centroid_csv_with_no_positive_flux_is_said(tmp_path):
+    (tmp_path / "c.csv").write_text("frame,t_ns,x,y,flux\n0,0,10,10,-5\n0,0,20,30,0\n")
+    with pytest.warns(UserWarning, match="column 'flux' holds no positive value"):
+        import_centroids(tmp_path / "c.csv", tmp_path / "r.mcap", CSV_CAMERA)
