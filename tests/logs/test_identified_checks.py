@@ -1,6 +1,6 @@
 """Stars that arrive identified must be the stars at their positions (logs/importers/identified.py):
-a mirror image, directions in another unit, swapped or shuffled columns are refused at import,
-while a lens that is no pinhole and a few wrong identifications are not."""
+a mirror image, angles in radians, shuffled rows are refused at import, while a lens that is no
+pinhole and wrong identifications short of half are not."""
 from __future__ import annotations
 
 import numpy as np
@@ -61,21 +61,21 @@ def test_directions_that_are_not_the_stars_are_refused():
     x, y, ref, f = _stars(16.0, (0, 0, 0))
     ra, dec = (np.degrees(a) for a in unit_to_radec(ref))
     others = {"shuffled": ref[np.random.default_rng(1).permutation(len(ref))],
-              "right ascension in hours": np.asarray(radec_to_unit(np.radians(ra / 15.0), np.radians(dec))).reshape(-1, 3),
-              "swapped": np.asarray(radec_to_unit(np.radians(dec), np.radians(ra))).reshape(-1, 3)}
+              "angles in radians read as degrees": np.asarray(radec_to_unit(ra * np.pi / 180 ** 2, dec * np.pi / 180 ** 2)
+                                                             ).reshape(-1, 3)}
     for what, bad in others.items():
         with pytest.raises(ImportDataError, match="the catalogue directions are not these stars'"):
             check_identified(x, y, bad, f, (W - 1) / 2, (H - 1) / 2, what)
 
 
-def test_a_centroid_table_with_right_ascension_in_hours_is_refused_at_import(tmp_path):
+def test_a_centroid_table_with_angles_in_radians_is_refused_at_import(tmp_path):
     from tests.logs.test_importers import assert_clean_error, cli
 
     x, y, ref, f = _stars(16.0, (0, 0, 0), n=12)
-    ra, dec = (np.degrees(a) for a in unit_to_radec(ref))
+    ra, dec = unit_to_radec(ref)
     rows = ["frame,t_ns,x,y,flux,catalog_id,ra_deg,dec_deg"]
-    rows += [f"0,1000000000,{x[i]:.4f},{y[i]:.4f},100,{i + 1},{ra[i] / 15.0:.8f},{dec[i]:.8f}" for i in range(12)]
+    rows += [f"0,1000000000,{x[i]:.4f},{y[i]:.4f},100,{i + 1},{ra[i]:.8f},{dec[i]:.8f}" for i in range(12)]
     (tmp_path / "c.csv").write_text("\n".join(rows) + "\n")
     (tmp_path / "cam.yaml").write_text(f"width_px: {W}\nheight_px: {H}\nfocal_length_mm: 16.0\npixel_size_um: {PIXEL_MM * 1e3}\n")
     assert_clean_error(cli("import", "centroids", tmp_path / "c.csv", "--camera", tmp_path / "cam.yaml", "-o",
-                           tmp_path / "r.mcap"), "c.csv: frame 0 (line 2)", "not these stars'", "not hours")
+                           tmp_path / "r.mcap"), "c.csv: frame 0 (line 2)", "not these stars'", "radians")
