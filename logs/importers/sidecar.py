@@ -48,6 +48,7 @@ DEFAULT_FRAME_RATE_HZ = 1.0
 """Frame rate assumed when a sidecar gives neither timestamps nor a frame rate."""
 NOMINAL_PIXEL_SIZE_UM = 1.0
 """Pixel pitch written when only the field of view is known: only focal / pixel matters."""
+MIN_FRAME_SPACING_NS = 100_000  # frames under 0.1 ms apart (10 kHz): times in another unit
 MAX_PINHOLE_FIELD_DEG = 170.0  # a perspective (pinhole) lens with a wider diagonal field: units confused
 
 FITS_SUFFIXES = (".fits", ".fit", ".fts")
@@ -174,6 +175,11 @@ class TimestampsSpec(_Strict):
         given = [k for k in ("frame_rate_hz", "t0_ns", "csv") if getattr(self, k) is not None]
         if len(given) > 1:
             raise ValueError(f"give one of frame_rate_hz, t0_ns, csv (got {', '.join(given)})")
+        t = self.t0_ns or []
+        gaps = sorted(b - a for a, b in zip(t, t[1:]))
+        if gaps and 0 < gaps[len(gaps) // 2] < MIN_FRAME_SPACING_NS:  # order is checked with the images
+            raise ValueError(f"t0_ns: frames {gaps[len(gaps) // 2]} ns apart (median): t0_ns holds integer "
+                             "nanoseconds (these look like seconds or milliseconds; 1 s is 1000000000)")
         return self
 
 

@@ -689,3 +689,16 @@ def test_centroid_csv_with_no_positive_flux_is_said(tmp_path):
     (tmp_path / "c.csv").write_text("frame,t_ns,x,y,flux\n0,0,10,10,-5\n0,0,20,30,0\n")
     with pytest.warns(UserWarning, match="column 'flux' holds no positive value"):
         import_centroids(tmp_path / "c.csv", tmp_path / "r.mcap", CSV_CAMERA)
+
+
+@pytest.mark.parametrize("times", ["[1.0, 2.0, 3.0]", "[1000, 2000, 3000]"])
+def test_sidecar_frame_times_in_seconds_or_milliseconds_are_refused_naming_the_unit(tmp_path, times):
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    for k in range(3):
+        Image.fromarray(np.zeros((30, 40), dtype=np.uint8)).save(folder / f"f{k}.png")
+    (folder / "recording.yaml").write_text(f"camera: {{width_px: 40, height_px: 30, fov_deg: 10}}\ntimestamps: {{t0_ns: {times}}}\n")
+    from rollingstar.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"recording.yaml: timestamps: t0_ns: frames .* ns apart \(median\): t0_ns holds integer"):
+        import_images(folder, tmp_path / "r.mcap")
