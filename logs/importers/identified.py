@@ -15,7 +15,10 @@ the rotation that best takes them to the catalogue directions (Kabsch's SVD) the
   identifications short of half neither pull it nor set the figure.
 
 Frames of fewer than :data:`MIN_STARS` identified stars are not judged. The limits are set for no
-refusal of legitimate data, measured in scratch by a reviewer and in the tests: lenses that are
+refusal of legitimate data. The figures below were measured with scripts outside the repository
+(a reviewer's sweep; no command here reproduces them); tests/logs/test_identified_checks.py checks
+a subset (distorted 3.6-16 mm lenses with wrong identifications, 160 deg fisheyes, mirrors,
+shuffled rows, angles in radians) and tests/logs/test_corr_checks.py the creusot tables: lenses that are
 no pinhole (3.6-8 mm with k1 to -0.4, fisheyes to 160 deg, stars in one corner, a focal length
 25 % off) leave at most 0.41 of the spread; wrong identifications up to 45 % leave at most 0.17;
 a rolling shutter whose readout sweeps 60 % of a 1 deg field leaves 0.68; the creusot tables leave
@@ -30,17 +33,12 @@ from __future__ import annotations
 import numpy as np
 
 from rollingstar.logs.importers.common import ImportDataError
+from rollingstar.sensors.camera import PinholeCamera
 
 MAX_RESIDUAL_SPREAD = 0.8  # median distance left by the best rotation over the stars' median spread
 MIRROR_GAIN = 0.25  # a reflection leaving less than this share of the rotation's residual: a mirror image
 MIN_STARS = 8  # fewer identified stars in a frame are not judged (a few points fit a wrong map by chance)
 TRIM_STEPS = 10  # C-steps of the trimmed fit, at most
-
-
-def _pinhole_directions(x: np.ndarray, y: np.ndarray, focal_px: float, cx: float, cy: float) -> np.ndarray:
-    """Unit camera vectors of pixel positions under a pinhole (docs/conventions.md, he2021b eq 2)."""
-    w = np.column_stack([-(x - cx), -(y - cy), np.full(x.shape, focal_px)])
-    return w / np.linalg.norm(w, axis=1, keepdims=True)
 
 
 def _rotation(w: np.ndarray, ref: np.ndarray, reflect: bool) -> np.ndarray:
@@ -75,7 +73,8 @@ def check_identified(x, y, ref, focal_px: float, cx: float, cy: float, where: st
     x, y, ref = x[ok], y[ok], ref[ok]
     if x.size < MIN_STARS or not (np.isfinite(focal_px) and focal_px > 0):
         return
-    w = _pinhole_directions(x, y, focal_px, cx, cy)
+    # the pinhole's own unprojection (the detector size does not enter it)
+    w = PinholeCamera(focal_px * 1e-6, 1e-6, int(2 * cx) + 1, int(2 * cy) + 1, cx=cx, cy=cy).unproject(x, y)
     mean = ref.mean(axis=0)
     spread = float(np.median(np.linalg.norm(ref - mean / max(np.linalg.norm(mean), 1e-300), axis=1)))
     if not spread > 1e-9:  # the stars at one direction: no geometry to judge
